@@ -1,0 +1,516 @@
+"""`simulate`: one jit-compiled loop for continuous, discrete and mixed systems.
+
+Each loop iteration (1) applies the discrete update if the time is a sample time,
+(2) attempts one solver step of the continuous state towards min(t + h, next sample time,
+tf), (3) if the step is accepted and an event guard crossed zero inside it, locates the
+crossing on the dense output and cuts the step there, (4) records the step's dense-output
+polynomial in the trajectory buffers.
+
+Events here are the switching instants of input limits. While a step is taken each input's
+saturation mode (free / at u_max / at u_min) is held fixed, so the right-hand side is smooth
+within a step and the error estimate is honest; the guards say when the mode must change.
+
+The loop is `equinox.internal.while_loop(kind="checkpointed")`: a plain while loop when
+run forward, with recursive checkpointing when reverse-mode differentiated, bounded by
+`max_steps` (`autodiff="reverse"`, the default). That loop is a custom VJP, which forward
+mode cannot enter: `autodiff="forward"` uses `lax.while_loop` instead, for `jax.jvp` /
+`jax.jacfwd`. Step sizes are not differentiated (the gradient is that of the discrete
+scheme on its grid); event times are, by the implicit function theorem, so gradients see
+the shift of a switching instant.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Callable
+
+import equinox as eqx
+import equinox.internal as eqxi
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..systems import System
+from ..trajectories import Trajectory
+from ..trajectories._trajectory import NUM_COEFFICIENTS, eval_polynomial
+from ._solvers import AbstractSolver, make_solver
+
+
+class SimulationStatus(enum.IntEnum):
+    """Why a simulation stopped. Anything but SUCCESS is a failure."""
+
+    SUCCESS = 0
+    MAX_STEPS_REACHED = 1
+    NONFINITE_STATE = 2
+    STEP_SIZE_TOO_SMALL = 3
+    TOO_MANY_EVENTS = 4
+    CONSTRAINT_PROJECTION_FAILED = 5
+
+
+_MESSAGES = {
+    SimulationStatus.MAX_STEPS_REACHED: "max_steps was reached before the final time "
+                                        "(raise max_steps, or loosen rtol / atol)",
+    SimulationStatus.NONFINITE_STATE: "the state became non-finite (NaN or inf)",
+    SimulationStatus.STEP_SIZE_TOO_SMALL: "the step size became too small (a singularity, or "
+                                          "a stiff system: try solver='rosenbrock23')",
+    SimulationStatus.TOO_MANY_EVENTS: "more than max_events events fired (Zeno behaviour or "
+                                      "chattering?)",
+    SimulationStatus.CONSTRAINT_PROJECTION_FAILED: "no state satisfying the state constraints "
+                                                   "phi(x) = 0 was found near x0",
+}
+
+
+class SimulationError(RuntimeError):
+    """A simulation ended with a failure status (raised by non-jitted `simulate` calls)."""
+
+    def __init__(self, status: SimulationStatus, message: str):
+        super().__init__(message)
+        self.status = status
+
+
+# ----- input sources -------------------------------------------------------------------------
+
+
+class _ZeroInput(eqx.Module):
+    num_inputs: int = eqx.field(static=True)
+    dtype: np.dtype = eqx.field(static=True)
+
+    def __call__(self, t):
+        return jnp.zeros(self.num_inputs, self.dtype)
+
+
+class _FunctionInput(eqx.Module):
+    fn: Callable = eqx.field(static=True)
+    num_inputs: int = eqx.field(static=True)
+
+    def __call__(self, t):
+        return jnp.reshape(jnp.asarray(self.fn(t), dtype=t.dtype), (self.num_inputs,))
+
+
+class _TrajectoryInput(eqx.Module):
+    trajectory: Trajectory
+    num_inputs: int = eqx.field(static=True)
+
+    def __call__(self, t):
+        return jnp.reshape(self.trajectory.eval(t), (self.num_inputs,)).astype(t.dtype)
+
+
+# ----- input limits as events ----------------------------------------------------------------
+
+
+def _saturated_input(system, u_raw, mode):
+    """u with each input held at its limit where its saturation mode says so (+1 high, -1 low)."""
+    if system.input_limits is None:
+        return u_raw
+    lo, hi = system.input_limits
+    return jnp.where(mode > 0, hi, jnp.where(mode < 0, lo, u_raw))
+
+
+def _initial_mode(system, u_raw):
+    if system.input_limits is None:
+        return jnp.zeros(system.num_inputs, jnp.int32)
+    lo, hi = system.input_limits
+    return jnp.where(u_raw >= hi, 1, jnp.where(u_raw <= lo, -1, 0)).astype(jnp.int32)
+
+
+def _limit_guards(system, u_raw, mode):
+    """Guards g = [g_high; g_low]; an event fires when a component crosses from < 0 to >= 0.
+
+    Free input: g_high = u - u_max, g_low = u_min - u. Saturated high: g_high = u_max - u
+    (leave the limit), g_low inactive; saturated low symmetrically.
+    """
+    lo, hi = system.input_limits
+    inactive = -jnp.ones_like(u_raw)
+    g_high = jnp.where(mode == 0, u_raw - hi, jnp.where(mode > 0, hi - u_raw, inactive))
+    g_low = jnp.where(mode == 0, lo - u_raw, jnp.where(mode < 0, u_raw - lo, inactive))
+    return jnp.concatenate([g_high, g_low])
+
+
+def _mode_after_event(mode, index, num_inputs):
+    i = index % num_inputs
+    entering = jnp.where(index < num_inputs, 1, -1)
+    return mode.at[i].set(jnp.where(mode[i] == 0, entering, 0))
+
+
+# ----- state constraints ---------------------------------------------------------------------
+
+
+def project_to_constraints(system: System, x, iterations: int = 20):
+    r"""Project x onto the manifold $\phi(x) = 0$ by Gauss-Newton with minimum-norm steps,
+    $x \leftarrow x - J^T (J J^T)^{-1} \phi(x)$, $J = \partial\phi/\partial x$ by autodiff."""
+    if system.num_state_constraints == 0:
+        return x
+
+    def gauss_newton(x, _):
+        phi = system.state_constraints(x)
+        J = jax.jacfwd(system.state_constraints)(x)
+        step = J.T @ jnp.linalg.solve(J @ J.T, phi)
+        return x - step, None
+
+    return jax.lax.scan(gauss_newton, x, None, length=iterations)[0]
+
+
+# ----- the loop ------------------------------------------------------------------------------
+
+
+def _rms(v):
+    return jnp.sqrt(jnp.mean(v * v)) if v.shape[0] else jnp.zeros((), v.dtype)
+
+
+@eqx.filter_jit
+def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, rtol, atol,
+                   dt0, dt_max, event_tol, max_steps: int, max_events: int, dense: bool,
+                   constraint_projection: bool, autodiff: str):
+    dtype = x0.dtype
+    nd, nc, nu = system.num_discrete_states, system.num_continuous_states, system.num_inputs
+    has_limits = system.input_limits is not None and nu > 0
+    num_guards = 2 * nu if has_limits else 0
+    eps = jnp.finfo(dtype).eps
+    period = None if system.sample_time is None else jnp.asarray(system.sample_time, dtype)
+
+    def u_of(t, mode):
+        return _saturated_input(system, source(t), mode)
+
+    def guards(t, x, mode):
+        return _limit_guards(system, source(t), mode)
+
+    status = jnp.asarray(SimulationStatus.SUCCESS, jnp.int32)
+    if system.num_state_constraints:
+        x0 = project_to_constraints(system, x0)
+        residual = jnp.max(jnp.abs(system.state_constraints(x0)))
+        status = jnp.where(residual <= jnp.sqrt(eps) * (1 + jnp.max(jnp.abs(x0))), status,
+                           SimulationStatus.CONSTRAINT_PROJECTION_FAILED)
+    mode0 = _initial_mode(system, source(t0))
+
+    def vector_field(xd, mode):
+        return lambda t, xc: system.dynamics(t, jnp.concatenate([xd, xc]), u_of(t, mode))
+
+    # Initial step size (Hairer, Norsett & Wanner, *Solving ODEs I*, II.4), or the fixed dt.
+    if not solver.adaptive:
+        h0 = dt0
+    elif dt0 is not None:
+        h0 = dt0
+    elif nc == 0:
+        h0 = tf - t0
+    else:
+        xd0, xc0 = x0[:nd], x0[nd:]
+        f = vector_field(xd0, mode0)
+        scale = atol + rtol * jnp.abs(xc0)
+        f0 = f(t0, xc0)
+        d0, d1 = _rms(xc0 / scale), _rms(f0 / scale)
+        h_a = jnp.where((d0 < 1e-5) | (d1 < 1e-5), 1e-6, 0.01 * d0 / jnp.where(d1 > 0, d1, 1))
+        f1 = f(t0 + h_a, xc0 + h_a * f0)
+        d2 = _rms((f1 - f0) / scale) / h_a
+        dmax = jnp.maximum(d1, d2)
+        h_b = jnp.where(dmax <= 1e-15, jnp.maximum(1e-6, h_a * 1e-3),
+                        (0.01 / jnp.where(dmax > 0, dmax, 1)) ** (1.0 / (solver.error_order + 1)))
+        h0 = jax.lax.stop_gradient(jnp.minimum(100 * h_a, h_b))
+    h0 = jnp.minimum(jnp.asarray(h0, dtype), dt_max)
+
+    size = max_steps + 1 if dense else 1
+    inf = jnp.asarray(jnp.inf, dtype)
+    first_piece = jnp.zeros((NUM_COEFFICIENTS, x0.shape[0]), dtype).at[0].set(x0)
+    carry = dict(
+        t=t0, x=x0, h=h0, mode=mode0,
+        sample=jnp.ceil(t0 / period) if period is not None else jnp.zeros((), dtype),
+        n=jnp.asarray(1), n_events=jnp.asarray(0), iters=jnp.asarray(0),
+        rejected=jnp.asarray(0), status=status,
+        seg_t0=jnp.full((size,), inf).at[0].set(t0),
+        seg_t1=jnp.full((size,), inf).at[0].set(t0),
+        seg_c=jnp.zeros((size, NUM_COEFFICIENTS, x0.shape[0]), dtype).at[0].set(first_piece),
+        ev_t=jnp.full((max_events,), inf), ev_i=jnp.full((max_events,), -1),
+    )
+
+    def cond(c):
+        return (c["status"] == SimulationStatus.SUCCESS) & (c["t"] < tf) & (c["iters"] < max_steps)
+
+    def body(c):
+        t, x, h, mode, status = c["t"], c["x"], c["h"], c["mode"], c["status"]
+
+        # (1) discrete update at the sample times {0, dt, 2dt, ...}: x_d(t + t') = f_d(t, x, u).
+        sample = c["sample"]
+        if period is not None:
+            t_sample = sample * period
+            at_sample = t >= t_sample
+            xd_next = system.update(t, x, u_of(t, mode))
+            x = jnp.where(at_sample, jnp.concatenate([xd_next, x[nd:]]), x)
+            sample = sample + at_sample
+            status = jnp.where(at_sample & ~jnp.all(jnp.isfinite(x)),
+                               SimulationStatus.NONFINITE_STATE, status)
+        xd, xc = x[:nd], x[nd:]
+
+        # (2) one step towards the next stopping point (snapping onto it when within rounding).
+        target = tf if period is None else jnp.minimum(tf, sample * period)
+        t_next = t + h
+        t_next = jnp.where(t_next >= target - (1e-6 * h + 64 * eps * jnp.abs(target)), target, t_next)
+        h_eff = t_next - t
+        if nc:
+            xc1, err, coef = solver.step(vector_field(xd, mode), t, h_eff, xc)
+        else:
+            xc1, err, coef = xc, None, jnp.zeros((NUM_COEFFICIENTS, 0), dtype)
+        finite = jnp.all(jnp.isfinite(xc1)) & jnp.all(jnp.isfinite(coef))
+        if err is not None:
+            scale = atol + rtol * jnp.maximum(jnp.abs(xc), jnp.abs(xc1))
+            err_norm = jax.lax.stop_gradient(_rms(err / scale))
+            accept = finite & (err_norm <= 1)
+        else:
+            err_norm = jnp.zeros((), dtype)
+            accept = finite
+        coef_d = jnp.zeros((NUM_COEFFICIENTS, nd), dtype).at[0].set(xd)
+        coef = jnp.concatenate([coef_d, coef], axis=1)
+        x1 = jnp.concatenate([xd, xc1])
+        t_end, x_end, event, which = t_next, x1, jnp.asarray(False), jnp.asarray(-1)
+
+        # (3) events: locate the earliest guard crossing inside an accepted step, cut the step there.
+        if num_guards:
+            g0, g1 = guards(t, x, mode), guards(t_next, x1, mode)
+            crossed = accept & (g0 < 0) & (g1 >= 0)
+            event = jnp.any(crossed)
+            theta_sg = _locate_crossings(jax.lax.stop_gradient((system, source)), crossed,
+                                         jax.lax.stop_gradient(coef), jax.lax.stop_gradient(t),
+                                         jax.lax.stop_gradient(h_eff), mode, event_tol)
+            which = jnp.argmin(theta_sg)
+            # one Newton step on the located root: theta* = theta - g / g', differentiable, so
+            # the event time moves with parameters and initial state (implicit function theorem)
+            g_of = lambda th: guards(t + th * h_eff, eval_polynomial(coef, th), mode)[which]
+            g_val, g_dot = jax.jvp(g_of, (theta_sg[which],), (jnp.ones((), dtype),))
+            g_dot = jax.lax.stop_gradient(g_dot)
+            newton = jnp.where(g_dot != 0, g_val / jnp.where(g_dot != 0, g_dot, 1), 0.0)
+            theta = jnp.where(event, jnp.clip(theta_sg[which] - newton, 0.0, 1.0), 1.0)
+            powers = theta ** jnp.arange(NUM_COEFFICIENTS, dtype=dtype)
+            coef = coef * powers[:, None]
+            t_end = jnp.where(event, t + theta * h_eff, t_next)
+            x_end = jnp.where(event, eval_polynomial(coef, 1.0), x1)
+            room = c["n_events"] < max_events
+            status = jnp.where(event & ~room, SimulationStatus.TOO_MANY_EVENTS, status)
+            event = event & room
+            mode = jnp.where(event, _mode_after_event(mode, which, nu), mode)
+
+        if constraint_projection and system.num_state_constraints:
+            x_end = project_to_constraints(system, x_end, iterations=3)
+
+        # (4) bookkeeping: step size, status, buffers.
+        if solver.adaptive:
+            q = solver.error_order + 1
+            factor = jnp.where(err_norm > 0, 0.9 * jnp.where(err_norm > 0, err_norm, 1) ** (-1.0 / q), 10.0)
+            factor = jnp.where(finite, jnp.clip(factor, 0.2, 10.0), 0.2)
+            h_new = jnp.where(accept & (h_eff < h), jnp.maximum(h, h_eff * factor), h_eff * factor)
+            h_new = jnp.minimum(h_new, dt_max)
+            tiny = ~accept & (h_new <= 16 * eps * jnp.maximum(jnp.abs(t), 1.0))
+            status = jnp.where(tiny, jnp.where(finite, SimulationStatus.STEP_SIZE_TOO_SMALL,
+                                               SimulationStatus.NONFINITE_STATE), status)
+        else:
+            h_new = h
+            status = jnp.where(finite, status, SimulationStatus.NONFINITE_STATE)
+        accept = accept & (status == SimulationStatus.SUCCESS)
+
+        def write(buffer, index, value, pred):
+            if autodiff == "reverse":  # equinox's checkpointed buffers take a predicate
+                return buffer.at[index].set(value, pred=pred)
+            return buffer.at[index].set(jnp.where(pred, value, buffer[index]))
+
+        n, n_events = c["n"], c["n_events"]
+        out = dict(c, h=jax.lax.stop_gradient(h_new), mode=mode, sample=sample, status=status,
+                   t=jnp.where(accept, t_end, t), x=jnp.where(accept, x_end, x),
+                   iters=c["iters"] + 1, rejected=c["rejected"] + (~accept),
+                   n=n + (accept if dense else 0), n_events=n_events + (accept & event))
+        if dense:
+            out["seg_t0"] = write(c["seg_t0"], n, t, accept)
+            out["seg_t1"] = write(c["seg_t1"], n, t_end, accept)
+            out["seg_c"] = write(c["seg_c"], n, coef, accept)
+        if num_guards:
+            out["ev_t"] = write(c["ev_t"], n_events, t_end, accept & event)
+            out["ev_i"] = write(c["ev_i"], n_events, which, accept & event)
+        return out
+
+    if autodiff == "forward":
+        c = jax.lax.while_loop(cond, body, carry)
+    else:
+        c = eqxi.while_loop(cond, body, carry, max_steps=max_steps, kind="checkpointed",
+                        buffers=lambda c: (c["seg_t0"], c["seg_t1"], c["seg_c"], c["ev_t"], c["ev_i"]))
+    status = jnp.where((c["status"] == SimulationStatus.SUCCESS) & (c["t"] < tf),
+                       SimulationStatus.MAX_STEPS_REACHED, c["status"])
+    seg_t0, seg_t1, seg_c, n = c["seg_t0"], c["seg_t1"], c["seg_c"], c["n"]
+    if not dense:  # keep the initial point and the final state only
+        last = jnp.zeros((1, NUM_COEFFICIENTS, x0.shape[0]), dtype).at[0, 0].set(c["x"])
+        seg_t0 = jnp.concatenate([seg_t0, c["t"][None]])
+        seg_t1 = jnp.concatenate([seg_t1, c["t"][None]])
+        seg_c, n = jnp.concatenate([seg_c, last]), jnp.asarray(2)
+    return Trajectory(t_start=seg_t0, t_end=seg_t1, coefficients=seg_c, num_segments=n,
+                      t_final=c["t"], status=status, event_times=c["ev_t"],
+                      event_indices=c["ev_i"], num_events=c["n_events"],
+                      num_rejected_steps=c["rejected"], system=system, inputs=source,
+                      side="left", dense=dense)
+
+
+def _locate_crossings(system_and_source, crossed, coef, t, h, mode, tol):
+    """Bisection on theta in [0, 1] for every crossed guard (others get +inf): the smallest
+    theta found with g >= 0, to within `tol` in time. Not differentiated (see the Newton step)."""
+    system, source = system_and_source
+
+    def guard_at(theta, index):
+        return _limit_guards(system, source(t + theta * h), mode)[index]
+
+    indices = jnp.arange(crossed.shape[0])
+    lo = jnp.where(crossed, 0.0, 1.0).astype(coef.dtype)
+    hi = jnp.ones_like(lo)
+
+    def not_done(state):
+        lo, hi, k = state
+        return (jnp.max(hi - lo) * h > tol) & (k < 200)
+
+    def bisect(state):
+        lo, hi, k = state
+        mid = (lo + hi) / 2
+        above = jax.vmap(guard_at)(mid, indices) >= 0
+        return jnp.where(above, lo, mid), jnp.where(above, mid, hi), k + 1
+
+    lo, hi, _ = jax.lax.while_loop(not_done, bisect, (lo, hi, 0))
+    return jnp.where(crossed, hi, jnp.inf)
+
+
+# ----- the public entry point ----------------------------------------------------------------
+
+
+def simulate(system: System, tspan, x0=None, *, inputs=None, solver="dopri5", rtol=1e-6,
+             atol=1e-9, dt=None, max_step_size=None, max_steps: int = 4096,
+             max_events: int = 256, event_tol=1e-10, dense: bool = True,
+             constraint_projection: bool = False, autodiff: str = "reverse",
+             throw: bool = True) -> Trajectory:
+    """Simulate a system over `tspan = (t0, tf)` (the notes' `simulate(sys, [t0 tf], x0)`).
+
+    **Arguments:**
+
+    - `system`: a `jaxdrake.System`.
+    - `tspan`: `(t0, tf)` with t0 < tf.
+    - `x0`: initial state, shape (num_states,) (a scalar for one state); None takes
+      `system.initial_state()`. With state constraints it is first projected onto phi(x) = 0.
+    - `inputs`: a `Trajectory` (input tape) or a function of time returning u(t); None means
+      u = 0, as in the notes. Input limits of the system saturate it.
+    - `solver`: `"dopri5"` (adaptive, default), `"rosenbrock23"` (adaptive, for stiff
+      systems), `"rk4"` or `"euler"` (fixed step `dt`), or a solver instance.
+    - `rtol`, `atol`: tolerances of the adaptive solvers; `dt`: the fixed step (or the first
+      step of an adaptive one); `max_step_size`: an upper bound on steps.
+    - `max_steps`: the bound on loop iterations (accepted + rejected steps) and the size of
+      the trajectory buffers; `max_events`: the bound on events (Zeno protection).
+    - `event_tol`: the time tolerance to which event instants are located.
+    - `dense`: keep the dense output (else only the final state, for big batches).
+    - `constraint_projection`: project the state onto phi(x) = 0 after every step.
+    - `autodiff`: `"reverse"` (default; `jax.grad` works, through a checkpointed loop) or
+      `"forward"` (`jax.jvp` / `jax.jacfwd` work, `jax.grad` does not).
+    - `throw`: outside `jit` / `vmap`, raise `SimulationError` on failure; inside, the
+      status is on the result (`traj.status`, `traj.success`) either way.
+
+    **Returns:** a `Trajectory`.
+    """
+    if not isinstance(system, System):
+        raise TypeError(f"simulate needs a jaxdrake.System, got {type(system).__name__}")
+    solver = make_solver(solver)
+    try:
+        t0, tf = tspan
+    except (TypeError, ValueError):
+        raise ValueError(f"tspan must be a pair (t0, tf), got {tspan!r}") from None
+    dtype = jnp.result_type(float)
+    if x0 is None:
+        x0 = system.initial_state()
+    x0 = jnp.asarray(x0)
+    dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else dtype
+    x0 = x0.astype(dtype)
+    nx = system.num_states
+    if x0.shape == () and nx == 1:
+        x0 = x0.reshape(1)
+    if x0.shape != (nx,):
+        raise ValueError(f"x0 has shape {x0.shape}, but {system.name}'s state frame "
+                         f"{system.state_frame} needs shape ({nx},)")
+    t0, tf = jnp.asarray(t0, dtype), jnp.asarray(tf, dtype)
+    if _concrete(t0, tf) and not (np.isfinite(t0) and np.isfinite(tf) and tf > t0):
+        raise ValueError(f"tspan must be finite with t0 < tf, got ({float(t0)}, {float(tf)})")
+    if _concrete(x0) and not np.all(np.isfinite(x0)):
+        raise ValueError(f"x0 is not finite: {x0}")
+    source = _make_source(system, inputs, t0, dtype)
+    _check_system_shapes(system, t0, x0, source)
+    if not solver.adaptive and dt is None:
+        raise ValueError(f"the fixed-step solver {type(solver).__name__} needs a step size dt")
+    for name, v in (("rtol", rtol), ("atol", atol), ("dt", dt), ("max_step_size", max_step_size),
+                    ("event_tol", event_tol)):
+        if v is not None and _concrete(v) and not float(v) > 0:
+            raise ValueError(f"{name} must be positive, got {v}")
+    if autodiff not in ("reverse", "forward"):
+        raise ValueError(f"autodiff must be 'reverse' or 'forward', got {autodiff!r}")
+    if not (isinstance(max_steps, int) and max_steps > 0):
+        raise ValueError(f"max_steps must be a positive int, got {max_steps!r}")
+
+    arr = lambda v: None if v is None else jnp.asarray(v, dtype)
+    system = _leaves_to_arrays(system, dtype)
+    traj = _simulate_core(system, solver, t0, tf, x0, source, arr(rtol), arr(atol), arr(dt),
+                          arr(jnp.inf if max_step_size is None else max_step_size),
+                          arr(event_tol), max_steps, max_events, dense, constraint_projection,
+                          autodiff)
+    if throw and _concrete(traj.status) and int(traj.status) != SimulationStatus.SUCCESS:
+        status = SimulationStatus(int(traj.status))
+        raise SimulationError(status, f"simulating {system.name} over [{float(t0)}, {float(tf)}] "
+                                      f"stopped at t = {float(traj.t_final)!r}: {_MESSAGES[status]}")
+    return traj
+
+
+def _concrete(*values) -> bool:
+    return not any(isinstance(v, jax.core.Tracer) for v in jax.tree.leaves(values))
+
+
+def _leaves_to_arrays(tree, dtype):
+    """Python floats and numpy arrays in a system become JAX arrays: traced, not static, so
+    changing a parameter's value does not recompile."""
+    def convert(v):
+        if isinstance(v, float) or (isinstance(v, np.ndarray) and np.issubdtype(v.dtype, np.floating)):
+            return jnp.asarray(v, dtype)
+        if isinstance(v, jax.Array) and jnp.issubdtype(v.dtype, jnp.floating):
+            return v.astype(dtype)
+        return v
+    return jax.tree.map(convert, tree)
+
+
+def _make_source(system, inputs, t0, dtype):
+    nu = system.num_inputs
+    if inputs is None:
+        return _ZeroInput(nu, np.dtype(dtype))
+    if nu == 0:
+        raise ValueError(f"{system.name} has no inputs, but inputs were given")
+    if isinstance(inputs, Trajectory):
+        source = _TrajectoryInput(_leaves_to_arrays(inputs, dtype), nu)
+    elif callable(inputs):
+        source = _FunctionInput(inputs, nu)
+    else:
+        raise TypeError(f"inputs must be a Trajectory or a function of time, got {type(inputs).__name__}")
+    raw = inputs.eval if isinstance(inputs, Trajectory) else inputs
+    try:
+        shape = jax.eval_shape(raw, t0).shape
+    except Exception as e:
+        raise ValueError(f"evaluating the inputs at t0 failed: {e}") from e
+    if shape not in ((nu,), ()) or (shape == () and nu != 1):
+        raise ValueError(f"inputs(t) returns shape {shape}, but {system.name}'s input frame "
+                         f"{system.input_frame} needs shape ({nu},)")
+    return source
+
+
+def _check_system_shapes(system, t0, x0, source):
+    """Trace each method once (shapes only) so that a wrong shape is a named Python error."""
+    u = jax.ShapeDtypeStruct((system.num_inputs,), x0.dtype)
+    expected = [("output", system.output, system.num_outputs, (t0, x0, u))]
+    if system.num_continuous_states:
+        expected.append(("dynamics", system.dynamics, system.num_continuous_states, (t0, x0, u)))
+    if system.num_discrete_states:
+        expected.append(("update", system.update, system.num_discrete_states, (t0, x0, u)))
+    if system.num_state_constraints:
+        expected.append(("state_constraints", system.state_constraints,
+                         system.num_state_constraints, (x0,)))
+    for name, method, size, args in expected:
+        try:
+            out = jax.eval_shape(method, *args)
+        except NotImplementedError:
+            raise
+        except Exception as e:
+            raise ValueError(f"{system.name}.{name} failed on a state of shape {x0.shape} and an "
+                             f"input of shape ({system.num_inputs},): {type(e).__name__}: {e}") from e
+        if getattr(out, "shape", None) != (size,):
+            raise ValueError(f"{system.name}.{name} returned shape {getattr(out, 'shape', type(out))}, "
+                             f"expected ({size},)")

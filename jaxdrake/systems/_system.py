@@ -1,0 +1,258 @@
+"""The System contract (notes, D.3.1): state-space systems as JAX pytrees.
+
+A system is an `equinox.Module`: its numeric parameters are pytree leaves (so `jax.grad`
+with respect to a mass or a gain works, and changing one does not recompile), while its
+structure -- sizes, sample time, flags, frames -- is static metadata fixed at construction.
+
+The state vector is laid out as in the notes, discrete part first: x = [x_d; x_c].
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._frame import Frame
+
+
+def _static(**kwargs):
+    return eqx.field(static=True, **kwargs)
+
+
+class System(eqx.Module):
+    r"""A dynamical system in state-space form (the notes' `DrakeSystem`).
+
+    Continuous part, discrete part (sample time $\Delta t$) and output:
+
+    $$\dot x_c = f_c(t, x, u), \qquad
+      x_d(t + t') = f_d(t, x, u)\ \ t \in \{0, \Delta t, 2\Delta t, \dots\},\ t' \in (0, \Delta t],
+      \qquad y = g(t, x, u),$$
+
+    with $x = [x_d; x_c]$, optional input limits $u_{min} \le u \le u_{max}$ (a saturation
+    applied to the input, whose switching instants the simulator locates as events) and
+    optional state constraints $\phi(x) = 0$ that the system announces.
+
+    Write a system by subclassing and overriding `dynamics` (continuous), `update` (discrete),
+    `output` and `initial_state`, calling `super().__init__(...)` with the sizes; or build one
+    from plain functions with `System.from_functions`.
+
+    **Arguments** (all keyword):
+
+    - `num_continuous_states`, `num_discrete_states`, `num_inputs`: sizes.
+    - `num_outputs`: defaults to the number of states (and `output` defaults to y = x).
+    - `sample_time`: $\Delta t$ of the discrete state; defaults to 1 when there is one.
+    - `direct_feedthrough`: whether the output depends on u (default: conservatively True).
+    - `time_invariant`: whether dynamics, update and output ignore t (default False).
+    - `num_state_constraints`: the size of $\phi(x)$ returned by `state_constraints`.
+    - `input_limits`: `(u_min, u_max)`, each a vector of size `num_inputs` (±inf allowed).
+    - `input_frame`, `state_frame`, `output_frame`: `Frame`s naming the coordinates.
+    """
+
+    num_continuous_states: int = _static(default=0)
+    num_discrete_states: int = _static(default=0)
+    num_inputs: int = _static(default=0)
+    num_outputs: int = _static(default=None)
+    sample_time: float | None = _static(default=None)
+    direct_feedthrough: bool = _static(default=True)
+    time_invariant: bool = _static(default=False)
+    num_state_constraints: int = _static(default=0)
+    input_frame: Frame = _static(default=None)
+    state_frame: Frame = _static(default=None)
+    output_frame: Frame = _static(default=None)
+    input_limits: tuple[Any, Any] | None = None
+
+    def __init__(self, *, num_continuous_states: int = 0, num_discrete_states: int = 0,
+                 num_inputs: int = 0, num_outputs: int | None = None,
+                 sample_time: float | None = None, direct_feedthrough: bool = True,
+                 time_invariant: bool = False, num_state_constraints: int = 0,
+                 input_limits: tuple[Any, Any] | None = None, input_frame: Frame | None = None,
+                 state_frame: Frame | None = None, output_frame: Frame | None = None):
+        name = type(self).__name__
+        for label, n in (("num_continuous_states", num_continuous_states),
+                         ("num_discrete_states", num_discrete_states),
+                         ("num_inputs", num_inputs), ("num_state_constraints", num_state_constraints)):
+            if not isinstance(n, (int, np.integer)) or n < 0:
+                raise ValueError(f"{name}: {label} must be a non-negative int, got {n!r}")
+        num_states = num_continuous_states + num_discrete_states
+        num_outputs = num_states if num_outputs is None else num_outputs
+        if num_discrete_states > 0 and sample_time is None:
+            sample_time = 1.0
+        if sample_time is not None:
+            sample_time = float(sample_time)
+            if not (sample_time > 0 and np.isfinite(sample_time)):
+                raise ValueError(f"{name}: sample_time must be positive and finite, got {sample_time}")
+            if num_discrete_states == 0:
+                raise ValueError(f"{name}: a sample_time was given but the system has no discrete state")
+        self.num_continuous_states = int(num_continuous_states)
+        self.num_discrete_states = int(num_discrete_states)
+        self.num_inputs = int(num_inputs)
+        self.num_outputs = int(num_outputs)
+        self.sample_time = sample_time
+        self.direct_feedthrough = bool(direct_feedthrough)
+        self.time_invariant = bool(time_invariant)
+        self.num_state_constraints = int(num_state_constraints)
+        self.input_frame = _check_frame(input_frame, name, "input", self.num_inputs, "u")
+        self.state_frame = _check_frame(state_frame, name, "state", num_states, "x")
+        self.output_frame = _check_frame(output_frame, name, "output", self.num_outputs, "y")
+        self.input_limits = _check_limits(input_limits, name, self.num_inputs)
+
+    # ----- the methods a system writer overrides -------------------------------------------
+
+    def dynamics(self, t, x, u):
+        """Time derivative of the continuous state, $\\dot x_c = f_c(t, x, u)$."""
+        raise NotImplementedError(f"{self.name} has continuous states but does not define dynamics()")
+
+    def update(self, t, x, u):
+        """Next discrete state $x_d^+ = f_d(t, x, u)$, evaluated at the sample times."""
+        raise NotImplementedError(f"{self.name} has discrete states but does not define update()")
+
+    def output(self, t, x, u):
+        """Output $y = g(t, x, u)$; the default is the full state."""
+        if self.num_outputs != self.num_states:
+            raise NotImplementedError(
+                f"{self.name} has {self.num_outputs} outputs but {self.num_states} states "
+                "and does not define output()")
+        return x
+
+    def initial_state(self):
+        """The state used when `simulate` is given no x0 (the notes' default: zeros)."""
+        return jnp.zeros(self.num_states)
+
+    def state_constraints(self, x):
+        """Announced constraints $\\phi(x) = 0$ (size `num_state_constraints`)."""
+        if self.num_state_constraints:
+            raise NotImplementedError(
+                f"{self.name} declares {self.num_state_constraints} state constraints "
+                "but does not define state_constraints()")
+        return jnp.zeros(0, dtype=jnp.asarray(x).dtype)
+
+    # ----- derived facts --------------------------------------------------------------------
+
+    @property
+    def name(self) -> str:
+        return type(self).__name__
+
+    @property
+    def num_states(self) -> int:
+        return self.num_continuous_states + self.num_discrete_states
+
+    @property
+    def has_continuous_state(self) -> bool:
+        return self.num_continuous_states > 0
+
+    @property
+    def has_discrete_state(self) -> bool:
+        return self.num_discrete_states > 0
+
+    def split_state(self, x):
+        """Split x = [x_d; x_c] into (x_d, x_c)."""
+        return x[..., : self.num_discrete_states], x[..., self.num_discrete_states:]
+
+    def saturate(self, u):
+        """Apply the input limits: clip u to [u_min, u_max] (identity without limits)."""
+        if self.input_limits is None:
+            return u
+        return jnp.clip(u, self.input_limits[0], self.input_limits[1])
+
+    def with_input_limits(self, u_min, u_max) -> "System":
+        """A copy of this system with input limits u_min <= u <= u_max (the notes' setInputLimits)."""
+        limits = _check_limits((u_min, u_max), self.name, self.num_inputs)
+        return eqx.tree_at(lambda s: s.input_limits, self, limits, is_leaf=lambda v: v is None)
+
+    @classmethod
+    def from_functions(cls, dynamics: Callable | None = None, update: Callable | None = None,
+                       output: Callable | None = None, *, num_states: int,
+                       num_inputs: int = 0, num_discrete_states: int | None = None,
+                       params: Any = None, initial_state: Any = None, **kwargs) -> "FunctionSystem":
+        """Build a system from plain functions.
+
+        `dynamics(t, x, u)` makes a continuous system, `update(t, x, u)` (with `sample_time`)
+        a discrete one, both a mixed one (then give `num_discrete_states`). If `params` (any
+        pytree; its arrays are leaves of the system) is given, each function is called as
+        `f(t, x, u, params)`. Other keyword arguments are those of `System`.
+        """
+        if dynamics is None and update is None:
+            raise ValueError("from_functions needs dynamics (continuous) and/or update (discrete)")
+        if num_discrete_states is None:
+            if dynamics is not None and update is not None:
+                raise ValueError("a mixed system (dynamics and update) needs num_discrete_states")
+            num_discrete_states = num_states if dynamics is None else 0
+        return FunctionSystem(dynamics, update, output, params=params, initial_state=initial_state,
+                              num_continuous_states=num_states - num_discrete_states,
+                              num_discrete_states=num_discrete_states, num_inputs=num_inputs, **kwargs)
+
+
+class FunctionSystem(System):
+    """A system whose dynamics, update and output are plain functions (see `System.from_functions`)."""
+
+    dynamics_fn: Callable | None = _static(default=None)
+    update_fn: Callable | None = _static(default=None)
+    output_fn: Callable | None = _static(default=None)
+    params: Any = None
+    x0: Any = None
+
+    def __init__(self, dynamics_fn=None, update_fn=None, output_fn=None, *, params=None,
+                 initial_state=None, **kwargs):
+        self.dynamics_fn = dynamics_fn
+        self.update_fn = update_fn
+        self.output_fn = output_fn
+        self.params = params
+        self.x0 = None if initial_state is None else jnp.asarray(initial_state)
+        super().__init__(**kwargs)
+
+    def _call(self, fn, t, x, u):
+        return fn(t, x, u) if self.params is None else fn(t, x, u, self.params)
+
+    def dynamics(self, t, x, u):
+        if self.dynamics_fn is None:
+            return super().dynamics(t, x, u)
+        return self._call(self.dynamics_fn, t, x, u)
+
+    def update(self, t, x, u):
+        if self.update_fn is None:
+            return super().update(t, x, u)
+        return self._call(self.update_fn, t, x, u)
+
+    def output(self, t, x, u):
+        if self.output_fn is None:
+            return super().output(t, x, u)
+        return self._call(self.output_fn, t, x, u)
+
+    def initial_state(self):
+        return super().initial_state() if self.x0 is None else self.x0
+
+
+def _check_frame(frame, system_name, role, size, prefix):
+    if frame is None:
+        return Frame.default(f"{system_name}{role.capitalize()}", size, prefix)
+    if not isinstance(frame, Frame):
+        raise TypeError(f"{system_name}: {role}_frame must be a jaxdrake.Frame, got {type(frame).__name__}")
+    if frame.dim != size:
+        raise ValueError(f"{system_name}: {role} frame {frame} has {frame.dim} coordinates "
+                         f"but the system has {size} {role}s")
+    return frame
+
+
+def _check_limits(limits, system_name, num_inputs):
+    if limits is None:
+        return None
+    try:
+        lo, hi = limits
+    except (TypeError, ValueError):
+        raise ValueError(f"{system_name}: input_limits must be a pair (u_min, u_max)") from None
+    bounds = []
+    for label, v in (("u_min", lo), ("u_max", hi)):
+        v = jnp.asarray(v, dtype=float)
+        if v.shape not in ((), (num_inputs,)):
+            raise ValueError(f"{system_name}: input limit {label} must be a scalar or have shape "
+                             f"({num_inputs},), got shape {v.shape}")
+        bounds.append(jnp.broadcast_to(v, (num_inputs,)))
+    lo, hi = bounds
+    if not any(isinstance(v, jax.core.Tracer) for v in bounds) and np.any(np.asarray(lo) > np.asarray(hi)):
+        raise ValueError(f"{system_name}: input limits need u_min <= u_max, got {lo} and {hi}")
+    return (lo, hi)
