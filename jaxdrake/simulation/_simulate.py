@@ -71,7 +71,20 @@ class SimulationError(RuntimeError):
 # ----- input sources -------------------------------------------------------------------------
 
 
-class _ZeroInput(eqx.Module):
+class _InputSource(eqx.Module):
+    """u(t) for the loop. A source with breakpoints (an input tape) makes the loop stop a
+    step at each one and, within a step, evaluates only the piece the step started in, so a
+    jump or kink of the input never falls inside a step."""
+
+    def next_breakpoint(self, t):
+        return jnp.asarray(jnp.inf, t.dtype)
+
+    def on_step(self, t):
+        """u(s) for s in the step starting at t."""
+        return self
+
+
+class _ZeroInput(_InputSource):
     num_inputs: int = eqx.field(static=True)
     dtype: np.dtype = eqx.field(static=True)
 
@@ -79,7 +92,7 @@ class _ZeroInput(eqx.Module):
         return jnp.zeros(self.num_inputs, self.dtype)
 
 
-class _FunctionInput(eqx.Module):
+class _FunctionInput(_InputSource):
     fn: Callable = eqx.field(static=True)
     num_inputs: int = eqx.field(static=True)
 
@@ -87,12 +100,23 @@ class _FunctionInput(eqx.Module):
         return jnp.reshape(jnp.asarray(self.fn(t), dtype=t.dtype), (self.num_inputs,))
 
 
-class _TrajectoryInput(eqx.Module):
+class _TrajectoryInput(_InputSource):
     trajectory: Trajectory
     num_inputs: int = eqx.field(static=True)
+    piece: jax.Array | None = None
 
     def __call__(self, t):
-        return jnp.reshape(self.trajectory.eval(t), (self.num_inputs,)).astype(t.dtype)
+        traj = self.trajectory
+        y = traj.eval(t) if self.piece is None else traj.eval_piece(self.piece, t)
+        return jnp.reshape(y, (self.num_inputs,)).astype(t.dtype)
+
+    def next_breakpoint(self, t):
+        ends = self.trajectory.t_end
+        valid = (jnp.arange(ends.shape[0]) < self.trajectory.num_segments) & (ends > t)
+        return jnp.min(jnp.where(valid, ends, jnp.inf)).astype(t.dtype)
+
+    def on_step(self, t):
+        return _TrajectoryInput(self.trajectory, self.num_inputs, self.trajectory.piece_index(t))
 
 
 # ----- input limits as events ----------------------------------------------------------------
@@ -168,10 +192,10 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
     eps = jnp.finfo(dtype).eps
     period = None if system.sample_time is None else jnp.asarray(system.sample_time, dtype)
 
-    def u_of(t, mode):
+    def u_of(t, mode, source=source):
         return _saturated_input(system, source(t), mode)
 
-    def guards(t, x, mode):
+    def guards(t, x, mode, source):
         return _limit_guards(system, source(t), mode)
 
     status = jnp.asarray(SimulationStatus.SUCCESS, jnp.int32)
@@ -180,10 +204,10 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
         residual = jnp.max(jnp.abs(system.state_constraints(x0)))
         status = jnp.where(residual <= jnp.sqrt(eps) * (1 + jnp.max(jnp.abs(x0))), status,
                            SimulationStatus.CONSTRAINT_PROJECTION_FAILED)
-    mode0 = _initial_mode(system, source(t0))
+    mode0 = _initial_mode(system, source.on_step(t0)(t0))
 
-    def vector_field(xd, mode):
-        return lambda t, xc: system.dynamics(t, jnp.concatenate([xd, xc]), u_of(t, mode))
+    def vector_field(xd, mode, source=source):
+        return lambda t, xc: system.dynamics(t, jnp.concatenate([xd, xc]), u_of(t, mode, source))
 
     # Initial step size (Hairer, Norsett & Wanner, *Solving ODEs I*, II.4), or the fixed dt.
     if not solver.adaptive:
@@ -194,7 +218,7 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
         h0 = tf - t0
     else:
         xd0, xc0 = x0[:nd], x0[nd:]
-        f = vector_field(xd0, mode0)
+        f = vector_field(xd0, mode0, source.on_step(t0))
         scale = atol + rtol * jnp.abs(xc0)
         f0 = f(t0, xc0)
         d0, d1 = _rms(xc0 / scale), _rms(f0 / scale)
@@ -214,7 +238,7 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
         t=t0, x=x0, h=h0, mode=mode0,
         sample=jnp.ceil(t0 / period) if period is not None else jnp.zeros((), dtype),
         n=jnp.asarray(1), n_events=jnp.asarray(0), iters=jnp.asarray(0),
-        rejected=jnp.asarray(0), status=status,
+        rejected=jnp.asarray(0), status=status, at_breakpoint=jnp.asarray(False),
         seg_t0=jnp.full((size,), inf).at[0].set(t0),
         seg_t1=jnp.full((size,), inf).at[0].set(t0),
         seg_c=jnp.zeros((size, NUM_COEFFICIENTS, x0.shape[0]), dtype).at[0].set(first_piece),
@@ -238,14 +262,21 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
             status = jnp.where(at_sample & ~jnp.all(jnp.isfinite(x)),
                                SimulationStatus.NONFINITE_STATE, status)
         xd, xc = x[:nd], x[nd:]
+        step_source = source.on_step(t)
+        if num_guards:  # after a breakpoint of an input tape, u may have jumped past a limit
+            mode = jnp.where(c["at_breakpoint"], _initial_mode(system, step_source(t)), mode)
 
-        # (2) one step towards the next stopping point (snapping onto it when within rounding).
-        target = tf if period is None else jnp.minimum(tf, sample * period)
+        # (2) one step towards the next stopping point (snapping onto it when within rounding):
+        # the final time, the next sample time, the next breakpoint of the input.
+        breakpoint_ = source.next_breakpoint(t)
+        target = jnp.minimum(tf, breakpoint_)
+        if period is not None:
+            target = jnp.minimum(target, sample * period)
         t_next = t + h
         t_next = jnp.where(t_next >= target - (1e-6 * h + 64 * eps * jnp.abs(target)), target, t_next)
         h_eff = t_next - t
         if nc:
-            xc1, err, coef = solver.step(vector_field(xd, mode), t, h_eff, xc)
+            xc1, err, coef = solver.step(vector_field(xd, mode, step_source), t, h_eff, xc)
         else:
             xc1, err, coef = xc, None, jnp.zeros((NUM_COEFFICIENTS, 0), dtype)
         finite = jnp.all(jnp.isfinite(xc1)) & jnp.all(jnp.isfinite(coef))
@@ -263,16 +294,16 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
 
         # (3) events: locate the earliest guard crossing inside an accepted step, cut the step there.
         if num_guards:
-            g0, g1 = guards(t, x, mode), guards(t_next, x1, mode)
+            g0, g1 = guards(t, x, mode, step_source), guards(t_next, x1, mode, step_source)
             crossed = accept & (g0 < 0) & (g1 >= 0)
             event = jnp.any(crossed)
-            theta_sg = _locate_crossings(jax.lax.stop_gradient((system, source)), crossed,
+            theta_sg = _locate_crossings(jax.lax.stop_gradient((system, step_source)), crossed,
                                          jax.lax.stop_gradient(coef), jax.lax.stop_gradient(t),
                                          jax.lax.stop_gradient(h_eff), mode, event_tol)
             which = jnp.argmin(theta_sg)
             # one Newton step on the located root: theta* = theta - g / g', differentiable, so
             # the event time moves with parameters and initial state (implicit function theorem)
-            g_of = lambda th: guards(t + th * h_eff, eval_polynomial(coef, th), mode)[which]
+            g_of = lambda th: guards(t + th * h_eff, eval_polynomial(coef, th), mode, step_source)[which]
             g_val, g_dot = jax.jvp(g_of, (theta_sg[which],), (jnp.ones((), dtype),))
             g_dot = jax.lax.stop_gradient(g_dot)
             newton = jnp.where(g_dot != 0, g_val / jnp.where(g_dot != 0, g_dot, 1), 0.0)
@@ -313,6 +344,7 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
         out = dict(c, h=jax.lax.stop_gradient(h_new), mode=mode, sample=sample, status=status,
                    t=jnp.where(accept, t_end, t), x=jnp.where(accept, x_end, x),
                    iters=c["iters"] + 1, rejected=c["rejected"] + (~accept),
+                   at_breakpoint=jnp.where(accept, ~event & (t_end >= breakpoint_), c["at_breakpoint"]),
                    n=n + (accept if dense else 0), n_events=n_events + (accept & event))
         if dense:
             out["seg_t0"] = write(c["seg_t0"], n, t, accept)

@@ -120,14 +120,27 @@ class Trajectory(eqx.Module):
             return jax.vmap(fn)(t)
         raise ValueError(f"times must be a scalar or a 1-D array, got shape {t.shape}")
 
-    def _state_at(self, t, side):
-        last = self.num_segments - 1
-        i = jnp.clip(jnp.searchsorted(self.t_end, t, side=side), 0, last)
+    def piece_index(self, t, side: str = "right"):
+        """The index of the piece holding time t (at a breakpoint: the piece after it for
+        `side="right"`, before it for `"left"`)."""
+        return jnp.clip(jnp.searchsorted(self.t_end, t, side=side), 0, self.num_segments - 1)
+
+    def _state_in_piece(self, i, t):
         t0, t1 = self.t_start[i], self.t_end[i]
         width = t1 - t0
         safe = jnp.where(width > 0, width, 1.0)  # zero-length pieces are constants
         theta = jnp.clip(jnp.where(width > 0, (t - t0) / safe, 0.0), 0.0, 1.0)
         return eval_polynomial(self.coefficients[i], theta)
+
+    def _state_at(self, t, side):
+        return self._state_in_piece(self.piece_index(t, side), t)
+
+    def eval_piece(self, i, t):
+        """The output at time t computed from piece i alone (its one-sided limits at its ends)."""
+        x = self._state_in_piece(i, t)
+        if self.system is None:
+            return x
+        return self.system.output(t, x, self.system.saturate(self.inputs(t)))
 
     def state(self, t, side: str | None = None):
         """The state x(t) (shape (n,), or (len(t), n) for an array of times)."""

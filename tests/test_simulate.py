@@ -1,0 +1,154 @@
+"""simulate(): closed forms, invariants, stiff systems, timing of discrete updates."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+import jaxdrake as jd
+from jaxdrake.models import (Pendulum, SimpleCTExample, SimpleDTExample, SimpleMixedCTDTExample,
+                             VanDerPol)
+
+
+def simple_ct_closed_form(x0, t):
+    """xdot = -x + x^3: x(t) = x0 / sqrt(x0^2 + (1 - x0^2) e^{2t})."""
+    return x0 / np.sqrt(x0**2 + (1 - x0**2) * np.exp(2 * t))
+
+
+def test_simple_ct_matches_closed_form_between_steps():
+    traj = jd.simulate(SimpleCTExample(), (0.0, 10.0), 0.99, rtol=1e-10, atol=1e-14)
+    ts = np.linspace(0.0, 10.0, 1001)  # mostly between the solver's steps
+    assert traj.num_steps < 500
+    np.testing.assert_allclose(np.asarray(traj.eval(ts))[:, 0], simple_ct_closed_form(0.99, ts),
+                               rtol=1e-8)
+    # a single time, and the final state
+    np.testing.assert_allclose(traj.eval(3.3), [simple_ct_closed_form(0.99, 3.3)], rtol=1e-8)
+    np.testing.assert_allclose(traj.final_state, [simple_ct_closed_form(0.99, 10.0)], rtol=1e-8)
+
+
+def test_simple_dt_is_exact():
+    traj = jd.simulate(SimpleDTExample(), (0.0, 10.0), 0.99)
+    x = np.float64(0.99)
+    for n in range(11):
+        # x[n] holds on (n - 1, n]; at t = n the left limit is x[n]. Bit for bit the iterated
+        # map, and the closed form x0^(3^n) up to the rounding that cubing amplifies (3^n ulp).
+        assert float(traj.eval(float(n))[0]) == x
+        assert float(traj.eval(float(n))[0]) == pytest.approx(0.99 ** (3**n), rel=3**n * 2e-16)
+        x = x * x * x
+        if n < 10:
+            assert float(traj.eval(n + 0.5)[0]) == x
+
+
+def test_mixed_system_updates_at_the_sample_times():
+    """x1(t + t') = x1(t)^3 for t in {0, 1, 2, ...}, t' in (0, 1]; x2 follows SimpleCT."""
+    x0 = np.array([0.9, 0.5])
+    traj = jd.simulate(SimpleMixedCTDTExample(), (0.0, 4.0), x0, rtol=1e-10, atol=1e-14)
+    ts = np.array([0.0, 1e-9, 0.25, 0.999, 1.0, 1.0 + 1e-9, 2.5, 3.0, 3.75, 4.0])
+    x = np.asarray(traj.state(ts))
+    periods = np.ceil(ts)  # number of updates applied by time t: t in (k-1, k] -> k
+    np.testing.assert_allclose(x[:, 0], 0.9 ** (3.0**periods), rtol=1e-14)
+    np.testing.assert_allclose(x[:, 1], simple_ct_closed_form(0.5, ts), rtol=1e-8)
+    # the right limit at a sample time already holds the update made there
+    np.testing.assert_allclose(traj.state(1.0, side="right")[0], 0.9**9, rtol=1e-14)
+
+
+def test_pendulum_conserves_energy():
+    p = Pendulum(b=0.0)
+    x0 = jnp.array([2.5, 0.0])  # a large swing: strongly nonlinear
+    traj = jd.simulate(p, (0.0, 10.0), x0, rtol=1e-12, atol=1e-12, max_steps=8192)
+    ts = np.linspace(0, 10, 501)
+    energy = np.asarray(p.energy(traj.state(ts)))
+    assert np.max(np.abs(energy - energy[0])) < 1e-9 * abs(energy[0])
+
+
+def test_pendulum_matches_scipy_with_damping_and_input():
+    p = Pendulum(m=1.3, l=0.7, b=0.25)
+    u = lambda t: jnp.array([0.5 * jnp.sin(2 * t)])
+    traj = jd.simulate(p, (0.0, 5.0), jnp.array([1.0, -0.5]), inputs=u, rtol=1e-11, atol=1e-12)
+
+    def f(t, x):
+        return [x[1], (0.5 * np.sin(2 * t) - 0.25 * x[1] - 1.3 * 9.81 * 0.7 * np.sin(x[0])) / (1.3 * 0.49)]
+
+    ref = solve_ivp(f, (0, 5), [1.0, -0.5], method="DOP853", rtol=1e-13, atol=1e-13, dense_output=True)
+    ts = np.linspace(0, 5, 77)
+    np.testing.assert_allclose(np.asarray(traj.state(ts)), ref.sol(ts).T, rtol=1e-8, atol=1e-9)
+
+
+def test_stiff_van_der_pol_with_rosenbrock():
+    mu = 1000.0
+    traj = jd.simulate(VanDerPol(mu), (0.0, 3000.0), jnp.array([2.0, 0.0]), solver="rosenbrock23",
+                       rtol=1e-4, atol=1e-6, max_steps=4096)
+    assert traj.num_steps < 2000  # an explicit method would need millions of steps here
+    ref = solve_ivp(lambda t, x: [x[1], mu * (1 - x[0] ** 2) * x[1] - x[0]], (0, 3000), [2.0, 0.0],
+                    method="Radau", rtol=1e-10, atol=1e-12, dense_output=True)
+    ts = np.array([100.0, 500.0, 1000.0, 2500.0])  # away from the fast jumps
+    np.testing.assert_allclose(np.asarray(traj.state(ts))[:, 0], ref.sol(ts)[0], rtol=1e-3)
+    # Dopri5 on the same problem runs out of steps: the status says so
+    with pytest.raises(jd.SimulationError, match="max_steps"):
+        jd.simulate(VanDerPol(mu), (0.0, 3000.0), jnp.array([2.0, 0.0]), max_steps=500)
+
+
+@pytest.mark.parametrize("solver,dt,order", [("euler", 1e-3, 1), ("rk4", 5e-2, 4)])
+def test_fixed_step_solvers_converge_at_their_order(solver, dt, order):
+    sys = SimpleCTExample()
+    errors = []
+    for h in (dt, dt / 2):
+        traj = jd.simulate(sys, (0.0, 2.0), 0.5, solver=solver, dt=h)
+        errors.append(abs(float(traj.final_state[0]) - simple_ct_closed_form(0.5, 2.0)))
+    assert np.log2(errors[0] / errors[1]) == pytest.approx(order, abs=0.15)
+
+
+def test_initial_state_defaults_to_the_system_and_zero_input():
+    sys = jd.System.from_functions(dynamics=lambda t, x, u: -x + u, num_states=1, num_inputs=1,
+                                   initial_state=[2.0])
+    traj = jd.simulate(sys, (0.0, 1.0), rtol=1e-10, atol=1e-12)  # x0 from the system, u = 0
+    np.testing.assert_allclose(traj.final_state, [2.0 * np.exp(-1.0)], rtol=1e-9)
+
+
+def test_trajectory_as_input_tape():
+    # xdot = u with a first-order-hold input tape through (0, 0), (1, 2), (2, 0): x(2) = 2
+    tape = jd.Trajectory.from_samples([0.0, 1.0, 2.0], [0.0, 2.0, 0.0])
+    np.testing.assert_allclose(tape.eval(0.25), [0.5])
+    sys = jd.System.from_functions(dynamics=lambda t, x, u: u, num_states=1, num_inputs=1)
+    traj = jd.simulate(sys, (0.0, 2.0), 0.0, inputs=tape, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(traj.state(1.0), [1.0], rtol=1e-9)
+    np.testing.assert_allclose(traj.final_state, [2.0], rtol=1e-9)
+    np.testing.assert_allclose(traj.input(0.5), [1.0])
+    # zero-order hold
+    zoh = jd.Trajectory.from_samples([0.0, 1.0, 2.0], [1.0, -1.0, 3.0], interpolation="zoh")
+    np.testing.assert_allclose(zoh.eval(jnp.array([0.0, 0.5, 1.0, 1.5, 2.0, 2.5])),
+                               [[1.0], [1.0], [-1.0], [-1.0], [3.0], [3.0]])
+
+
+def test_linear_system_with_feedthrough_output_between_steps():
+    A, B, C, D = -1.0, 1.0, 2.0, 0.5
+    sys = jd.LinearSystem([[A]], [[B]], [[C]], [[D]])
+    u = lambda t: jnp.array([jnp.cos(t)])
+    traj = jd.simulate(sys, (0.0, 4.0), 1.0, inputs=u, rtol=1e-11, atol=1e-13)
+    # xdot = -x + cos t: x = e^{-t} (x0 - 1/2) + (cos t + sin t)/2
+    for t in (0.3, 1.7, 3.9):
+        x = np.exp(-t) * 0.5 + (np.cos(t) + np.sin(t)) / 2
+        np.testing.assert_allclose(traj.eval(t), [C * x + D * np.cos(t)], rtol=1e-9)
+
+
+def test_plot_draws_every_output(tmp_path):
+    traj = jd.simulate(Pendulum(), (0.0, 2.0), jnp.array([1.0, 0.0]))
+    fig = traj.plot()
+    ax = fig.axes[0]
+    assert [line.get_label() for line in ax.get_lines()] == ["theta", "thetadot"]
+    xs, ys = ax.get_lines()[0].get_data()
+    np.testing.assert_allclose(ys, np.asarray(traj.eval(jnp.asarray(xs)))[:, 0])
+    fig.savefig(tmp_path / "pendulum.png")
+    dt = jd.simulate(SimpleDTExample(), (0.0, 5.0), 0.99).plot()
+    assert len(dt.axes[0].get_lines()) == 2  # the held value and a dot per sample
+
+
+def test_float32_runs():
+    ref = jd.simulate(Pendulum(), (0.0, 2.0), jnp.array([1.0, 0.0]), rtol=1e-10, atol=1e-12)
+    with jax.enable_x64(False):
+        x0 = jnp.array([1.0, 0.0], dtype=jnp.float32)
+        traj = jd.simulate(Pendulum(), (0.0, 2.0), x0, rtol=1e-5, atol=1e-6)
+        final = traj.final_state
+        assert final.dtype == jnp.float32 and traj.eval(1.0).dtype == jnp.float32
+    np.testing.assert_allclose(final, ref.final_state, rtol=1e-3, atol=1e-4)
