@@ -304,11 +304,12 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
             # one Newton step on the located root: theta* = theta - g / g', differentiable, so
             # the event time moves with parameters and initial state (implicit function theorem)
             g_of = lambda th: guards(t + th * h_eff, eval_polynomial(coef, th), mode, step_source)[which]
-            g_val, g_dot = jax.jvp(g_of, (theta_sg[which],), (jnp.ones((), dtype),))
+            theta_located = jnp.where(event, theta_sg[which], 1.0)  # finite even without event
+            g_val, g_dot = jax.jvp(g_of, (theta_located,), (jnp.ones((), dtype),))
             g_dot = jax.lax.stop_gradient(g_dot)
             newton = jnp.where(g_dot != 0, g_val / jnp.where(g_dot != 0, g_dot, 1), 0.0)
-            theta = jnp.where(event, jnp.clip(theta_sg[which] - newton, 0.0, 1.0), 1.0)
-            powers = theta ** jnp.arange(NUM_COEFFICIENTS, dtype=dtype)
+            theta = jnp.where(event, jnp.clip(theta_located - newton, 0.0, 1.0), 1.0)
+            powers = jnp.cumprod(jnp.concatenate([jnp.ones(1, dtype), jnp.full(NUM_COEFFICIENTS - 1, theta)]))
             coef = coef * powers[:, None]
             t_end = jnp.where(event, t + theta * h_eff, t_next)
             x_end = jnp.where(event, eval_polynomial(coef, 1.0), x1)
@@ -318,7 +319,9 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
             mode = jnp.where(event, _mode_after_event(mode, which, nu), mode)
 
         if constraint_projection and system.num_state_constraints:
-            x_end = project_to_constraints(system, x_end, iterations=3)
+            x_projected = project_to_constraints(system, x_end, iterations=3)
+            coef = coef.at[1].add(x_projected - x_end)  # keep the dense output continuous
+            x_end = x_projected
 
         # (4) bookkeeping: step size, status, buffers.
         if solver.adaptive:
