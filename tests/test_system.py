@@ -79,6 +79,7 @@ def test_construction_errors_name_the_problem():
 def test_frames_default_and_lookup():
     sys = SimpleCTExample()
     assert sys.state_frame.name == "SimpleCTExampleState" and sys.state_frame.coordinates == ("x0",)
+    assert sys.input_frame.dim == 0 and sys.output_frame.coordinates == ("x",)
     assert Pendulum().state_frame.index("thetadot") == 1
     with pytest.raises(KeyError, match="no coordinate 'phi'"):
         Pendulum().state_frame.index("phi")

@@ -41,7 +41,7 @@ class SimpleCTExample(System):
 
     def __init__(self):
         super().__init__(num_continuous_states=1, num_outputs=1, direct_feedthrough=False,
-                         time_invariant=True)
+                         time_invariant=True, output_frame=Frame("SimpleCTOutput", ("x",)))
 
     def dynamics(self, t, x, u):
         return -x + x**3
@@ -55,7 +55,8 @@ class SimpleDTExample(System):
 
     def __init__(self):
         super().__init__(num_discrete_states=1, num_outputs=1, direct_feedthrough=False,
-                         time_invariant=True, sample_time=1.0)
+                         time_invariant=True, sample_time=1.0,
+                         output_frame=Frame("SimpleDTOutput", ("x",)))
 
     def update(self, t, x, u):
         return x**3
@@ -69,8 +70,10 @@ class SimpleMixedCTDTExample(System):
     $t' \in (0, 1]$, and $\dot x_2 = -x_2 + x_2^3$; state $[x_1; x_2]$ (discrete first), $y = x$."""
 
     def __init__(self):
+        state = Frame("SimpleMixedState", ("x1", "x2"))
         super().__init__(num_continuous_states=1, num_discrete_states=1, num_outputs=2,
-                         direct_feedthrough=False, time_invariant=True, sample_time=1.0)
+                         direct_feedthrough=False, time_invariant=True, sample_time=1.0,
+                         state_frame=state, output_frame=state)
 
     def update(self, t, x, u):
         return x[:1] ** 3

@@ -339,9 +339,7 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
         accept = accept & (status == SimulationStatus.SUCCESS)
 
         def write(buffer, index, value, pred):
-            if autodiff == "reverse":  # equinox's checkpointed buffers take a predicate
-                return buffer.at[index].set(value, pred=pred)
-            return buffer.at[index].set(jnp.where(pred, value, buffer[index]))
+            return buffer.at[index].set(value, pred=pred)
 
         n, n_events = c["n"], c["n_events"]
         out = dict(c, h=jax.lax.stop_gradient(h_new), mode=mode, sample=sample, status=status,
@@ -358,10 +356,10 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
             out["ev_i"] = write(c["ev_i"], n_events, which, accept & event)
         return out
 
-    if autodiff == "forward":
-        c = jax.lax.while_loop(cond, body, carry)
-    else:
-        c = eqxi.while_loop(cond, body, carry, max_steps=max_steps, kind="checkpointed",
+    # Buffers are written in place (under vmap too, where a plain while loop would copy them
+    # whole every iteration).
+    c = eqxi.while_loop(cond, body, carry, max_steps=max_steps,
+                        kind="lax" if autodiff == "forward" else "checkpointed",
                         buffers=lambda c: (c["seg_t0"], c["seg_t1"], c["seg_c"], c["ev_t"], c["ev_i"]))
     status = jnp.where((c["status"] == SimulationStatus.SUCCESS) & (c["t"] < tf),
                        SimulationStatus.MAX_STEPS_REACHED, c["status"])

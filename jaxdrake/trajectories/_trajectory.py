@@ -222,7 +222,7 @@ class Trajectory(eqx.Module):
         """Plot outputs against time with matplotlib (the notes' `fnplt`); returns the figure.
 
         `outputs`: indices or coordinate names of the outputs to draw (default all).
-        Discrete-time outputs are drawn as held values with a dot at each sample.
+        Outputs of discrete-time systems are drawn as held values with a dot at each sample.
         """
         import matplotlib.pyplot as plt
 
@@ -236,7 +236,8 @@ class Trajectory(eqx.Module):
         if outputs is None:
             outputs = range(ys.shape[1])
         idx = [names.index(o) if isinstance(o, str) else int(o) for o in outputs]
-        discrete = self.system is not None and self.system.has_discrete_state
+        discrete = (self.system is not None and self.system.has_discrete_state
+                    and not self.system.has_continuous_state)
         for i in idx:
             line, = ax.plot(ts, ys[:, i], label=names[i], **kwargs)
             if discrete:
