@@ -76,6 +76,8 @@ class _InputSource(eqx.Module):
     step at each one and, within a step, evaluates only the piece the step started in, so a
     jump or kink of the input never falls inside a step."""
 
+    has_breakpoints = False
+
     def next_breakpoint(self, t):
         return jnp.asarray(jnp.inf, t.dtype)
 
@@ -104,6 +106,7 @@ class _TrajectoryInput(_InputSource):
     trajectory: Trajectory
     num_inputs: int = eqx.field(static=True)
     piece: jax.Array | None = None
+    has_breakpoints = True
 
     def __call__(self, t):
         traj = self.trajectory
@@ -244,6 +247,13 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
         seg_c=jnp.zeros((size, NUM_COEFFICIENTS, x0.shape[0]), dtype).at[0].set(first_piece),
         ev_t=jnp.full((max_events,), inf), ev_i=jnp.full((max_events,), -1),
     )
+    # First-same-as-last: the solver's last stage is the next step's first, unless something
+    # can change the vector field between steps (a discrete update, a saturation switch, a
+    # projection, a new piece of an input tape): a static fact.
+    fsal = (solver.fsal and nc > 0 and nd == 0 and num_guards == 0 and not source.has_breakpoints
+            and not (constraint_projection and system.num_state_constraints))
+    if fsal:
+        carry["f0"] = vector_field(x0[:nd], mode0, source)(t0, x0[nd:])
 
     def cond(c):
         return (c["status"] == SimulationStatus.SUCCESS) & (c["t"] < tf) & (c["iters"] < max_steps)
@@ -276,7 +286,8 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
         t_next = jnp.where(t_next >= target - (1e-6 * h + 64 * eps * jnp.abs(target)), target, t_next)
         h_eff = t_next - t
         if nc:
-            xc1, err, coef = solver.step(vector_field(xd, mode, step_source), t, h_eff, xc)
+            xc1, err, coef, f1 = solver.step(vector_field(xd, mode, step_source), t, h_eff, xc,
+                                             c["f0"] if fsal else None)
         else:
             xc1, err, coef = xc, None, jnp.zeros((NUM_COEFFICIENTS, 0), dtype)
         finite = jnp.all(jnp.isfinite(xc1)) & jnp.all(jnp.isfinite(coef))
@@ -345,6 +356,7 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
         out = dict(c, h=jax.lax.stop_gradient(h_new), mode=mode, sample=sample, status=status,
                    t=jnp.where(accept, t_end, t), x=jnp.where(accept, x_end, x),
                    iters=c["iters"] + 1, rejected=c["rejected"] + (~accept),
+                   **({"f0": jnp.where(accept, f1, c["f0"])} if fsal else {}),
                    at_breakpoint=jnp.where(accept, ~event & (t_end >= breakpoint_), c["at_breakpoint"]),
                    n=n + (accept if dense else 0), n_events=n_events + (accept & event))
         if dense:

@@ -29,17 +29,20 @@ def _pad(coefficients):
 class AbstractSolver(eqx.Module):
     """A one-step method for $\\dot y = f(t, y)$.
 
-    `step(f, t0, h, y0)` returns `(y1, error_estimate, coefficients)`; `error_estimate` is
-    None for fixed-step methods. `error_order` q means the estimate is $O(h^{q+1})$, which
-    sets the exponent of the step-size controller.
+    `step(f, t0, h, y0, f0=None)` returns `(y1, error_estimate, coefficients, f1)`;
+    `error_estimate` is None for fixed-step methods. `error_order` q means the estimate is
+    $O(h^{q+1})$, which sets the exponent of the step-size controller. A method with `fsal`
+    ("first same as last") evaluates $f_1 = f(t_0 + h, y_1)$ anyway and returns it, and takes
+    it back as `f0` of the next step, saving one evaluation; others return None.
     """
 
     adaptive: ClassVar[bool]
     order: ClassVar[int]
     error_order: ClassVar[int]
+    fsal: ClassVar[bool] = False
 
     @abc.abstractmethod
-    def step(self, f, t0, h, y0):
+    def step(self, f, t0, h, y0, f0=None):
         ...
 
 
@@ -50,9 +53,9 @@ class Euler(AbstractSolver):
     order: ClassVar[int] = 1
     error_order: ClassVar[int] = 1
 
-    def step(self, f, t0, h, y0):
+    def step(self, f, t0, h, y0, f0=None):
         dy = h * f(t0, y0)
-        return y0 + dy, None, _pad([y0, dy])
+        return y0 + dy, None, _pad([y0, dy]), None
 
 
 class RK4(AbstractSolver):
@@ -67,7 +70,7 @@ class RK4(AbstractSolver):
     order: ClassVar[int] = 4
     error_order: ClassVar[int] = 4
 
-    def step(self, f, t0, h, y0):
+    def step(self, f, t0, h, y0, f0=None):
         k1 = f(t0, y0)
         k2 = f(t0 + h / 2, y0 + h / 2 * k1)
         k3 = f(t0 + h / 2, y0 + h / 2 * k2)
@@ -75,7 +78,7 @@ class RK4(AbstractSolver):
         y1 = y0 + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
         c2 = h * (-1.5 * k1 + k2 + k3 - 0.5 * k4)
         c3 = h * (2.0 / 3.0) * (k1 - k2 - k3 + k4)
-        return y1, None, _pad([y0, h * k1, c2, c3])
+        return y1, None, _pad([y0, h * k1, c2, c3]), None
 
 
 # Dormand & Prince (1980) tableau, and Shampine's dense-output weights as given by Hairer,
@@ -103,10 +106,11 @@ class Dopri5(AbstractSolver):
     adaptive: ClassVar[bool] = True
     order: ClassVar[int] = 5
     error_order: ClassVar[int] = 4
+    fsal: ClassVar[bool] = True
 
-    def step(self, f, t0, h, y0):
-        ks = []
-        for c, a in zip(_DP_C, _DP_A):
+    def step(self, f, t0, h, y0, f0=None):
+        ks = [] if f0 is None else [f0]
+        for c, a in zip(_DP_C[len(ks):], _DP_A[len(ks):]):
             yi = y0
             for aij, kj in zip(a, ks):
                 if aij != 0.0:
@@ -120,7 +124,7 @@ class Dopri5(AbstractSolver):
         r4 = r2 - h * ks[6] - r3
         r5 = h * sum(d * k for d, k in zip(_DP_D, ks) if d != 0.0)
         # y0 + th(r2 + (1-th)(r3 + th(r4 + (1-th) r5))) expanded in powers of th
-        return y1, err, _pad([y0, r2 + r3, r4 + r5 - r3, -(r4 + 2 * r5), r5])
+        return y1, err, _pad([y0, r2 + r3, r4 + r5 - r3, -(r4 + 2 * r5), r5]), ks[6]
 
 
 _ROS_D = 1.0 / (2.0 + np.sqrt(2.0))
@@ -142,7 +146,7 @@ class Rosenbrock23(AbstractSolver):
     order: ClassVar[int] = 2
     error_order: ClassVar[int] = 2
 
-    def step(self, f, t0, h, y0):
+    def step(self, f, t0, h, y0, f0=None):
         d = _ROS_D
         f0, dfdt = jax.jvp(lambda t: f(t, y0), (t0,), (jnp.ones_like(t0),))
         J = jax.jacfwd(lambda y: f(t0, y))(y0)
@@ -157,7 +161,7 @@ class Rosenbrock23(AbstractSolver):
         k3 = solve(f2 - _ROS_E32 * (k2 - f1) - 2.0 * (k1 - f0) + (h * d) * dfdt)
         err = (h / 6.0) * (k1 - 2.0 * k2 + k3)
         scale = h / (1.0 - 2.0 * d)
-        return y1, err, _pad([y0, scale * (k1 - 2.0 * d * k2), scale * (k2 - k1)])
+        return y1, err, _pad([y0, scale * (k1 - 2.0 * d * k2), scale * (k2 - k1)]), None
 
 
 SOLVERS = {"dopri5": Dopri5, "rk4": RK4, "euler": Euler, "rosenbrock23": Rosenbrock23}
