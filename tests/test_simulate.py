@@ -152,3 +152,19 @@ def test_float32_runs():
         final = traj.final_state
         assert final.dtype == jnp.float32 and traj.eval(1.0).dtype == jnp.float32
     np.testing.assert_allclose(final, ref.final_state, rtol=1e-3, atol=1e-4)
+
+
+def test_double_integrator_closed_form():
+    di = jd.models.DoubleIntegrator()
+    assert di.state_frame.coordinates == ("q", "qdot") and di.input_frame.coordinates == ("u",)
+    traj = jd.simulate(di, (0.0, 2.0), jnp.array([1.0, -0.5]), inputs=lambda t: jnp.array([0.75]),
+                       rtol=1e-12, atol=1e-12)
+    for t in (0.4, 1.3, 2.0):
+        np.testing.assert_allclose(traj.state(t), [1.0 - 0.5 * t + 0.375 * t**2, -0.5 + 0.75 * t], rtol=1e-11)
+
+
+def test_van_der_pol_limit_cycle_amplitude():
+    # for mu = 1 the limit cycle reaches |q| = 2.00861986 (the classical value)
+    traj = jd.simulate(VanDerPol(1.0), (0.0, 40.0), jnp.array([0.1, 0.0]), rtol=1e-10, atol=1e-12)
+    q = np.asarray(traj.state(np.linspace(30.0, 40.0, 20001)))[:, 0]
+    assert q.max() == pytest.approx(2.00861986, abs=1e-6)

@@ -290,7 +290,7 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
                                              c["f0"] if fsal else None)
         else:
             xc1, err, coef = xc, None, jnp.zeros((NUM_COEFFICIENTS, 0), dtype)
-        finite = jnp.all(jnp.isfinite(xc1)) & jnp.all(jnp.isfinite(coef))
+        finite = jnp.all(jnp.isfinite(xc1)) & (jnp.all(jnp.isfinite(coef)) if dense else True)
         if err is not None:
             scale = atol + rtol * jnp.maximum(jnp.abs(xc), jnp.abs(xc1))
             err_norm = jax.lax.stop_gradient(_rms(err / scale))
