@@ -164,7 +164,7 @@ def run(batch, gpu, repeats):
                 drake = drake_runner(name)
                 record("drake single", best_time(lambda: drake(x0s[0]), 20), drake(x0s[0])[None])
                 loop = lambda: np.stack([drake(x) for x in x0s])
-                record(f"drake loop over {batch}", best_time(loop, 1), loop())
+                record(f"drake loop over {batch}", best_time(loop, 3), loop())
             except ImportError:
                 print("  (drake not installed: skipped)")
             scipy_one = scipy_runner(problem["rhs"])
