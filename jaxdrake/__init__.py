@@ -2,10 +2,11 @@
 
 from . import models, simulation, systems, trajectories
 from .simulation import SimulationError, SimulationStatus, simulate
-from .systems import Frame, LinearSystem, System
+from .systems import Frame, HybridSystem, LinearSystem, System, Transition, and_guards, not_guard
 from .trajectories import Trajectory
 
 __version__ = "0.1.0"
 
-__all__ = ["Frame", "LinearSystem", "SimulationError", "SimulationStatus", "System",
-           "Trajectory", "models", "simulate", "simulation", "systems", "trajectories"]
+__all__ = ["Frame", "HybridSystem", "LinearSystem", "SimulationError", "SimulationStatus", "System",
+           "Trajectory", "Transition", "and_guards", "models", "not_guard", "simulate", "simulation",
+           "systems", "trajectories"]

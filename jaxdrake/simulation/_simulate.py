@@ -30,14 +30,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..systems import System
+from ..systems import HybridSystem, System
 from ..trajectories import Trajectory
 from ..trajectories._trajectory import NUM_COEFFICIENTS, eval_polynomial
 from ._solvers import AbstractSolver, make_solver
 
 
 class SimulationStatus(enum.IntEnum):
-    """Why a simulation stopped. Anything but SUCCESS is a failure."""
+    """Why a simulation stopped. SUCCESS and STOPPED_BY_RESET are not failures."""
 
     SUCCESS = 0
     MAX_STEPS_REACHED = 1
@@ -45,6 +45,7 @@ class SimulationStatus(enum.IntEnum):
     STEP_SIZE_TOO_SMALL = 3
     TOO_MANY_EVENTS = 4
     CONSTRAINT_PROJECTION_FAILED = 5
+    STOPPED_BY_RESET = 6  # a reset asked to stop (the notes' status): not a failure
 
 
 _MESSAGES = {
@@ -125,38 +126,38 @@ class _TrajectoryInput(_InputSource):
 # ----- input limits as events ----------------------------------------------------------------
 
 
-def _saturated_input(system, u_raw, mode):
+def _saturated_input(system, u_raw, saturation):
     """u with each input held at its limit where its saturation mode says so (+1 high, -1 low)."""
     if system.input_limits is None:
         return u_raw
     lo, hi = system.input_limits
-    return jnp.where(mode > 0, hi, jnp.where(mode < 0, lo, u_raw))
+    return jnp.where(saturation > 0, hi, jnp.where(saturation < 0, lo, u_raw))
 
 
-def _initial_mode(system, u_raw):
+def _initial_saturation(system, u_raw):
     if system.input_limits is None:
         return jnp.zeros(system.num_inputs, jnp.int32)
     lo, hi = system.input_limits
     return jnp.where(u_raw >= hi, 1, jnp.where(u_raw <= lo, -1, 0)).astype(jnp.int32)
 
 
-def _limit_guards(system, u_raw, mode):
-    """Guards g = [g_high; g_low]; an event fires when a component crosses from < 0 to >= 0.
+def _limit_guards(system, u_raw, saturation):
+    """Input-limit guards [g_high; g_low] (an event fires when one crosses from < 0 to >= 0).
 
     Free input: g_high = u - u_max, g_low = u_min - u. Saturated high: g_high = u_max - u
     (leave the limit), g_low inactive; saturated low symmetrically.
     """
     lo, hi = system.input_limits
     inactive = -jnp.ones_like(u_raw)
-    g_high = jnp.where(mode == 0, u_raw - hi, jnp.where(mode > 0, hi - u_raw, inactive))
-    g_low = jnp.where(mode == 0, lo - u_raw, jnp.where(mode < 0, u_raw - lo, inactive))
+    g_high = jnp.where(saturation == 0, u_raw - hi, jnp.where(saturation > 0, hi - u_raw, inactive))
+    g_low = jnp.where(saturation == 0, lo - u_raw, jnp.where(saturation < 0, u_raw - lo, inactive))
     return jnp.concatenate([g_high, g_low])
 
 
-def _mode_after_event(mode, index, num_inputs):
+def _saturation_after_event(saturation, index, num_inputs):
     i = index % num_inputs
     entering = jnp.where(index < num_inputs, 1, -1)
-    return mode.at[i].set(jnp.where(mode[i] == 0, entering, 0))
+    return saturation.at[i].set(jnp.where(saturation[i] == 0, entering, 0))
 
 
 # ----- state constraints ---------------------------------------------------------------------
@@ -189,17 +190,32 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
                    dt0, dt_max, event_tol, max_steps: int, max_events: int, dense: bool,
                    constraint_projection: bool, autodiff: str):
     dtype = x0.dtype
+    nx = x0.shape[0]
     nd, nc, nu = system.num_discrete_states, system.num_continuous_states, system.num_inputs
-    has_limits = system.input_limits is not None and nu > 0
-    num_guards = 2 * nu if has_limits else 0
+    num_limit_guards = 2 * nu if (system.input_limits is not None and nu > 0) else 0
+    num_transitions = len(system.transitions)
+    num_guards = num_limit_guards + num_transitions
     eps = jnp.finfo(dtype).eps
     period = None if system.sample_time is None else jnp.asarray(system.sample_time, dtype)
 
-    def u_of(t, mode, source=source):
-        return _saturated_input(system, source(t), mode)
+    def u_of(t, saturation, source=source):
+        return _saturated_input(system, source(t), saturation)
 
-    def guards(t, x, mode, source):
-        return _limit_guards(system, source(t), mode)
+    def guards(t, x, mode, saturation, source):
+        """All event functions in one vector, each firing when it crosses from < 0 to >= 0:
+        input limits first, then the transitions out of the active mode as -phi_k."""
+        u_raw = source(t)
+        parts = []
+        if num_limit_guards:
+            parts.append(_limit_guards(system, u_raw, saturation))
+        if num_transitions:
+            phi = system.transition_guards(mode, t, x, _saturated_input(system, u_raw, saturation))
+            parts.append(jnp.where(jnp.isfinite(phi), -phi, -1.0))
+        return jnp.concatenate(parts)
+
+    def vector_field(xd, mode, saturation, source=source):
+        return lambda t, xc: system.mode_dynamics(mode, t, jnp.concatenate([xd, xc]),
+                                                  u_of(t, saturation, source))
 
     status = jnp.asarray(SimulationStatus.SUCCESS, jnp.int32)
     if system.num_state_constraints:
@@ -207,10 +223,8 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
         residual = jnp.max(jnp.abs(system.state_constraints(x0)))
         status = jnp.where(residual <= jnp.sqrt(eps) * (1 + jnp.max(jnp.abs(x0))), status,
                            SimulationStatus.CONSTRAINT_PROJECTION_FAILED)
-    mode0 = _initial_mode(system, source.on_step(t0)(t0))
-
-    def vector_field(xd, mode, source=source):
-        return lambda t, xc: system.dynamics(t, jnp.concatenate([xd, xc]), u_of(t, mode, source))
+    mode0 = jnp.asarray(system.initial_mode, jnp.int32)
+    saturation0 = _initial_saturation(system, source.on_step(t0)(t0))
 
     # Initial step size (Hairer, Norsett & Wanner, *Solving ODEs I*, II.4), or the fixed dt.
     if not solver.adaptive:
@@ -221,7 +235,7 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
         h0 = tf - t0
     else:
         xd0, xc0 = x0[:nd], x0[nd:]
-        f = vector_field(xd0, mode0, source.on_step(t0))
+        f = vector_field(xd0, mode0, saturation0, source.on_step(t0))
         scale = atol + rtol * jnp.abs(xc0)
         f0 = f(t0, xc0)
         d0, d1 = _rms(xc0 / scale), _rms(f0 / scale)
@@ -236,45 +250,65 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
 
     size = max_steps + 1 if dense else 1
     inf = jnp.asarray(jnp.inf, dtype)
-    first_piece = jnp.zeros((NUM_COEFFICIENTS, x0.shape[0]), dtype).at[0].set(x0)
+    first_piece = jnp.zeros((NUM_COEFFICIENTS, nx), dtype).at[0].set(x0)
     carry = dict(
-        t=t0, x=x0, h=h0, mode=mode0,
+        t=t0, x=x0, h=h0, mode=mode0, saturation=saturation0,
         sample=jnp.ceil(t0 / period) if period is not None else jnp.zeros((), dtype),
         n=jnp.asarray(1), n_events=jnp.asarray(0), iters=jnp.asarray(0),
         rejected=jnp.asarray(0), status=status, at_breakpoint=jnp.asarray(False),
         seg_t0=jnp.full((size,), inf).at[0].set(t0),
         seg_t1=jnp.full((size,), inf).at[0].set(t0),
-        seg_c=jnp.zeros((size, NUM_COEFFICIENTS, x0.shape[0]), dtype).at[0].set(first_piece),
+        seg_c=jnp.zeros((size, NUM_COEFFICIENTS, nx), dtype).at[0].set(first_piece),
+        seg_mode=jnp.zeros((size,), jnp.int32).at[0].set(mode0),
         ev_t=jnp.full((max_events,), inf), ev_i=jnp.full((max_events,), -1),
+        ev_mode=jnp.full((max_events,), -1, jnp.int32), ev_x=jnp.zeros((max_events, nx), dtype),
     )
     # First-same-as-last: the solver's last stage is the next step's first, unless something
-    # can change the vector field between steps (a discrete update, a saturation switch, a
-    # projection, a new piece of an input tape): a static fact.
+    # can change the vector field between steps (a discrete update, an event, a projection, a
+    # new piece of an input tape): a static fact.
     fsal = (solver.fsal and nc > 0 and nd == 0 and num_guards == 0 and not source.has_breakpoints
             and not (constraint_projection and system.num_state_constraints))
     if fsal:
-        carry["f0"] = vector_field(x0[:nd], mode0, source)(t0, x0[nd:])
+        carry["f0"] = vector_field(x0[:nd], mode0, saturation0, source)(t0, x0[nd:])
 
     def cond(c):
         return (c["status"] == SimulationStatus.SUCCESS) & (c["t"] < tf) & (c["iters"] < max_steps)
 
     def body(c):
-        t, x, h, mode, status = c["t"], c["x"], c["h"], c["mode"], c["status"]
+        t, x, h, mode, saturation, status = (c["t"], c["x"], c["h"], c["mode"], c["saturation"],
+                                             c["status"])
+        n_events = c["n_events"]
+
+        # (0) a transition whose guard already holds fires at once, without a step (after a
+        # reset, or at t0): the notes' semantics, phi <= 0 triggers. One per iteration, the
+        # lowest-numbered first; a chattering system runs into max_events.
+        immediate = jnp.asarray(False)
+        if num_transitions:
+            u_now = u_of(t, saturation, source.on_step(t))
+            phi = system.transition_guards(mode, t, x, u_now)
+            ready = phi <= 0
+            immediate = jnp.any(ready) & (n_events < max_events)
+            status = jnp.where(jnp.any(ready) & ~immediate, SimulationStatus.TOO_MANY_EVENTS, status)
+            k_now = jnp.argmax(ready)
+            x_reset, mode_reset, stop_now = system.apply_transition(k_now, t, x, u_now)
+            x = jnp.where(immediate, x_reset, x)
+            mode = jnp.where(immediate, mode_reset, mode)
+            status = jnp.where(immediate & stop_now, SimulationStatus.STOPPED_BY_RESET, status)
 
         # (1) discrete update at the sample times {0, dt, 2dt, ...}: x_d(t + t') = f_d(t, x, u).
         sample = c["sample"]
         if period is not None:
-            t_sample = sample * period
-            at_sample = t >= t_sample
-            xd_next = system.update(t, x, u_of(t, mode))
+            at_sample = (t >= sample * period) & ~immediate
+            xd_next = system.mode_update(mode, t, x, u_of(t, saturation))
             x = jnp.where(at_sample, jnp.concatenate([xd_next, x[nd:]]), x)
             sample = sample + at_sample
             status = jnp.where(at_sample & ~jnp.all(jnp.isfinite(x)),
                                SimulationStatus.NONFINITE_STATE, status)
         xd, xc = x[:nd], x[nd:]
         step_source = source.on_step(t)
-        if num_guards:  # after a breakpoint of an input tape, u may have jumped past a limit
-            mode = jnp.where(c["at_breakpoint"], _initial_mode(system, step_source(t)), mode)
+        if num_limit_guards:  # after a breakpoint of an input tape, u may have jumped past a limit
+            saturation = jnp.where(c["at_breakpoint"], _initial_saturation(system, step_source(t)),
+                                   saturation)
 
         # (2) one step towards the next stopping point (snapping onto it when within rounding):
         # the final time, the next sample time, the next breakpoint of the input.
@@ -286,8 +320,8 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
         t_next = jnp.where(t_next >= target - (1e-6 * h + 64 * eps * jnp.abs(target)), target, t_next)
         h_eff = t_next - t
         if nc:
-            xc1, err, coef, f1 = solver.step(vector_field(xd, mode, step_source), t, h_eff, xc,
-                                             c["f0"] if fsal else None)
+            xc1, err, coef, f1 = solver.step(vector_field(xd, mode, saturation, step_source), t, h_eff,
+                                             xc, c["f0"] if fsal else None)
         else:
             xc1, err, coef = xc, None, jnp.zeros((NUM_COEFFICIENTS, 0), dtype)
         finite = jnp.all(jnp.isfinite(xc1)) & (jnp.all(jnp.isfinite(coef)) if dense else True)
@@ -298,24 +332,29 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
         else:
             err_norm = jnp.zeros((), dtype)
             accept = finite
+        accept = accept & ~immediate
         coef_d = jnp.zeros((NUM_COEFFICIENTS, nd), dtype).at[0].set(xd)
         coef = jnp.concatenate([coef_d, coef], axis=1)
         x1 = jnp.concatenate([xd, xc1])
         t_end, x_end, event, which = t_next, x1, jnp.asarray(False), jnp.asarray(-1)
+        stop = jnp.asarray(False)
 
-        # (3) events: locate the earliest guard crossing inside an accepted step, cut the step there.
+        # (3) events: locate the earliest guard crossing inside an accepted step, cut the step
+        # there, and switch a saturation or take a transition (reset, new mode).
         if num_guards:
-            g0, g1 = guards(t, x, mode, step_source), guards(t_next, x1, mode, step_source)
-            crossed = accept & (g0 < 0) & (g1 >= 0)
+            g_step = lambda tt, xx: guards(tt, xx, mode, saturation, step_source)
+            crossed = accept & (g_step(t, x) < 0) & (g_step(t_next, x1) >= 0)
             event = jnp.any(crossed)
-            theta_sg = _locate_crossings(jax.lax.stop_gradient((system, step_source)), crossed,
-                                         jax.lax.stop_gradient(coef), jax.lax.stop_gradient(t),
-                                         jax.lax.stop_gradient(h_eff), mode, event_tol)
-            which = jnp.argmin(theta_sg)
+            frozen = jax.lax.stop_gradient((coef, t, h_eff))
+            theta_sg = _locate_crossings(
+                lambda th: jax.lax.stop_gradient(g_step(frozen[1] + th * frozen[2], eval_polynomial(frozen[0], th))),
+                crossed, frozen[2], event_tol)
+            which = jnp.argmin(theta_sg)  # the earliest; ties go to the lowest index
             # one Newton step on the located root: theta* = theta - g / g', differentiable, so
-            # the event time moves with parameters and initial state (implicit function theorem)
-            g_of = lambda th: guards(t + th * h_eff, eval_polynomial(coef, th), mode, step_source)[which]
+            # the event time moves with parameters and initial state (implicit function theorem;
+            # with the reset's Jacobian this gives the saltation matrix's jump in sensitivities)
             theta_located = jnp.where(event, theta_sg[which], 1.0)  # finite even without event
+            g_of = lambda th: g_step(t + th * h_eff, eval_polynomial(coef, th))[which]
             g_val, g_dot = jax.jvp(g_of, (theta_located,), (jnp.ones((), dtype),))
             g_dot = jax.lax.stop_gradient(g_dot)
             newton = jnp.where(g_dot != 0, g_val / jnp.where(g_dot != 0, g_dot, 1), 0.0)
@@ -324,15 +363,28 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
             coef = coef * powers[:, None]
             t_end = jnp.where(event, t + theta * h_eff, t_next)
             x_end = jnp.where(event, eval_polynomial(coef, 1.0), x1)
-            room = c["n_events"] < max_events
+            room = n_events < max_events
             status = jnp.where(event & ~room, SimulationStatus.TOO_MANY_EVENTS, status)
             event = event & room
-            mode = jnp.where(event, _mode_after_event(mode, which, nu), mode)
+            if num_limit_guards:
+                is_limit = which < num_limit_guards
+                saturation = jnp.where(event & is_limit,
+                                       _saturation_after_event(saturation, which, nu), saturation)
+            if num_transitions:
+                k = jnp.clip(which - num_limit_guards, 0, num_transitions - 1)
+                is_transition = event & (which >= num_limit_guards)
+                x_reset, mode_reset, stop_reset = system.apply_transition(
+                    k, t_end, x_end, u_of(t_end, saturation, step_source))
+                x_after = jnp.where(is_transition, x_reset, x_end)
+                mode_after = jnp.where(is_transition, mode_reset, mode)
+                stop = is_transition & stop_reset
 
         if constraint_projection and system.num_state_constraints:
             x_projected = project_to_constraints(system, x_end, iterations=3)
             coef = coef.at[1].add(x_projected - x_end)  # keep the dense output continuous
             x_end = x_projected
+        if not num_transitions:
+            x_after, mode_after = x_end, mode
 
         # (4) bookkeeping: step size, status, buffers.
         if solver.adaptive:
@@ -340,64 +392,71 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
             factor = jnp.where(err_norm > 0, 0.9 * jnp.where(err_norm > 0, err_norm, 1) ** (-1.0 / q), 10.0)
             factor = jnp.where(finite, jnp.clip(factor, 0.2, 10.0), 0.2)
             h_new = jnp.where(accept & (h_eff < h), jnp.maximum(h, h_eff * factor), h_eff * factor)
-            h_new = jnp.minimum(h_new, dt_max)
-            tiny = ~accept & (h_new <= 16 * eps * jnp.maximum(jnp.abs(t), 1.0))
+            h_new = jnp.where(immediate, h, jnp.minimum(h_new, dt_max))
+            tiny = ~accept & ~immediate & (h_new <= 16 * eps * jnp.maximum(jnp.abs(t), 1.0))
             status = jnp.where(tiny, jnp.where(finite, SimulationStatus.STEP_SIZE_TOO_SMALL,
                                                SimulationStatus.NONFINITE_STATE), status)
         else:
             h_new = h
-            status = jnp.where(finite, status, SimulationStatus.NONFINITE_STATE)
-        accept = accept & (status == SimulationStatus.SUCCESS)
+            status = jnp.where(finite | immediate, status, SimulationStatus.NONFINITE_STATE)
+        ok = (status == SimulationStatus.SUCCESS) | (status == SimulationStatus.STOPPED_BY_RESET)
+        accept = accept & ok
+        status = jnp.where(accept & stop, SimulationStatus.STOPPED_BY_RESET, status)
+        recorded = (accept & event) | immediate
 
         def write(buffer, index, value, pred):
             return buffer.at[index].set(value, pred=pred)
 
-        n, n_events = c["n"], c["n_events"]
-        out = dict(c, h=jax.lax.stop_gradient(h_new), mode=mode, sample=sample, status=status,
-                   t=jnp.where(accept, t_end, t), x=jnp.where(accept, x_end, x),
-                   iters=c["iters"] + 1, rejected=c["rejected"] + (~accept),
-                   **({"f0": jnp.where(accept, f1, c["f0"])} if fsal else {}),
+        n = c["n"]
+        out = dict(c, h=jax.lax.stop_gradient(h_new), mode=jnp.where(accept, mode_after, mode),
+                   saturation=saturation, sample=sample, status=status,
+                   t=jnp.where(accept, t_end, t), x=jnp.where(accept, x_after, x),
+                   iters=c["iters"] + 1, rejected=c["rejected"] + (~accept & ~immediate),
                    at_breakpoint=jnp.where(accept, ~event & (t_end >= breakpoint_), c["at_breakpoint"]),
-                   n=n + (accept if dense else 0), n_events=n_events + (accept & event))
+                   n=n + (accept if dense else 0), n_events=n_events + recorded,
+                   **({"f0": jnp.where(accept, f1, c["f0"])} if fsal else {}))
         if dense:
             out["seg_t0"] = write(c["seg_t0"], n, t, accept)
             out["seg_t1"] = write(c["seg_t1"], n, t_end, accept)
             out["seg_c"] = write(c["seg_c"], n, coef, accept)
+            out["seg_mode"] = write(c["seg_mode"], n, mode, accept)
         if num_guards:
-            out["ev_t"] = write(c["ev_t"], n_events, t_end, accept & event)
-            out["ev_i"] = write(c["ev_i"], n_events, which, accept & event)
+            out["ev_t"] = write(c["ev_t"], n_events, jnp.where(immediate, t, t_end), recorded)
+            ev_index = jnp.where(immediate, num_limit_guards + (k_now if num_transitions else 0), which)
+            out["ev_i"] = write(c["ev_i"], n_events, ev_index, recorded)
+            out["ev_mode"] = write(c["ev_mode"], n_events, out["mode"], recorded)
+            out["ev_x"] = write(c["ev_x"], n_events, out["x"], recorded)
         return out
 
     # Buffers are written in place (under vmap too, where a plain while loop would copy them
     # whole every iteration).
     c = eqxi.while_loop(cond, body, carry, max_steps=max_steps,
                         kind="lax" if autodiff == "forward" else "checkpointed",
-                        buffers=lambda c: (c["seg_t0"], c["seg_t1"], c["seg_c"], c["ev_t"], c["ev_i"]))
+                        buffers=lambda c: (c["seg_t0"], c["seg_t1"], c["seg_c"], c["seg_mode"],
+                                           c["ev_t"], c["ev_i"], c["ev_mode"], c["ev_x"]))
     status = jnp.where((c["status"] == SimulationStatus.SUCCESS) & (c["t"] < tf),
                        SimulationStatus.MAX_STEPS_REACHED, c["status"])
-    seg_t0, seg_t1, seg_c, n = c["seg_t0"], c["seg_t1"], c["seg_c"], c["n"]
+    seg_t0, seg_t1, seg_c, seg_mode, n = c["seg_t0"], c["seg_t1"], c["seg_c"], c["seg_mode"], c["n"]
     if not dense:  # keep the initial point and the final state only
-        last = jnp.zeros((1, NUM_COEFFICIENTS, x0.shape[0]), dtype).at[0, 0].set(c["x"])
+        last = jnp.zeros((1, NUM_COEFFICIENTS, nx), dtype).at[0, 0].set(c["x"])
         seg_t0 = jnp.concatenate([seg_t0, c["t"][None]])
         seg_t1 = jnp.concatenate([seg_t1, c["t"][None]])
         seg_c, n = jnp.concatenate([seg_c, last]), jnp.asarray(2)
+        seg_mode = jnp.concatenate([seg_mode, c["mode"][None]])
     return Trajectory(t_start=seg_t0, t_end=seg_t1, coefficients=seg_c, num_segments=n,
                       t_final=c["t"], status=status, event_times=c["ev_t"],
                       event_indices=c["ev_i"], num_events=c["n_events"],
-                      num_rejected_steps=c["rejected"], system=system, inputs=source,
+                      num_rejected_steps=c["rejected"], modes=seg_mode, event_modes=c["ev_mode"],
+                      event_states=c["ev_x"], final_mode=c["mode"], system=system, inputs=source,
                       side="left", dense=dense)
 
 
-def _locate_crossings(system_and_source, crossed, coef, t, h, mode, tol):
+def _locate_crossings(guard_fn, crossed, h, tol):
     """Bisection on theta in [0, 1] for every crossed guard (others get +inf): the smallest
-    theta found with g >= 0, to within `tol` in time. Not differentiated (see the Newton step)."""
-    system, source = system_and_source
-
-    def guard_at(theta, index):
-        return _limit_guards(system, source(t + theta * h), mode)[index]
-
+    theta found with g >= 0, to within `tol` in time. `guard_fn(theta)` gives all guards.
+    Not differentiated (see the Newton step)."""
     indices = jnp.arange(crossed.shape[0])
-    lo = jnp.where(crossed, 0.0, 1.0).astype(coef.dtype)
+    lo = jnp.where(crossed, 0.0, 1.0).astype(h.dtype)
     hi = jnp.ones_like(lo)
 
     def not_done(state):
@@ -407,7 +466,7 @@ def _locate_crossings(system_and_source, crossed, coef, t, h, mode, tol):
     def bisect(state):
         lo, hi, k = state
         mid = (lo + hi) / 2
-        above = jax.vmap(guard_at)(mid, indices) >= 0
+        above = jax.vmap(lambda th, i: guard_fn(th)[i])(mid, indices) >= 0
         return jnp.where(above, lo, mid), jnp.where(above, mid, hi), k + 1
 
     lo, hi, _ = jax.lax.while_loop(not_done, bisect, (lo, hi, 0))
@@ -464,6 +523,12 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, solver="dopri5", rt
     nx = system.num_states
     if x0.shape == () and nx == 1:
         x0 = x0.reshape(1)
+    if isinstance(system, HybridSystem):  # x0 may be given in the initial mode's own layout
+        n_initial = system.modes[system.initial_mode].num_states
+        if x0.shape == () and n_initial == 1:
+            x0 = x0.reshape(1)
+        if x0.shape == (n_initial,) and n_initial != nx:
+            x0 = system.pad_state(system.initial_mode, x0)
     if x0.shape != (nx,):
         raise ValueError(f"x0 has shape {x0.shape}, but {system.name}'s state frame "
                          f"{system.state_frame} needs shape ({nx},)")
@@ -491,7 +556,7 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, solver="dopri5", rt
                           arr(jnp.inf if max_step_size is None else max_step_size),
                           arr(event_tol), max_steps, max_events, dense, constraint_projection,
                           autodiff)
-    if throw and _concrete(traj.status) and int(traj.status) != SimulationStatus.SUCCESS:
+    if throw and _concrete(traj.status) and not bool(traj.success):
         status = SimulationStatus(int(traj.status))
         raise SimulationError(status, f"simulating {system.name} over [{float(t0)}, {float(tf)}] "
                                       f"stopped at t = {float(traj.t_final)!r}: {_MESSAGES[status]}")
@@ -539,6 +604,9 @@ def _make_source(system, inputs, t0, dtype):
 
 def _check_system_shapes(system, t0, x0, source):
     """Trace each method once (shapes only) so that a wrong shape is a named Python error."""
+    if isinstance(system, HybridSystem):
+        _check_hybrid_shapes(system, t0, x0, source)
+        return
     u = jax.ShapeDtypeStruct((system.num_inputs,), x0.dtype)
     expected = [("output", system.output, system.num_outputs, (t0, x0, u))]
     if system.num_continuous_states:
@@ -559,3 +627,28 @@ def _check_system_shapes(system, t0, x0, source):
         if getattr(out, "shape", None) != (size,):
             raise ValueError(f"{system.name}.{name} returned shape {getattr(out, 'shape', type(out))}, "
                              f"expected ({size},)")
+
+
+def _check_hybrid_shapes(system, t0, x0, source):
+    """Each mode as a system of its own, then every guard (a scalar) and reset (the target
+    mode's state, or a pair (state, stop))."""
+    u = jax.ShapeDtypeStruct((system.num_inputs,), x0.dtype)
+    for i, mode in enumerate(system.modes):
+        _check_system_shapes(mode, t0, system.mode_state(i, x0), source)
+    for k, tr in enumerate(system.transitions):
+        label = f"{system.name} transition {k}" + (f" ({tr.name})" if tr.name else "")
+        x_src = jax.ShapeDtypeStruct((system.modes[tr.source].num_states,), x0.dtype)
+        try:
+            g = jax.eval_shape(lambda x, u: tr.guard(system, t0, x, u), x_src, u)
+            out = jax.eval_shape(lambda x, u: tr.reset(system, t0, x, u), x_src, u)
+        except Exception as e:
+            raise ValueError(f"{label}: the guard or reset failed on a state of shape "
+                             f"{x_src.shape}: {type(e).__name__}: {e}") from e
+        if getattr(g, "shape", None) not in ((), (1,)):
+            raise ValueError(f"{label}: the guard must return a scalar, got shape "
+                             f"{getattr(g, 'shape', type(g))}")
+        x_plus = out[0] if isinstance(out, tuple) else out
+        n_target = system.modes[tr.target].num_states
+        if getattr(x_plus, "shape", None) != (n_target,):
+            raise ValueError(f"{label}: the reset must return the target mode's state, shape "
+                             f"({n_target},), got {getattr(x_plus, 'shape', type(x_plus))}")

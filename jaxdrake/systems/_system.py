@@ -131,6 +131,28 @@ class System(eqx.Module):
                 "but does not define state_constraints()")
         return jnp.zeros(0, dtype=jnp.asarray(x).dtype)
 
+    # ----- the mode view: every system is a hybrid system with one mode and no transitions ----
+    # (the simulator calls these; `HybridSystem` overrides them)
+
+    num_modes = 1
+    initial_mode = 0
+    transitions = ()
+
+    def mode_dynamics(self, mode, t, x, u):
+        return self.dynamics(t, x, u)
+
+    def mode_update(self, mode, t, x, u):
+        return self.update(t, x, u)
+
+    def mode_output(self, mode, t, x, u):
+        return self.output(t, x, u)
+
+    def transition_guards(self, mode, t, x, u):
+        return jnp.zeros(0, jnp.asarray(x).dtype)
+
+    def apply_transition(self, k, t, x, u):
+        raise NotImplementedError(f"{self.name} has no transitions")
+
     # ----- derived facts --------------------------------------------------------------------
 
     @property

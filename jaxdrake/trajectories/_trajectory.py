@@ -49,6 +49,10 @@ class Trajectory(eqx.Module):
     event_indices: jax.Array
     num_events: jax.Array
     num_rejected_steps: jax.Array
+    modes: jax.Array | None = None
+    event_modes: jax.Array | None = None
+    event_states: jax.Array | None = None
+    final_mode: jax.Array | None = None
     system: Any = None
     inputs: Any = None
     side: str = eqx.field(static=True, default="left")
@@ -90,7 +94,8 @@ class Trajectory(eqx.Module):
         return cls(t_start=ts[:-1], t_end=ts[1:], coefficients=coefficients,
                    num_segments=jnp.asarray(n), t_final=ts[-1], status=jnp.asarray(0),
                    event_times=jnp.zeros(0, ts.dtype), event_indices=jnp.zeros(0, int),
-                   num_events=jnp.asarray(0), num_rejected_steps=jnp.asarray(0), side=side)
+                   num_events=jnp.asarray(0), num_rejected_steps=jnp.asarray(0),
+                   modes=jnp.zeros(n, jnp.int32), side=side)
 
     # ----- evaluation -----------------------------------------------------------------------
 
@@ -105,7 +110,7 @@ class Trajectory(eqx.Module):
     @property
     def success(self):
         """True when the simulation reached its final time (or was stopped by a reset)."""
-        return self.status == 0
+        return (self.status == 0) | (self.status == 6)
 
     def _check_dense(self):
         if not self.dense:
@@ -140,7 +145,12 @@ class Trajectory(eqx.Module):
         x = self._state_in_piece(i, t)
         if self.system is None:
             return x
-        return self.system.output(t, x, self.system.saturate(self.inputs(t)))
+        return self.system.mode_output(self.modes[i], t, x, self.system.saturate(self.inputs(t)))
+
+    def mode(self, t, side: str | None = None):
+        """The active mode at time t (for a hybrid system; 0 otherwise)."""
+        side = self._side(side)
+        return self._vectorize(lambda s: self.modes[self.piece_index(s, side)], t)
 
     def state(self, t, side: str | None = None):
         """The state x(t) (shape (n,), or (len(t), n) for an array of times)."""
@@ -162,8 +172,9 @@ class Trajectory(eqx.Module):
             return self._vectorize(lambda s: self._state_at(s, side), t)
 
         def output(s):
-            x = self._state_at(s, side)
-            return self.system.output(s, x, self.system.saturate(self.inputs(s)))
+            i = self.piece_index(s, side)
+            x = self._state_in_piece(i, s)
+            return self.system.mode_output(self.modes[i], s, x, self.system.saturate(self.inputs(s)))
 
         return self._vectorize(output, t)
 
@@ -191,9 +202,20 @@ class Trajectory(eqx.Module):
 
     @property
     def events(self) -> dict:
-        """Events that fired: their times and which guard (index) fired, on the host."""
+        """Events that fired, on the host: `times`; `indices`, the guard that fired (input
+        limits first: 2 per input, high then low; then the transitions, so that index
+        `2 * num_inputs_with_limits + k` is transition k); `transitions`, k or -1 for an
+        input-limit event; `modes`, the mode after the event; `states`, the state after it."""
         n = int(self.num_events)
-        return {"times": np.asarray(self.event_times[:n]), "indices": np.asarray(self.event_indices[:n])}
+        indices = np.asarray(self.event_indices[:n])
+        out = {"times": np.asarray(self.event_times[:n]), "indices": indices}
+        if self.system is not None:
+            limit_guards = 2 * self.system.num_inputs if self.system.input_limits is not None else 0
+            out["transitions"] = np.where(indices >= limit_guards, indices - limit_guards, -1)
+        if self.event_modes is not None:
+            out["modes"] = np.asarray(self.event_modes[:n])
+            out["states"] = np.asarray(self.event_states[:n])
+        return out
 
     @property
     def num_steps(self) -> int:
