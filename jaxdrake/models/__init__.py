@@ -1,8 +1,10 @@
 """The plants of the notes, with their parameters named as there."""
 
+from ._hybrid import BallFlightPhasePlant, BouncingBall, RimlessWheel, RimlessWheelStance
 from ._pendulum import Pendulum
 from ._simple import (DoubleIntegrator, SimpleCTExample, SimpleDTExample, SimpleMixedCTDTExample,
                       VanDerPol)
 
-__all__ = ["DoubleIntegrator", "Pendulum", "SimpleCTExample", "SimpleDTExample",
-           "SimpleMixedCTDTExample", "VanDerPol"]
+__all__ = ["BallFlightPhasePlant", "BouncingBall", "DoubleIntegrator", "Pendulum", "RimlessWheel",
+           "RimlessWheelStance", "SimpleCTExample", "SimpleDTExample", "SimpleMixedCTDTExample",
+           "VanDerPol"]
