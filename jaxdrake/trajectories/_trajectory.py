@@ -97,6 +97,12 @@ class Trajectory(eqx.Module):
                    num_events=jnp.asarray(0), num_rejected_steps=jnp.asarray(0),
                    modes=jnp.zeros(n, jnp.int32), side=side)
 
+    def __getitem__(self, i) -> "Trajectory":
+        """Member i of a batch of trajectories (the result of `jax.vmap(simulate...)`)."""
+        if self.t_start.ndim < 2:
+            raise IndexError("this trajectory is not a batch: only vmapped trajectories can be indexed")
+        return jax.tree.map(lambda leaf: leaf[i] if isinstance(leaf, jax.Array) else leaf, self)
+
     # ----- evaluation -----------------------------------------------------------------------
 
     @property
