@@ -460,6 +460,9 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
                       side="left", dense=dense)
 
 
+_ROOT_ITERATIONS = 6  # safeguarded Newton from a secant start: ~4 suffice for smooth guards
+
+
 def _locate_first_crossing(guard_fn, crossed, h, tol):
     """The earliest crossing in theta in [0, 1] among the crossed guards, and which guard it is.
 
@@ -467,30 +470,32 @@ def _locate_first_crossing(guard_fn, crossed, h, tol):
     1), found by Newton's method safeguarded with bisection: the bracket [lo, hi] keeps
     G(lo) < 0 <= G(hi), and a Newton iterate outside it is replaced by the midpoint. It stops
     when the last update or the bracket is below `tol` in time: a few iterations for smooth
-    guards, where bisection alone needs ~30 (which under vmap every member pays whenever any
-    member has an event). Ties go to the lowest index. `guard_fn(theta)` gives all guards; not
-    differentiated (see the Newton step in the loop)."""
+    guards, where bisection alone needs ~30 (which under vmap
+    every member pays whenever any member has an event). Ties go to the lowest index.
+    `guard_fn(theta)` gives all guards; not differentiated (see the Newton step in the loop)."""
     def G(theta):
         return jnp.max(jnp.where(crossed, guard_fn(theta), -jnp.inf))
 
     g0, g1 = G(jnp.zeros((), h.dtype)), G(jnp.ones((), h.dtype))
     secant = jnp.clip(-g0 / jnp.where(g1 > g0, g1 - g0, 1.0), 0.0, 1.0)
 
-    def not_done(state):
-        lo, hi, theta, step, k = state
-        return (step * h > tol) & ((hi - lo) * h > tol) & (k < 100)
-
     def iterate(state):
-        lo, hi, theta, _, k = state
+        lo, hi, theta, done = state
         g, dg = jax.jvp(G, (theta,), (jnp.ones_like(theta),))
         lo, hi = jnp.where(g >= 0, lo, theta), jnp.where(g >= 0, theta, hi)
         newton = theta - g / jnp.where(dg != 0, dg, 1.0)
         new = jnp.where((dg != 0) & (newton > lo) & (newton < hi), newton, (lo + hi) / 2)
-        return lo, hi, new, jnp.abs(new - theta), k + 1
+        converged = done | (jnp.abs(new - theta) * h <= tol) | ((hi - lo) * h <= tol)
+        return lo, hi, jnp.where(done, theta, new), converged
 
-    zero = jnp.zeros((), h.dtype)
-    start_step = jnp.where(jnp.any(crossed), 1.0, 0.0).astype(h.dtype)  # nothing to locate: done
-    _, _, theta, _, _ = jax.lax.while_loop(not_done, iterate, (zero, zero + 1, secant, start_step, 0))
+    state = (jnp.zeros_like(secant), jnp.ones_like(secant), secant, ~jnp.any(crossed))
+    # The first iterations unrolled (a nested while loop costs a device-host round trip per
+    # iteration on a GPU), then a loop for the rare hard case (a kink of an and-guard near
+    # the root sends Newton to bisection), bounded.
+    for _ in range(_ROOT_ITERATIONS):
+        state = iterate(state)
+    state = jax.lax.while_loop(lambda s: ~s[3] & (s[1] - s[0] > 0), iterate, state)
+    theta = state[2]
     which = jnp.argmax(jnp.where(crossed, guard_fn(theta), -jnp.inf))
     return theta, which
 
