@@ -7,6 +7,8 @@
    method on b, derivatives from jax.grad through the adaptive solver).
 3. A torque-limited pendulum driven past its limits: saturation switching instants located as
    events.
+4. The notes' bouncing ball, a hybrid system, dropped from 1000 heights in one vmapped call:
+   impacts located to 1e-10, simulations stopped by the reset when the ball comes to rest.
 
 Run:  python examples/demo.py [--out DIR]      (saves demo.png)
 """
@@ -108,11 +110,33 @@ def torque_limits(ax):
     ax.legend(fontsize=8, loc="lower left")
 
 
+def bouncing_balls(ax, num=1000):
+    """Hybrid systems batch too: each member keeps its own impacts and its own stop."""
+    heights = jnp.linspace(1.5, 8.0, num)
+    run = lambda h: jd.simulate(jd.models.BouncingBall(), (0.0, 12.0), jnp.stack([h, 0.0]),
+                                rtol=1e-9, atol=1e-11, max_steps=512, max_events=64)
+    balls = jax.jit(jax.vmap(run))(heights)
+    stopped = np.asarray(balls.t_final)
+    print(f"{num} bouncing balls: {int(np.asarray(balls.num_events).sum())} impacts located; "
+          f"all stopped by the reset: {bool(np.all(np.asarray(balls.status) == jd.SimulationStatus.STOPPED_BY_RESET))}")
+    ts = np.linspace(0.0, 12.0, 1200)
+    cmap = plt.get_cmap("plasma")
+    for i in range(0, num, num // 12):
+        ball = balls[i]
+        t_i = ts[ts <= stopped[i]]
+        ax.plot(t_i, np.asarray(ball.eval(jnp.asarray(t_i)))[:, 0], color=cmap(i / num), lw=0.9)
+        ax.plot(stopped[i], float(ball.final_state[0]), "k.", ms=4)
+    ax.set(xlabel="t (s)", ylabel="height q (m)",
+           title=f"BouncingBall (hybrid): {num} drops in one vmap,\n12 drawn; dots: stopped by the reset")
+
+
 def main(out: pathlib.Path) -> pathlib.Path:
-    fig, axes = plt.subplots(1, 3, figsize=(17, 4.6), layout="constrained")
+    fig, axes = plt.subplots(2, 2, figsize=(13, 9), layout="constrained")
+    axes = axes.ravel()
     phase_portrait(axes[0])
     tune_damping(axes[1])
     torque_limits(axes[2])
+    bouncing_balls(axes[3])
     out.mkdir(parents=True, exist_ok=True)
     path = out / "demo.png"
     fig.savefig(path, dpi=100)
