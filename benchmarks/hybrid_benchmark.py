@@ -32,6 +32,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 import jaxdrake as jd
+from _timing import best_time  # benchmarks/_timing.py
 
 jax.config.update("jax_enable_x64", True)
 
@@ -124,14 +125,6 @@ def jaxdrake_runner(problem):
                            dense=False, max_events=64, throw=False).final_state
     return jax.jit(one), jax.jit(jax.vmap(one))
 
-
-def best_time(fn, repeats):
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
 
 
 def run(batch, gpu, repeats):

@@ -24,6 +24,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 import jaxdrake as jd
+from _timing import best_time  # benchmarks/_timing.py
 from jaxdrake.models import Pendulum, VanDerPol
 
 jax.config.update("jax_enable_x64", True)
@@ -44,14 +45,6 @@ PROBLEMS = {
     "vanderpol": dict(system=VanDerPol(1.0), rhs=vdp_rhs, low=[-2.0, -2.0], high=[2.0, 2.0]),
 }
 
-
-def best_time(fn, repeats):
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
 
 
 def reference(rhs, x0s):

@@ -8,7 +8,6 @@ time with respect to the drop height, through the impacts (checked against finit
 Run:  python examples/bouncing_ball.py [--out DIR]      (saves bouncing_ball.png)
 """
 
-import argparse
 import pathlib
 
 import jax
@@ -20,6 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 import jaxdrake as jd  # noqa: E402
+from _cli import run, save  # noqa: E402  (examples/_cli.py)
 
 jax.config.update("jax_enable_x64", True)
 
@@ -60,14 +60,8 @@ def main(out: pathlib.Path) -> pathlib.Path:
     axes[2].legend(fontsize=8)
     print(f"d q(3 s) / d h0 at h0 = 5: {float(jax.grad(height)(5.0)):.6f}")
 
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / "bouncing_ball.png"
-    fig.savefig(path, dpi=100)
-    print(f"saved {path}")
-    return path
+    return save(fig, out, "bouncing_ball.png")
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("output"))
-    main(parser.parse_args().out)
+    run(main, __doc__)

@@ -13,7 +13,6 @@
 Run:  python examples/demo.py [--out DIR]      (saves demo.png)
 """
 
-import argparse
 import pathlib
 import time
 
@@ -26,6 +25,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 import jaxdrake as jd  # noqa: E402
+from _cli import run, save  # noqa: E402  (examples/_cli.py)
 from jaxdrake.models import Pendulum  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
@@ -137,14 +137,8 @@ def main(out: pathlib.Path) -> pathlib.Path:
     tune_damping(axes[1])
     torque_limits(axes[2])
     bouncing_balls(axes[3])
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / "demo.png"
-    fig.savefig(path, dpi=100)
-    print(f"saved {path}")
-    return path
+    return save(fig, out, "demo.png")
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("output"))
-    main(parser.parse_args().out)
+    run(main, __doc__)

@@ -9,7 +9,6 @@ Several initial speeds are simulated in one vmapped call.
 Run:  python examples/rimless_wheel.py [--out DIR]      (saves rimless_wheel.png)
 """
 
-import argparse
 import pathlib
 
 import jax
@@ -21,6 +20,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 import jaxdrake as jd  # noqa: E402
+from _cli import run, save  # noqa: E402  (examples/_cli.py)
 
 jax.config.update("jax_enable_x64", True)
 
@@ -56,14 +56,8 @@ def main(out: pathlib.Path) -> pathlib.Path:
     axes[1].set(xlabel="step", ylabel=r"|post-impact $\dot\theta$ - fixed point|",
                 title="convergence to steady rolling (return map contracts by cos²(2α))")
     axes[1].legend(fontsize=8)
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / "rimless_wheel.png"
-    fig.savefig(path, dpi=100)
-    print(f"saved {path}")
-    return path
+    return save(fig, out, "rimless_wheel.png")
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("output"))
-    main(parser.parse_args().out)
+    run(main, __doc__)

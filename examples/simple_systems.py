@@ -9,7 +9,6 @@ t in {0, 1, 2, ...} and held in between. Saves `simple_systems.png`.
 Run:  python examples/simple_systems.py [--out DIR]
 """
 
-import argparse
 import pathlib
 
 import jax
@@ -19,6 +18,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 import jaxdrake as jd  # noqa: E402
+from _cli import run, save  # noqa: E402  (examples/_cli.py)
 from jaxdrake.models import SimpleCTExample, SimpleDTExample, SimpleMixedCTDTExample  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
@@ -44,14 +44,8 @@ def main(out: pathlib.Path) -> pathlib.Path:
 
     print(f"SimpleCT: x(10) = {float(ct.eval(10.0)[0]):.3e} after {ct.num_steps} steps")
     print(f"SimpleDT: x at t = 0..5 = {[round(float(dt.eval(float(n))[0]), 4) for n in range(6)]}")
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / "simple_systems.png"
-    fig.savefig(path, dpi=110)
-    print(f"saved {path}")
-    return path
+    return save(fig, out, "simple_systems.png", dpi=110)
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("output"))
-    main(parser.parse_args().out)
+    run(main, __doc__)

@@ -4,7 +4,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
 import jaxdrake as jd
 from jaxdrake.models import Pendulum, VanDerPol
