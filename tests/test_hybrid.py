@@ -255,3 +255,21 @@ def test_wheel_speed_after_five_steps_matches_the_return_map():
     for slope in (0.08, 0.12):
         np.testing.assert_allclose(simulated(slope), closed(slope), rtol=1e-9)
         np.testing.assert_allclose(jax.grad(simulated)(slope), jax.grad(closed)(slope), rtol=1e-7)
+
+
+def _to_mode(target):
+    return lambda system, t, x, u: x
+
+
+def test_simultaneous_guards_resolve_to_the_lowest_index():
+    """Two transitions with the same guard (and so the same located time): the first listed
+    fires, whether it is located inside a step or already holds at the start."""
+    clock = jd.System.from_functions(dynamics=lambda t, x, u: jnp.ones(1), num_states=1)
+    first, second = _to_mode(1), _to_mode(2)
+    system = jd.HybridSystem([clock, clock, clock],
+                             [jd.Transition(0, _reach_one, first, 1), jd.Transition(0, _reach_one, second, 2)])
+    traj = jd.simulate(system, (0.0, 2.0), 0.5, **TIGHT)
+    assert list(traj.events["transitions"]) == [0] and list(traj.events["modes"]) == [1]
+    np.testing.assert_allclose(traj.events["times"], [0.5], atol=1e-12)
+    at_start = jd.simulate(system, (0.0, 1.0), 1.5, **TIGHT)  # both guards hold at t0
+    assert list(at_start.events["transitions"]) == [0] and list(at_start.events["times"]) == [0.0]
