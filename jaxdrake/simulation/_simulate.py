@@ -1,24 +1,25 @@
-"""`simulate`: one jit-compiled loop for continuous, discrete and mixed systems.
+"""`simulate`: one jit-compiled loop for continuous, discrete, mixed and hybrid systems.
 
-Each loop iteration (1) applies the discrete update if the time is a sample time,
-(2) attempts one solver step of the continuous state towards min(t + h, next sample time,
-tf), (3) if the step is accepted and an event guard crossed zero inside it, locates the
-crossing on the dense output and cuts the step there, (4) records the step's dense-output
-polynomial in the trajectory buffers.
+Each loop iteration (0) fires a hybrid transition whose guard already holds, (1) applies the
+discrete update if the time is a sample time, (2) attempts one solver step of the continuous
+state towards min(t + h, next sample time, next input breakpoint, tf), (3) if the step is
+accepted and a guard crossed zero inside it, locates the earliest crossing on the dense
+output, cuts the step there and switches a saturation or applies a transition's reset,
+(4) records the step's dense-output polynomial in the trajectory buffers.
 
-Events here are the switching instants of input limits. While a step is taken each input's
-saturation mode (free / at u_max / at u_min) is held fixed, so the right-hand side is smooth
-within a step and the error estimate is honest; the guards say when the mode must change.
+Events are the switching instants of input limits and the transitions of hybrid systems.
+While a step is taken each input's saturation mode (free / at u_max / at u_min) and the
+hybrid mode are held fixed, so the right-hand side is smooth within a step and the error
+estimate is honest; the guards say when a mode must change.
 
-The loop is `equinox.internal.while_loop(kind="checkpointed")`: a plain while loop when
-run forward, with recursive checkpointing when reverse-mode differentiated, bounded by
-`max_steps` (`autodiff="reverse"`, the default). That loop is a custom VJP, which forward
-mode cannot enter: `autodiff="forward"` uses `lax.while_loop` instead, for `jax.jvp` /
-`jax.jacfwd`. Step sizes are not differentiated (the gradient is that of the discrete
-scheme on its grid); event times are, by the implicit function theorem, so gradients see
-the shift of a switching instant.
+The loop is `equinox.internal.while_loop` with the trajectory as in-place buffers:
+`kind="checkpointed"` (recursive checkpointing when reverse-mode differentiated, bounded by
+`max_steps`; `autodiff="reverse"`, the default), or `kind="lax"` for `autodiff="forward"`
+(`jax.jvp` / `jax.jacfwd`; the checkpointed loop is a custom VJP that forward mode cannot
+enter). Step sizes are not differentiated (the gradient is that of the discrete scheme on
+its grid); event times are, by the implicit function theorem, so gradients see the shift of
+a switching instant and the saltation jump at an impact.
 """
-
 from __future__ import annotations
 
 import enum
@@ -470,8 +471,8 @@ def _locate_first_crossing(guard_fn, crossed, h, tol):
     1), found by Newton's method safeguarded with bisection: the bracket [lo, hi] keeps
     G(lo) < 0 <= G(hi), and a Newton iterate outside it is replaced by the midpoint. It stops
     when the last update or the bracket is below `tol` in time: a few iterations for smooth
-    guards, where bisection alone needs ~30 (which under vmap
-    every member pays whenever any member has an event). Ties go to the lowest index.
+    guards, where bisection alone needs ~30 (which under vmap every member pays whenever any
+    member has an event). Ties go to the lowest index.
     `guard_fn(theta)` gives all guards; not differentiated (see the Newton step in the loop)."""
     def G(theta):
         return jnp.max(jnp.where(crossed, guard_fn(theta), -jnp.inf))
