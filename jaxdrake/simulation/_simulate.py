@@ -457,7 +457,7 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
                       t_final=c["t"], status=status, event_times=c["ev_t"],
                       event_indices=c["ev_i"], num_events=c["n_events"],
                       num_rejected_steps=c["rejected"], modes=seg_mode, event_modes=c["ev_mode"],
-                      event_states=c["ev_x"], final_mode=c["mode"], system=system, inputs=source,
+                      event_states=c["ev_x"], system=system, inputs=source,
                       side="left", dense=dense)
 
 

@@ -52,7 +52,6 @@ class Trajectory(eqx.Module):
     modes: jax.Array | None = None
     event_modes: jax.Array | None = None
     event_states: jax.Array | None = None
-    final_mode: jax.Array | None = None
     system: Any = None
     inputs: Any = None
     side: str = eqx.field(static=True, default="left")
@@ -116,7 +115,7 @@ class Trajectory(eqx.Module):
     @property
     def success(self):
         """True when the simulation reached its final time (or was stopped by a reset)."""
-        return (self.status == 0) | (self.status == 6)
+        return (self.status == 0) | (self.status == 6)  # SimulationStatus SUCCESS, STOPPED_BY_RESET
 
     def _check_dense(self):
         if not self.dense:
