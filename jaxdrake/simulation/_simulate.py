@@ -261,7 +261,7 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
         seg_t1=jnp.full((size,), inf).at[0].set(t0),
         seg_c=jnp.zeros((size, NUM_COEFFICIENTS, nx), dtype).at[0].set(first_piece),
         seg_mode=jnp.zeros((size,), jnp.int32).at[0].set(mode0),
-        ev_t=jnp.full((max_events,), inf), ev_i=jnp.full((max_events,), -1),
+        ev_t=jnp.full((max_events,), inf), ev_i=jnp.full((max_events,), -1, jnp.int32),
         ev_mode=jnp.full((max_events,), -1, jnp.int32), ev_x=jnp.zeros((max_events, nx), dtype),
     )
     # First-same-as-last: the solver's last stage is the next step's first, unless something
@@ -279,6 +279,7 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
         t, x, h, mode, saturation, status = (c["t"], c["x"], c["h"], c["mode"], c["saturation"],
                                              c["status"])
         n_events = c["n_events"]
+        step_source = source.on_step(t)
 
         # (0) a transition whose guard already holds fires at once, without a step (after a
         # reset, or at t0): the notes' semantics, phi <= 0 triggers. One per iteration, the
@@ -286,7 +287,7 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
         # the reset when nothing fires; under vmap it becomes a select.)
         immediate, k_now = jnp.asarray(False), jnp.asarray(0)
         if num_transitions:
-            u_now = u_of(t, saturation, source.on_step(t))
+            u_now = u_of(t, saturation, step_source)
             ready = system.transition_guards(mode, t, x, u_now) <= 0
             immediate = jnp.any(ready) & (n_events < max_events)
             status = jnp.where(jnp.any(ready) & ~immediate, SimulationStatus.TOO_MANY_EVENTS, status)
@@ -306,7 +307,6 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
             status = jnp.where(at_sample & ~jnp.all(jnp.isfinite(x)),
                                SimulationStatus.NONFINITE_STATE, status)
         xd, xc = x[:nd], x[nd:]
-        step_source = source.on_step(t)
         if num_limit_guards:  # after a breakpoint of an input tape, u may have jumped past a limit
             saturation = jnp.where(c["at_breakpoint"], _initial_saturation(system, step_source(t)),
                                    saturation)
@@ -337,7 +337,7 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
         coef_d = jnp.zeros((NUM_COEFFICIENTS, nd), dtype).at[0].set(xd)
         coef = jnp.concatenate([coef_d, coef], axis=1)
         x1 = jnp.concatenate([xd, xc1])
-        t_end, x_end, event, which = t_next, x1, jnp.asarray(False), jnp.asarray(-1)
+        t_end, x_end, event, which = t_next, x1, jnp.asarray(False), jnp.asarray(-1, jnp.int32)
         stop = jnp.asarray(False)
 
         # (3) events: locate the earliest guard crossing inside an accepted step, cut the step
@@ -383,7 +383,7 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
                 return coef, t_end, x_end, which, new_saturation, x_after, mode_after, stop
 
             def no_event(coef):
-                return (coef, t_next, x1, jnp.asarray(-1, jnp.argmax(crossed).dtype),
+                return (coef, t_next, x1, jnp.asarray(-1, jnp.int32),
                         saturation, x1, mode, jnp.asarray(False))
 
             coef, t_end, x_end, which, saturation, x_after, mode_after, stop = jax.lax.cond(
@@ -432,7 +432,7 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
             out["seg_mode"] = write(c["seg_mode"], n, mode, accept)
         if num_guards:
             out["ev_t"] = write(c["ev_t"], n_events, jnp.where(immediate, t, t_end), recorded)
-            ev_index = jnp.where(immediate, num_limit_guards + k_now, which)
+            ev_index = jnp.where(immediate, num_limit_guards + k_now, which).astype(jnp.int32)
             out["ev_i"] = write(c["ev_i"], n_events, ev_index, recorded)
             out["ev_mode"] = write(c["ev_mode"], n_events, out["mode"], recorded)
             out["ev_x"] = write(c["ev_x"], n_events, out["x"], recorded)
@@ -497,7 +497,7 @@ def _locate_first_crossing(guard_fn, crossed, h, tol):
         state = iterate(state)
     state = jax.lax.while_loop(lambda s: ~s[3] & (s[1] - s[0] > 0), iterate, state)
     theta = state[2]
-    which = jnp.argmax(jnp.where(crossed, guard_fn(theta), -jnp.inf))
+    which = jnp.argmax(jnp.where(crossed, guard_fn(theta), -jnp.inf)).astype(jnp.int32)
     return theta, which
 
 

@@ -166,11 +166,12 @@ class HybridSystem(System):
             x_mode[m.num_discrete_states:])
         return jnp.concatenate([xd, xc])
 
-    def _switch(self, mode, branch, *operands):
-        if self.num_modes == 1:
+    @staticmethod
+    def _switch(index, count, branch, *operands):
+        """`branch(i, *operands)` for i = index among `count` static branches (`lax.switch`)."""
+        if count == 1:
             return branch(0, *operands)
-        return jax.lax.switch(mode, [lambda *a, i=i: branch(i, *a) for i in range(self.num_modes)],
-                              *operands)
+        return jax.lax.switch(index, [lambda *a, i=i: branch(i, *a) for i in range(count)], *operands)
 
     # ----- the contract, per mode -------------------------------------------------------------
 
@@ -180,7 +181,7 @@ class HybridSystem(System):
             xc_dot = (m.dynamics(t, self.mode_state(i, x), u) if m.num_continuous_states
                       else jnp.zeros(0, x.dtype))
             return jnp.zeros(self.num_continuous_states, x.dtype).at[: m.num_continuous_states].set(xc_dot)
-        return self._switch(mode, branch, t, x, u)
+        return self._switch(mode, self.num_modes, branch, t, x, u)
 
     def mode_update(self, mode, t, x, u):
         def branch(i, t, x, u):
@@ -188,10 +189,10 @@ class HybridSystem(System):
             xd_next = (m.update(t, self.mode_state(i, x), u) if m.num_discrete_states
                        else jnp.zeros(0, x.dtype))
             return x[: self.num_discrete_states].at[: m.num_discrete_states].set(xd_next)
-        return self._switch(mode, branch, t, x, u)
+        return self._switch(mode, self.num_modes, branch, t, x, u)
 
     def mode_output(self, mode, t, x, u):
-        return self._switch(mode, lambda i, t, x, u: self.modes[i].output(t, self.mode_state(i, x), u),
+        return self._switch(mode, self.num_modes, lambda i, t, x, u: self.modes[i].output(t, self.mode_state(i, x), u),
                             t, x, u)
 
     def transition_guards(self, mode, t, x, u):
@@ -210,9 +211,7 @@ class HybridSystem(System):
             x_plus, stop = out if isinstance(out, tuple) else (out, False)
             x_plus = jnp.asarray(x_plus, x.dtype).reshape(self.modes[tr.target].num_states)
             return self.pad_state(tr.target, x_plus), jnp.asarray(tr.target, jnp.int32), jnp.asarray(stop, bool)
-        if len(self.transitions) == 1:
-            return branch(0, t, x, u)
-        return jax.lax.switch(k, [lambda *a, j=j: branch(j, *a) for j in range(len(self.transitions))], t, x, u)
+        return self._switch(k, len(self.transitions), branch, t, x, u)
 
     def initial_state(self):
         return self.pad_state(self.initial_mode, self.modes[self.initial_mode].initial_state())

@@ -176,12 +176,7 @@ class Trajectory(eqx.Module):
         if self.system is None:
             return self._vectorize(lambda s: self._state_at(s, side), t)
 
-        def output(s):
-            i = self.piece_index(s, side)
-            x = self._state_in_piece(i, s)
-            return self.system.mode_output(self.modes[i], s, x, self.system.saturate(self.inputs(s)))
-
-        return self._vectorize(output, t)
+        return self._vectorize(lambda s: self.eval_piece(self.piece_index(s, side), s), t)
 
     def __call__(self, t):
         """Same as `eval(t)`: a trajectory is a function of time (usable as an input)."""
