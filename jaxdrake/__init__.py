@@ -2,11 +2,14 @@
 
 from . import models, simulation, systems, trajectories
 from .simulation import SimulationError, SimulationStatus, simulate
-from .systems import Frame, HybridSystem, LinearSystem, System, Transition, and_guards, not_guard
+from .systems import (Diagram, DiagramBuilder, Frame, HybridSystem, LinearSystem, StochasticSystem,
+                      System, Transition, add_frame_conversion, and_guards, cascade, feedback,
+                      not_guard, parallel)
 from .trajectories import Trajectory
 
 __version__ = "0.1.0"
 
-__all__ = ["Frame", "HybridSystem", "LinearSystem", "SimulationError", "SimulationStatus", "System",
-           "Trajectory", "Transition", "and_guards", "models", "not_guard", "simulate", "simulation",
-           "systems", "trajectories"]
+__all__ = ["Diagram", "DiagramBuilder", "Frame", "HybridSystem", "LinearSystem", "SimulationError",
+           "SimulationStatus", "StochasticSystem", "System", "Trajectory", "Transition",
+           "add_frame_conversion", "and_guards", "cascade", "feedback", "models", "not_guard",
+           "parallel", "simulate", "simulation", "systems", "trajectories"]

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..systems import HybridSystem, System
+from ..systems import Diagram, HybridSystem, System
 from ..trajectories import Trajectory
 from ..trajectories._trajectory import NUM_COEFFICIENTS, eval_polynomial
 from ._solvers import AbstractSolver, make_solver
@@ -124,21 +124,65 @@ class _TrajectoryInput(_InputSource):
         return _TrajectoryInput(self.trajectory, self.num_inputs, self.trajectory.piece_index(t))
 
 
+class _NoisyInput(_InputSource):
+    """[u(t); w(t)]: the inputs followed by the noise samples of a stochastic system.
+
+    Noise group g (size n, period tau, scale c) is held constant on [k tau, (k+1) tau) with
+    the value c * N(0, I) drawn from fold_in(fold_in(key, g), k): a pure function of the key
+    and k, so paths are reproducible and independent across keys. The instants k tau are
+    breakpoints: a step never straddles a jump of w."""
+
+    inputs: _InputSource
+    key: jax.Array
+    groups: tuple = eqx.field(static=True)
+    pieces: jax.Array | None = None
+    has_breakpoints = True
+
+    def _periods(self, t):
+        return jnp.asarray([tau for _, tau, _ in self.groups], t.dtype)
+
+    def _piece(self, t):
+        """The index k with k tau <= t < (k+1) tau, exact at the breakpoints (which the loop
+        reaches as the same products k * tau)."""
+        tau = self._periods(t)
+        k = jnp.floor(t / tau)
+        k = jnp.where((k + 1) * tau <= t, k + 1, k)
+        return jnp.where(k * tau > t, k - 1, k)
+
+    def __call__(self, t):
+        pieces = self._piece(t) if self.pieces is None else self.pieces
+        w = [c * jax.random.normal(jax.random.fold_in(jax.random.fold_in(self.key, g), pieces[g].astype(jnp.int32)),
+                                   (n,), t.dtype)
+             for g, (n, _, c) in enumerate(self.groups)]
+        return jnp.concatenate([self.inputs(t)] + w)
+
+    def next_breakpoint(self, t):
+        tau = self._periods(t)
+        return jnp.minimum(self.inputs.next_breakpoint(t), jnp.min((self._piece(t) + 1) * tau))
+
+    def on_step(self, t):
+        return _NoisyInput(self.inputs.on_step(t), self.key, self.groups, self._piece(t))
+
+
 # ----- input limits as events ----------------------------------------------------------------
 
 
 def _saturated_input(system, u_raw, saturation):
-    """u with each input held at its limit where its saturation mode says so (+1 high, -1 low)."""
+    """u with each input held at its limit where its saturation mode says so (+1 high, -1 low);
+    noise samples after the inputs pass through."""
     if system.input_limits is None:
         return u_raw
     lo, hi = system.input_limits
-    return jnp.where(saturation > 0, hi, jnp.where(saturation < 0, lo, u_raw))
+    nu = system.num_inputs
+    u = jnp.where(saturation > 0, hi, jnp.where(saturation < 0, lo, u_raw[:nu]))
+    return jnp.concatenate([u, u_raw[nu:]])
 
 
 def _initial_saturation(system, u_raw):
     if system.input_limits is None:
         return jnp.zeros(system.num_inputs, jnp.int32)
     lo, hi = system.input_limits
+    u_raw = u_raw[: system.num_inputs]
     return jnp.where(u_raw >= hi, 1, jnp.where(u_raw <= lo, -1, 0)).astype(jnp.int32)
 
 
@@ -149,6 +193,7 @@ def _limit_guards(system, u_raw, saturation):
     (leave the limit), g_low inactive; saturated low symmetrically.
     """
     lo, hi = system.input_limits
+    u_raw = u_raw[: system.num_inputs]
     inactive = -jnp.ones_like(u_raw)
     g_high = jnp.where(saturation == 0, u_raw - hi, jnp.where(saturation > 0, hi - u_raw, inactive))
     g_low = jnp.where(saturation == 0, lo - u_raw, jnp.where(saturation < 0, u_raw - lo, inactive))
@@ -197,7 +242,7 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
     num_transitions = len(system.transitions)
     num_guards = num_limit_guards + num_transitions
     eps = jnp.finfo(dtype).eps
-    period = None if system.sample_time is None else jnp.asarray(system.sample_time, dtype)
+    periods = jnp.asarray(system.sample_times, dtype) if system.sample_times else None
 
     def u_of(t, saturation, source=source):
         return _saturated_input(system, source(t), saturation)
@@ -254,7 +299,7 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
     first_piece = jnp.zeros((NUM_COEFFICIENTS, nx), dtype).at[0].set(x0)
     carry = dict(
         t=t0, x=x0, h=h0, mode=mode0, saturation=saturation0,
-        sample=jnp.ceil(t0 / period) if period is not None else jnp.zeros((), dtype),
+        sample=jnp.ceil(t0 / periods) if periods is not None else jnp.zeros((), dtype),
         n=jnp.asarray(1), n_events=jnp.asarray(0), iters=jnp.asarray(0),
         rejected=jnp.asarray(0), status=status, at_breakpoint=jnp.asarray(False),
         seg_t0=jnp.full((size,), inf).at[0].set(t0),
@@ -293,17 +338,19 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
             status = jnp.where(jnp.any(ready) & ~immediate, SimulationStatus.TOO_MANY_EVENTS, status)
             k_now = jnp.argmax(ready)
             x, mode, stop_now = jax.lax.cond(
-                immediate, lambda: system.apply_transition(k_now, t, x, u_now),
+                immediate, lambda: system.apply_transition(mode, k_now, t, x, u_now),
                 lambda: (x, mode, jnp.asarray(False)))
             status = jnp.where(immediate & stop_now, SimulationStatus.STOPPED_BY_RESET, status)
 
-        # (1) discrete update at the sample times {0, dt, 2dt, ...}: x_d(t + t') = f_d(t, x, u).
+        # (1) discrete updates at the sample times {0, dt, 2dt, ...}: x_d(t + t') = f_d(t, x, u),
+        # each sample time (a multi-rate diagram has several) counted separately.
         sample = c["sample"]
-        if period is not None:
-            at_sample = (t >= sample * period) & ~immediate
-            xd_next = system.mode_update(mode, t, x, u_of(t, saturation))
+        if periods is not None:
+            due = (t >= sample * periods) & ~immediate
+            at_sample = jnp.any(due)
+            xd_next = system.mode_update(mode, t, x, u_of(t, saturation, step_source), due)
             x = jnp.where(at_sample, jnp.concatenate([xd_next, x[nd:]]), x)
-            sample = sample + at_sample
+            sample = sample + due
             status = jnp.where(at_sample & ~jnp.all(jnp.isfinite(x)),
                                SimulationStatus.NONFINITE_STATE, status)
         xd, xc = x[:nd], x[nd:]
@@ -315,8 +362,8 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
         # the final time, the next sample time, the next breakpoint of the input.
         breakpoint_ = source.next_breakpoint(t)
         target = jnp.minimum(tf, breakpoint_)
-        if period is not None:
-            target = jnp.minimum(target, sample * period)
+        if periods is not None:
+            target = jnp.minimum(target, jnp.min(sample * periods))
         t_next = t + h
         t_next = jnp.where(t_next >= target - (1e-6 * h + 64 * eps * jnp.abs(target)), target, t_next)
         h_eff = t_next - t
@@ -376,7 +423,7 @@ def _simulate_core(system: System, solver: AbstractSolver, t0, tf, x0, source, r
                     k = jnp.clip(which - num_limit_guards, 0, num_transitions - 1)
                     is_transition = which >= num_limit_guards
                     x_reset, mode_reset, stop_reset = system.apply_transition(
-                        k, t_end, x_end, u_of(t_end, new_saturation, step_source))
+                        mode, k, t_end, x_end, u_of(t_end, new_saturation, step_source))
                     x_after = jnp.where(is_transition, x_reset, x_end)
                     mode_after = jnp.where(is_transition, mode_reset, mode)
                     stop = is_transition & stop_reset
@@ -504,7 +551,7 @@ def _locate_first_crossing(guard_fn, crossed, h, tol):
 # ----- the public entry point ----------------------------------------------------------------
 
 
-def simulate(system: System, tspan, x0=None, *, inputs=None, solver="dopri5", rtol=1e-6,
+def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="dopri5", rtol=1e-6,
              atol=1e-9, dt=None, max_step_size=None, max_steps: int = 4096,
              max_events: int = 256, event_tol=1e-10, dense: bool = True,
              constraint_projection: bool = False, autodiff: str = "reverse",
@@ -519,6 +566,8 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, solver="dopri5", rt
       `system.initial_state()`. With state constraints it is first projected onto phi(x) = 0.
     - `inputs`: a `Trajectory` (input tape) or a function of time returning u(t); None means
       u = 0, as in the notes. Input limits of the system saturate it.
+    - `key`: a JAX PRNG key, for a stochastic system (required then, refused otherwise): the
+      noise path is a function of the key alone; `jax.vmap` over keys gives a Monte-Carlo batch.
     - `solver`: `"dopri5"` (adaptive, default), `"rosenbrock23"` (adaptive, for stiff
       systems), `"rk4"` or `"euler"` (fixed step `dt`), or a solver instance.
     - `rtol`, `atol`: tolerances of the adaptive solvers; `dt`: the fixed step (or the first
@@ -566,6 +615,13 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, solver="dopri5", rt
     if _concrete(x0) and not np.all(np.isfinite(x0)):
         raise ValueError(f"x0 is not finite: {x0}")
     source = _make_source(system, inputs, t0, dtype)
+    if system.is_stochastic:
+        if key is None:
+            raise ValueError(f"{system.name} is stochastic (noise inputs {system.noise_groups}): "
+                             "simulate needs a PRNG key, e.g. key=jax.random.key(0)")
+        source = _NoisyInput(source, key, system.noise_groups)
+    elif key is not None:
+        raise ValueError(f"a key was given, but {system.name} is deterministic (it has no noise inputs)")
     _check_system_shapes(system, t0, x0, source)
     if not solver.adaptive and dt is None:
         raise ValueError(f"the fixed-step solver {type(solver).__name__} needs a step size dt")
@@ -635,6 +691,9 @@ def _check_system_shapes(system, t0, x0, source):
     if isinstance(system, HybridSystem):
         _check_hybrid_shapes(system, t0, x0, source)
         return
+    if isinstance(system, Diagram):
+        _check_diagram_shapes(system, t0, x0, source)
+        return
     u = jax.ShapeDtypeStruct((system.num_inputs,), x0.dtype)
     expected = [("output", system.output, system.num_outputs, (t0, x0, u))]
     if system.num_continuous_states:
@@ -655,6 +714,22 @@ def _check_system_shapes(system, t0, x0, source):
         if getattr(out, "shape", None) != (size,):
             raise ValueError(f"{system.name}.{name} returned shape {getattr(out, 'shape', type(out))}, "
                              f"expected ({size},)")
+
+
+def _check_diagram_shapes(system, t0, x0, source):
+    """Each subsystem as a system of its own, then the wiring (frame conversions)."""
+    for i, sub in enumerate(system.subsystems):
+        _check_system_shapes(sub, t0, system.subsystem_state(i, x0), source)
+    u = jax.ShapeDtypeStruct((system.num_inputs + system.num_noise_inputs,), x0.dtype)
+    mode = jnp.asarray(system.initial_mode, jnp.int32)
+    try:
+        out = jax.eval_shape(lambda x, u: system.mode_output(mode, t0, x, u), x0, u)
+    except Exception as e:
+        raise ValueError(f"evaluating the signals of diagram {system.name} failed (a frame "
+                         f"conversion returning the wrong shape?): {type(e).__name__}: {e}") from e
+    if out.shape != (system.num_outputs,):
+        raise ValueError(f"diagram {system.name}'s output has shape {out.shape}, expected "
+                         f"({system.num_outputs},)")
 
 
 def _check_hybrid_shapes(system, t0, x0, source):

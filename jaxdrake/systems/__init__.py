@@ -1,9 +1,14 @@
-"""Systems: the System contract, frames and the special cases (LTI, hybrid, ...)."""
+"""Systems: the System contract, frames, the special cases (LTI, hybrid, stochastic) and
+their combinations (cascade, feedback, parallel, diagrams)."""
 
-from ._frame import Frame
+from ._combinators import cascade, feedback, parallel
+from ._diagram import Diagram, DiagramBuilder
+from ._frame import Frame, add_frame_conversion
 from ._hybrid import HybridSystem, Transition, and_guards, not_guard
 from ._linear import LinearSystem
+from ._stochastic import StochasticSystem
 from ._system import FunctionSystem, System
 
-__all__ = ["Frame", "FunctionSystem", "HybridSystem", "LinearSystem", "System", "Transition",
-           "and_guards", "not_guard"]
+__all__ = ["Diagram", "DiagramBuilder", "Frame", "FunctionSystem", "HybridSystem", "LinearSystem",
+           "StochasticSystem", "System", "Transition", "add_frame_conversion", "and_guards",
+           "cascade", "feedback", "not_guard", "parallel"]

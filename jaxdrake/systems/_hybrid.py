@@ -116,10 +116,14 @@ class HybridSystem(System):
             if len(set(sizes)) > 1:
                 raise ValueError(f"{name}: all modes must have the same {label}, got "
                                  + ", ".join(f"{m.name}: {s}" for m, s in zip(modes, sizes)))
-        periods = {m.sample_time for m in modes if m.sample_time is not None}
+        periods = {m.sample_times for m in modes if m.sample_times}
         if len(periods) > 1:
-            raise ValueError(f"{name}: modes with discrete states must share one sample time, "
+            raise ValueError(f"{name}: modes with discrete states must share their sample times, "
                              f"got {sorted(periods)}")
+        noise = {m.noise_groups for m in modes}
+        if len(noise) > 1:
+            raise ValueError(f"{name}: all modes must have the same noise inputs, got "
+                             + ", ".join(f"{m.name}: {m.noise_groups}" for m in modes))
         for k, tr in enumerate(transitions):
             if not isinstance(tr, Transition):
                 raise TypeError(f"{name}: transition {k} must be a jaxdrake.Transition")
@@ -138,6 +142,7 @@ class HybridSystem(System):
                          num_discrete_states=max(m.num_discrete_states for m in modes),
                          num_inputs=first.num_inputs, num_outputs=first.num_outputs,
                          sample_time=periods.pop() if periods else None,
+                         noise_groups=noise.pop(),
                          direct_feedthrough=any(m.direct_feedthrough for m in modes),
                          time_invariant=all(m.time_invariant for m in modes),
                          input_limits=limits,
@@ -178,33 +183,36 @@ class HybridSystem(System):
     def mode_dynamics(self, mode, t, x, u):
         def branch(i, t, x, u):
             m = self.modes[i]
-            xc_dot = (m.dynamics(t, self.mode_state(i, x), u) if m.num_continuous_states
+            xc_dot = (m.mode_dynamics(0, t, self.mode_state(i, x), u) if m.num_continuous_states
                       else jnp.zeros(0, x.dtype))
             return jnp.zeros(self.num_continuous_states, x.dtype).at[: m.num_continuous_states].set(xc_dot)
         return self._switch(mode, self.num_modes, branch, t, x, u)
 
-    def mode_update(self, mode, t, x, u):
+    def mode_update(self, mode, t, x, u, due):
         def branch(i, t, x, u):
             m = self.modes[i]
-            xd_next = (m.update(t, self.mode_state(i, x), u) if m.num_discrete_states
+            xd_next = (m.mode_update(0, t, self.mode_state(i, x), u, due) if m.num_discrete_states
                        else jnp.zeros(0, x.dtype))
             return x[: self.num_discrete_states].at[: m.num_discrete_states].set(xd_next)
         return self._switch(mode, self.num_modes, branch, t, x, u)
 
     def mode_output(self, mode, t, x, u):
-        return self._switch(mode, self.num_modes, lambda i, t, x, u: self.modes[i].output(t, self.mode_state(i, x), u),
+        return self._switch(mode, self.num_modes,
+                            lambda i, t, x, u: self.modes[i].mode_output(0, t, self.mode_state(i, x), u),
                             t, x, u)
 
     def transition_guards(self, mode, t, x, u):
         """$\\phi_k(t, x, u)$ for every transition k out of `mode`; +inf for the others."""
+        u = u[: self.num_inputs]  # guards and resets see the inputs, not the noise samples
         values = [jnp.where(mode == tr.source,
                             jnp.asarray(tr.guard(self, t, self.mode_state(tr.source, x), u), x.dtype).reshape(()),
                             jnp.inf)
                   for tr in self.transitions]
         return jnp.stack(values) if values else jnp.zeros(0, x.dtype)
 
-    def apply_transition(self, k, t, x, u):
+    def apply_transition(self, mode, k, t, x, u):
         """Take transition k: returns (padded x+, target mode, stop)."""
+        u = u[: self.num_inputs]
         def branch(j, t, x, u):
             tr = self.transitions[j]
             out = tr.reset(self, t, self.mode_state(tr.source, x), u)

@@ -45,7 +45,9 @@ class System(eqx.Module):
 
     - `num_continuous_states`, `num_discrete_states`, `num_inputs`: sizes.
     - `num_outputs`: defaults to the number of states (and `output` defaults to y = x).
-    - `sample_time`: $\Delta t$ of the discrete state; defaults to 1 when there is one.
+    - `sample_time`: $\Delta t$ of the discrete state; defaults to 1 when there is one. A
+      diagram mixing several rates has a tuple of them (`sample_times`); its
+      `discrete_update` is told which are due.
     - `direct_feedthrough`: whether the output depends on u (default: conservatively True).
     - `time_invariant`: whether dynamics, update and output ignore t (default False).
     - `num_state_constraints`: the size of $\phi(x)$ returned by `state_constraints`.
@@ -57,21 +59,23 @@ class System(eqx.Module):
     num_discrete_states: int = _static(default=0)
     num_inputs: int = _static(default=0)
     num_outputs: int = _static(default=None)
-    sample_time: float | None = _static(default=None)
+    sample_times: tuple[float, ...] = _static(default=())
     direct_feedthrough: bool = _static(default=True)
     time_invariant: bool = _static(default=False)
     num_state_constraints: int = _static(default=0)
     input_frame: Frame = _static(default=None)
     state_frame: Frame = _static(default=None)
     output_frame: Frame = _static(default=None)
+    noise_groups: tuple[tuple[int, float, float], ...] = _static(default=())
     input_limits: tuple[Any, Any] | None = None
 
     def __init__(self, *, num_continuous_states: int = 0, num_discrete_states: int = 0,
                  num_inputs: int = 0, num_outputs: int | None = None,
-                 sample_time: float | None = None, direct_feedthrough: bool = True,
+                 sample_time: float | tuple[float, ...] | None = None, direct_feedthrough: bool = True,
                  time_invariant: bool = False, num_state_constraints: int = 0,
                  input_limits: tuple[Any, Any] | None = None, input_frame: Frame | None = None,
-                 state_frame: Frame | None = None, output_frame: Frame | None = None):
+                 state_frame: Frame | None = None, output_frame: Frame | None = None,
+                 noise_groups: tuple = ()):
         name = type(self).__name__
         for label, n in (("num_continuous_states", num_continuous_states),
                          ("num_discrete_states", num_discrete_states),
@@ -82,17 +86,18 @@ class System(eqx.Module):
         num_outputs = num_states if num_outputs is None else num_outputs
         if num_discrete_states > 0 and sample_time is None:
             sample_time = 1.0
-        if sample_time is not None:
-            sample_time = float(sample_time)
-            if not (sample_time > 0 and np.isfinite(sample_time)):
-                raise ValueError(f"{name}: sample_time must be positive and finite, got {sample_time}")
-            if num_discrete_states == 0:
-                raise ValueError(f"{name}: a sample_time was given but the system has no discrete state")
+        periods = () if sample_time is None else np.atleast_1d(np.asarray(sample_time, float))
+        for period in periods:
+            if not (period > 0 and np.isfinite(period)):
+                raise ValueError(f"{name}: sample_time must be positive and finite, got {period}")
+        if len(periods) and num_discrete_states == 0:
+            raise ValueError(f"{name}: a sample_time was given but the system has no discrete state")
+        self.sample_times = tuple(sorted({float(p) for p in periods}))
+        self.noise_groups = tuple((int(n), float(p), float(s)) for n, p, s in noise_groups)
         self.num_continuous_states = int(num_continuous_states)
         self.num_discrete_states = int(num_discrete_states)
         self.num_inputs = int(num_inputs)
         self.num_outputs = int(num_outputs)
-        self.sample_time = sample_time
         self.direct_feedthrough = bool(direct_feedthrough)
         self.time_invariant = bool(time_invariant)
         self.num_state_constraints = int(num_state_constraints)
@@ -131,8 +136,15 @@ class System(eqx.Module):
                 "but does not define state_constraints()")
         return jnp.zeros(0, dtype=jnp.asarray(x).dtype)
 
+    def discrete_update(self, t, x, u, due):
+        """The discrete state after the updates that are `due` (one flag per sample time):
+        $f_d$ for a single-rate system; a multi-rate diagram updates only its due parts."""
+        return self.update(t, x, u)
+
     # ----- the mode view: every system is a hybrid system with one mode and no transitions ----
-    # (the simulator calls these; `HybridSystem` overrides them)
+    # The simulator calls these. Their `u` is the full input: the inputs followed by the noise
+    # samples w of a stochastic system (nothing else for a deterministic one).
+    # `HybridSystem` and diagrams override them.
 
     num_modes = 1
     initial_mode = 0
@@ -141,8 +153,8 @@ class System(eqx.Module):
     def mode_dynamics(self, mode, t, x, u):
         return self.dynamics(t, x, u)
 
-    def mode_update(self, mode, t, x, u):
-        return self.update(t, x, u)
+    def mode_update(self, mode, t, x, u, due):
+        return self.discrete_update(t, x, u, due)
 
     def mode_output(self, mode, t, x, u):
         return self.output(t, x, u)
@@ -150,7 +162,7 @@ class System(eqx.Module):
     def transition_guards(self, mode, t, x, u):
         return jnp.zeros(0, jnp.asarray(x).dtype)
 
-    def apply_transition(self, k, t, x, u):
+    def apply_transition(self, mode, k, t, x, u):
         raise NotImplementedError(f"{self.name} has no transitions")
 
     # ----- derived facts --------------------------------------------------------------------
@@ -162,6 +174,25 @@ class System(eqx.Module):
     @property
     def num_states(self) -> int:
         return self.num_continuous_states + self.num_discrete_states
+
+    @property
+    def sample_time(self) -> float | None:
+        """The period of the discrete state (None without one, or with several rates)."""
+        return self.sample_times[0] if len(self.sample_times) == 1 else None
+
+    @property
+    def num_noise_inputs(self) -> int:
+        """The size of the noise vector w of a stochastic system (0 when deterministic)."""
+        return sum(n for n, _, _ in self.noise_groups)
+
+    @property
+    def is_stochastic(self) -> bool:
+        return bool(self.noise_groups)
+
+    @property
+    def is_hybrid(self) -> bool:
+        """Whether the system switches between modes (a `HybridSystem` or a diagram with one)."""
+        return self.num_modes > 1 or len(self.transitions) > 0
 
     @property
     def has_continuous_state(self) -> bool:
@@ -179,7 +210,9 @@ class System(eqx.Module):
         """Apply the input limits: clip u to [u_min, u_max] (identity without limits)."""
         if self.input_limits is None:
             return u
-        return jnp.clip(u, self.input_limits[0], self.input_limits[1])
+        nu = self.num_inputs
+        clipped = jnp.clip(u[..., :nu], self.input_limits[0], self.input_limits[1])
+        return jnp.concatenate([clipped, u[..., nu:]], axis=-1)  # noise samples pass through
 
     def with_input_limits(self, u_min, u_max) -> "System":
         """A copy of this system with input limits u_min <= u <= u_max (the notes' setInputLimits)."""
@@ -194,16 +227,18 @@ class System(eqx.Module):
         """Build a system from plain functions.
 
         `dynamics(t, x, u)` makes a continuous system, `update(t, x, u)` (with `sample_time`)
-        a discrete one, both a mixed one (then give `num_discrete_states`). If `params` (any
+        a discrete one, both a mixed one (then give `num_discrete_states`); `output` alone with
+        `num_states=0` a static one (a controller u = k(t, y), say). If `params` (any
         pytree; its arrays are leaves of the system) is given, each function is called as
         `f(t, x, u, params)`. Other keyword arguments are those of `System`.
         """
-        if dynamics is None and update is None:
-            raise ValueError("from_functions needs dynamics (continuous) and/or update (discrete)")
+        if dynamics is None and update is None and not (num_states == 0 and output is not None):
+            raise ValueError("from_functions needs dynamics (continuous) and/or update (discrete), "
+                             "or only an output with num_states=0 (a static, memoryless system)")
         if num_discrete_states is None:
             if dynamics is not None and update is not None:
                 raise ValueError("a mixed system (dynamics and update) needs num_discrete_states")
-            num_discrete_states = num_states if dynamics is None else 0
+            num_discrete_states = num_states if dynamics is None and update is not None else 0
         return FunctionSystem(dynamics, update, output, params=params, initial_state=initial_state,
                               num_continuous_states=num_states - num_discrete_states,
                               num_discrete_states=num_discrete_states, num_inputs=num_inputs, **kwargs)

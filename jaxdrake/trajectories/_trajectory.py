@@ -167,7 +167,8 @@ class Trajectory(eqx.Module):
         """The input u(t) applied to the system (after its input limits)."""
         if self.system is None:
             raise ValueError("this trajectory has no system, so no input")
-        return self._vectorize(lambda s: self.system.saturate(self.inputs(s)), t)
+        nu = self.system.num_inputs  # without the noise samples of a stochastic system
+        return self._vectorize(lambda s: self.system.saturate(self.inputs(s))[:nu], t)
 
     def eval(self, t, side: str | None = None):
         """The output y(t) = g(t, x(t), u(t)) of the simulated system at any time (dense)."""
