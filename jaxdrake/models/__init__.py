@@ -2,9 +2,9 @@
 
 from ._hybrid import BallFlightPhasePlant, BouncingBall, RimlessWheel, RimlessWheelStance
 from ._pendulum import Pendulum
-from ._simple import (DoubleIntegrator, SimpleCTExample, SimpleDTExample, SimpleMixedCTDTExample,
-                      VanDerPol)
+from ._simple import (DoubleIntegrator, LinearGaussianExample, SimpleCTExample, SimpleDTExample,
+                      SimpleMixedCTDTExample, VanDerPol)
 
-__all__ = ["BallFlightPhasePlant", "BouncingBall", "DoubleIntegrator", "Pendulum", "RimlessWheel",
+__all__ = ["BallFlightPhasePlant", "BouncingBall", "DoubleIntegrator", "LinearGaussianExample", "Pendulum", "RimlessWheel",
            "RimlessWheelStance", "SimpleCTExample", "SimpleDTExample", "SimpleMixedCTDTExample",
            "VanDerPol"]

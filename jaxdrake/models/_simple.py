@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
-from ..systems import Frame, LinearSystem, System
+from ..systems import Frame, LinearSystem, StochasticSystem, System
 
 
 def DoubleIntegrator() -> LinearSystem:
@@ -83,3 +84,26 @@ class SimpleMixedCTDTExample(System):
 
     def output(self, t, x, u):
         return x
+
+
+class LinearGaussianExample(StochasticSystem):
+    r"""The notes' simple continuous-time stochastic system (D.3.1): $\dot x = -x + w$, $y = x$,
+    with w band-limited Gaussian white noise of time constant $\tau$ (default 0.01, as there).
+
+    With w held for $\tau$ at $N(0, 1/\tau)$, the state at the instants $k\tau$ follows
+    $x_{k+1} = e^{-\tau} x_k + (1 - e^{-\tau}) w_k$, whose stationary variance
+    $\frac{1 - e^{-\tau}}{\tau (1 + e^{-\tau})}$ (`stationary_variance`) tends to 1/2, that
+    of the white-noise limit, as $\tau \to 0$.
+    """
+
+    def __init__(self, noise_time_constant: float = 0.01):
+        super().__init__(num_continuous_states=1, num_noise_inputs=1,
+                         noise_time_constant=noise_time_constant, direct_feedthrough=False,
+                         time_invariant=True, state_frame=Frame("LinearGaussianState", ("x",)))
+
+    def stochastic_dynamics(self, t, x, u, w):
+        return -x + w
+
+    def stationary_variance(self) -> float:
+        decay = np.exp(-self.noise_time_constant)
+        return float((1 - decay) / (self.noise_time_constant * (1 + decay)))

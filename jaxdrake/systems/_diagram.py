@@ -149,7 +149,7 @@ class Diagram(System):
                 y = ys[w.source]
                 if w.conversion is not None:
                     y = jnp.asarray(w.conversion(y), dtype)
-            u = u.at[np.asarray(w.target_index)].add(w.gain * y[np.asarray(w.source_index)])
+            u = u.at[np.asarray(w.target_index, int)].add(w.gain * y[np.asarray(w.source_index, int)])
         return self.subsystems[i].saturate(u)
 
     def signals(self, mode, t, x, u):
