@@ -149,7 +149,13 @@ class Diagram(System):
                 y = ys[w.source]
                 if w.conversion is not None:
                     y = jnp.asarray(w.conversion(y), dtype)
-            u = u.at[np.asarray(w.target_index, int)].add(w.gain * y[np.asarray(w.source_index, int)])
+            if w.source_index != tuple(range(y.shape[0])):
+                y = y[np.asarray(w.source_index, int)]
+            y = y if w.gain == 1.0 else w.gain * y
+            if w.target_index == tuple(range(u.shape[0])):
+                u = u + y  # the whole input: no scatter (slow on CPUs)
+            else:
+                u = u.at[np.asarray(w.target_index, int)].add(y)
         return self.subsystems[i].saturate(u)
 
     def signals(self, mode, t, x, u):
