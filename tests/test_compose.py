@@ -332,3 +332,24 @@ def test_diagram_input_limits_are_located_as_events_when_the_input_feeds_a_limit
     traj = jd.simulate(chain, (0, 3), jnp.zeros(3), inputs=lambda t: jnp.array([2 * jnp.sin(t)]), **TIGHT)
     # 2 sin t = 1 at t = pi/6 and 5 pi/6
     np.testing.assert_allclose(traj.events["times"], [np.pi / 6, 5 * np.pi / 6], rtol=1e-9)
+
+
+def test_hybrid_modes_inherit_the_hybrid_systems_frames():
+    height = jd.Frame("Height", ("h",))
+    flight = jd.System.from_functions(lambda t, x, u: jnp.array([x[1], -9.81]), num_states=2,
+                                      num_outputs=1, output=lambda t, x, u: x[:1])  # generic output frame
+    bounce = jd.Transition(0, lambda s, t, x, u: x[0], lambda s, t, x, u: jnp.array([x[0], -x[1]]), 0)
+    hybrid = jd.HybridSystem([flight], [bounce], output_frame=height)
+    assert hybrid.output_frame == height
+    named = jd.System.from_functions(lambda t, x, u: jnp.array([x[1], -9.81]), num_states=2, num_outputs=1,
+                                     output=lambda t, x, u: x[:1], output_frame=jd.Frame("Altitude", ("z",)))
+    with pytest.raises(ValueError, match=r"mode 0.*output frame Altitude\(z\).*Height\(h\)"):
+        jd.HybridSystem([named], [bounce], output_frame=height)
+
+
+def test_float32_feedback_diagram_runs():
+    with jax.enable_x64(False):
+        closed = jd.feedback(Pendulum(), pd_controller(10.0, 1.0))
+        traj = jd.simulate(closed, (0.0, 5.0), jnp.array([0.5, 0.0], jnp.float32), dense=False)
+        assert traj.final_state.dtype == jnp.float32 and bool(traj.success)
+        np.testing.assert_allclose(traj.final_state[0], np.pi, atol=1e-2)

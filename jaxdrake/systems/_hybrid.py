@@ -89,7 +89,8 @@ class HybridSystem(System):
       discrete states share one sample time.
     - `transitions`: a sequence of `Transition`s.
     - `initial_mode`: the mode at the start of a simulation (default 0).
-    - `input_frame`, `output_frame`: default to the first mode's; modes inherit them.
+    - `input_frame`, `output_frame`: default to the first mode's; modes inherit them (a mode
+      that names a different frame is an error).
 
     Subclass it to give the system parameters of its own (the notes' `BallPlant` has `r` and
     `cor`), calling `super().__init__(modes, transitions)` at the end of `__init__`.
@@ -134,6 +135,14 @@ class HybridSystem(System):
         if not (isinstance(initial_mode, int) and 0 <= initial_mode < len(modes)):
             raise ValueError(f"{name}: initial_mode {initial_mode!r} is not one of the "
                              f"{len(modes)} modes")
+        input_frame = input_frame or first.input_frame
+        output_frame = output_frame or first.output_frame
+        for i, m in enumerate(modes):  # modes inherit the hybrid system's frames (notes, D.3.5)
+            for role, frame in (("input", input_frame), ("output", output_frame)):
+                own = getattr(m, f"{role}_frame")
+                if not own.generic and not frame.generic and own != frame:
+                    raise ValueError(f"{name}: mode {i} ({m.name}) has {role} frame {own}, but the "
+                                     f"hybrid system's {role} frame is {frame}")
         self.modes = modes
         self.transitions = transitions
         self.initial_mode = initial_mode
@@ -146,8 +155,7 @@ class HybridSystem(System):
                          direct_feedthrough=any(m.direct_feedthrough for m in modes),
                          time_invariant=all(m.time_invariant for m in modes),
                          input_limits=limits,
-                         input_frame=input_frame or first.input_frame,
-                         output_frame=output_frame or first.output_frame,
+                         input_frame=input_frame, output_frame=output_frame,
                          state_frame=state_frame)
 
     # ----- layout -----------------------------------------------------------------------------
