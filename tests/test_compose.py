@@ -353,3 +353,20 @@ def test_float32_feedback_diagram_runs():
         traj = jd.simulate(closed, (0.0, 5.0), jnp.array([0.5, 0.0], jnp.float32), dense=False)
         assert traj.final_state.dtype == jnp.float32 and bool(traj.success)
         np.testing.assert_allclose(traj.final_state[0], np.pi, atol=1e-2)
+
+
+@pytest.mark.parametrize("combinator", [jd.cascade, jd.feedback, jd.parallel])
+@pytest.mark.parametrize("linear", [True, False], ids=["LinearSystem", "Diagram"])
+def test_gradient_through_each_combinator_matches_finite_differences(combinator, linear):
+    def final(k):
+        a = (jd.LinearSystem([[0.0, 1.0], [-1.0, -k]], [[0.0], [1.0]]) if linear
+             else Pendulum(b=k))
+        b = jd.LinearSystem([[-2.0 * k]], [[1.0, 0.5]], [[k]])
+        combined = combinator(a, b)
+        assert (type(combined) is jd.LinearSystem) == linear
+        traj = jd.simulate(combined, (0.0, 2.0), jnp.array([1.0, 0.0, 0.5]), rtol=1e-11, atol=1e-12)
+        return jnp.sum(traj.final_state ** 2)
+
+    k = 0.7
+    fd = (final(k + 1e-5) - final(k - 1e-5)) / 2e-5
+    np.testing.assert_allclose(jax.grad(final)(k), fd, rtol=1e-6)

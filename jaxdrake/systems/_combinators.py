@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ._diagram import Diagram, DiagramBuilder
+from ._diagram import DiagramBuilder
 from ._frame import Frame, frame_conversion
 from ._linear import LinearSystem
 from ._system import System

@@ -398,7 +398,7 @@ class DiagramBuilder:
         (their concatenation, with generic names, when there are several)."""
         if not self._systems:
             raise ValueError("the diagram has no subsystems")
-        wires, offset, limits_lo, limits_hi = list(self._wires), 0, [], []
+        wires, offset = list(self._wires), 0
         for j, dst in self._inputs:
             wires.append(Wire(INPUT, tuple(range(offset, offset + len(dst))), j, dst))
             offset += len(dst)
