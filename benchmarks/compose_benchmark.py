@@ -9,6 +9,7 @@ through a ZeroOrderHold). Initial states uniform in theta in [0, 2pi), thetadot 
 JAX programs are compiled first and timed separately; each timing is the best of repeats.
 
     python benchmarks/compose_benchmark.py [--batch 1000]
+    python benchmarks/compose_benchmark.py --gpu --batch 100000     # accelerator: JAX rows only
 """
 
 from __future__ import annotations
@@ -86,7 +87,7 @@ def drake_runner(sampled):
     return one
 
 
-def main(batch, repeats):
+def main(batch, repeats, gpu):
     device = jax.devices()[0]
     print(f"machine: {platform.processor() or platform.machine()}, {device.platform} "
           f"({device.device_kind}), jax {jax.__version__}, float64")
@@ -106,9 +107,11 @@ def main(batch, repeats):
     for label, (single, many_s, finals) in results.items():
         sampled = label.startswith("sampled")
         try:
+            if gpu:
+                raise ImportError
             drake = drake_runner(sampled)
         except ImportError:
-            print(f"{label:40s} {single * 1e3:8.2f}ms {many_s * 1e3:10.1f}ms  (drake not installed)")
+            print(f"{label:40s} {single * 1e3:8.2f}ms {many_s * 1e3:10.1f}ms  (drake not run)")
             continue
         loop = lambda: np.stack([drake(x) for x in x0s])
         drake_single, drake_loop = best_time(lambda: drake(x0s[0]), 20), best_time(loop, 2)
@@ -121,5 +124,6 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--batch", type=int, default=1000)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--gpu", action="store_true", help="JAX rows only (no Drake)")
     args = parser.parse_args()
-    main(args.batch, args.repeats)
+    main(args.batch, args.repeats, args.gpu)
