@@ -264,7 +264,7 @@ class Trajectory(eqx.Module):
         for i in idx:
             line, = ax.plot(ts, ys[:, i], label=names[i], **kwargs)
             if discrete:
-                dt = self.system.sample_time
+                dt = min(self.system.sample_times)  # the fastest rate of a multi-rate system
                 tk = np.arange(np.ceil(ts[0] / dt), np.floor(ts[-1] / dt) + 1) * dt
                 ax.plot(tk, np.asarray(self.eval(jnp.asarray(tk)))[:, i], "o", ms=4,
                         color=line.get_color())
