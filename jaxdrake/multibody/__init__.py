@@ -1,0 +1,10 @@
+"""Rigid-body systems: URDF -> kinematic tree, Featherstone's algorithms in JAX."""
+
+from ._algorithms import (aba, bias_forces, body_poses, configuration_derivative, frame_jacobian,
+                          frame_pose, gravity_forces, kinetic_energy, mass_matrix,
+                          potential_energy, rnea)
+from ._tree import KinematicTree, URDFError, tree_from_urdf
+
+__all__ = ["KinematicTree", "URDFError", "aba", "bias_forces", "body_poses",
+           "configuration_derivative", "frame_jacobian", "frame_pose", "gravity_forces",
+           "kinetic_energy", "mass_matrix", "potential_energy", "rnea", "tree_from_urdf"]
