@@ -1,6 +1,7 @@
 """jaxdrake: Drake's ideas for modelling, simulating and controlling dynamical systems, in JAX."""
 
-from . import models, simulation, systems, trajectories
+from . import models, multibody, simulation, systems, trajectories
+from .multibody import LoopConstraint, RigidBodySystem
 from .simulation import SimulationError, SimulationStatus, simulate
 from .systems import (Diagram, DiagramBuilder, Frame, HybridSystem, LinearSystem, StochasticSystem,
                       System, Transition, add_frame_conversion, and_guards, cascade, feedback,
@@ -10,6 +11,6 @@ from .trajectories import Trajectory
 __version__ = "0.1.0"
 
 __all__ = ["Diagram", "DiagramBuilder", "Frame", "HybridSystem", "LinearSystem", "SimulationError",
-           "SimulationStatus", "StochasticSystem", "System", "Trajectory", "Transition",
-           "add_frame_conversion", "and_guards", "cascade", "feedback", "models", "not_guard",
+           "LoopConstraint", "RigidBodySystem", "SimulationStatus", "StochasticSystem", "System", "Trajectory", "Transition",
+           "add_frame_conversion", "and_guards", "cascade", "feedback", "models", "multibody", "not_guard",
            "parallel", "simulate", "simulation", "systems", "trajectories"]

@@ -2,9 +2,10 @@
 
 from ._hybrid import BallFlightPhasePlant, BouncingBall, RimlessWheel, RimlessWheelStance
 from ._pendulum import Pendulum
+from ._rigid import Acrobot, CartPole, DoublePendulum
 from ._simple import (DoubleIntegrator, LinearGaussianExample, SimpleCTExample, SimpleDTExample,
                       SimpleMixedCTDTExample, VanDerPol)
 
-__all__ = ["BallFlightPhasePlant", "BouncingBall", "DoubleIntegrator", "LinearGaussianExample", "Pendulum", "RimlessWheel",
+__all__ = ["Acrobot", "BallFlightPhasePlant", "BouncingBall", "CartPole", "DoubleIntegrator", "DoublePendulum", "LinearGaussianExample", "Pendulum", "RimlessWheel",
            "RimlessWheelStance", "SimpleCTExample", "SimpleDTExample", "SimpleMixedCTDTExample",
            "VanDerPol"]

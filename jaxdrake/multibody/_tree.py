@@ -33,6 +33,7 @@ class URDFError(ValueError):
 
 
 class KinematicTree(eqx.Module):
+    robot_name: str = eqx.field(static=True)
     body_names: tuple = eqx.field(static=True)
     joint_names: tuple = eqx.field(static=True)
     joint_types: tuple = eqx.field(static=True)
@@ -188,7 +189,8 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
     for name in actuated:
         if name not in known:
             raise URDFError(f"{path}: a <transmission> actuates joint {name!r}, which is not defined")
-    tree = _build_tree(roots[0], links, joints, floating_base, np.asarray(gravity, float), path)
+    tree = _build_tree(root.get("name") or path.stem, roots[0], links, joints, floating_base,
+                       np.asarray(gravity, float), path)
     return tree, tuple(actuated)
 
 
@@ -228,7 +230,7 @@ def _combine(m1, c1, I1, m2, c2, I2):
     return m, c, I1 + shift(m1, c1 - c) + I2 + shift(m2, c2 - c)
 
 
-def _build_tree(root, links, joints, floating_base, gravity, path):
+def _build_tree(robot_name, root, links, joints, floating_base, gravity, path):
     by_parent = {}
     for j in joints:
         by_parent.setdefault(j["parent"], []).append(j)
@@ -275,7 +277,7 @@ def _build_tree(root, links, joints, floating_base, gravity, path):
     per_q = lambda key: jnp.asarray(np.concatenate([[b[key]] * (1 if b["type"] != "floating" else 7)
                                                     for b in bodies]), float)
     return KinematicTree(
-        body_names=tuple(b["link"] for b in bodies), joint_names=tuple(b["joint"] for b in bodies),
+        robot_name=robot_name, body_names=tuple(b["link"] for b in bodies), joint_names=tuple(b["joint"] for b in bodies),
         joint_types=tuple(b["type"] for b in bodies), parents=tuple(b["parent"] for b in bodies),
         frame_names=tuple(f[0] for f in frames), frame_bodies=tuple(f[1] for f in frames),
         axes=arr("axis"), origin_rotation=arr("R"), origin_translation=arr("p"),

@@ -1,0 +1,60 @@
+"""Rigid-body plants of the notes, loaded from the URDF files shipped in `models/urdf/`, with
+their physical parameters written into the kinematic tree (pytree leaves)."""
+
+from __future__ import annotations
+
+import pathlib
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from ..multibody import RigidBodySystem
+
+URDF_DIR = pathlib.Path(__file__).parent / "urdf"
+
+
+def _planar_inertia(I):
+    """A rotational inertia I about the y axis (the axis of the planar joints)."""
+    return jnp.diag(jnp.stack([I, I, 0.0 * I]))
+
+
+def Acrobot(m1=1.0, m2=1.0, l1=1.0, l2=2.0, lc1=0.5, lc2=1.0, Ic1=0.083, Ic2=0.33, b1=0.1, b2=0.1,
+            g=9.81) -> RigidBodySystem:
+    r"""The acrobot (Underactuated ch. 3) from `acrobot.urdf`, with Drake's defaults: two links
+    hanging from a passive shoulder, the elbow actuated. State $[q_1, q_2, \dot q_1, \dot q_2]$,
+    angles from hanging straight down, $q_2$ relative to the upper link; `Ic1`, `Ic2` are the
+    moments of inertia about the centres of mass. `l2` places the hand frame."""
+    plant = RigidBodySystem.from_urdf(URDF_DIR / "acrobot.urdf")
+    tree = plant.tree
+    tree = eqx.tree_at(lambda t: (t.mass, t.com, t.inertia, t.origin_translation, t.damping, t.gravity,
+                                  t.frame_translation),
+                       tree, (jnp.stack([m1, m2]) * 1.0,
+                              jnp.array([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]]) * jnp.stack([lc1, lc2])[:, None],
+                              jnp.stack([_planar_inertia(Ic1), _planar_inertia(Ic2)]),
+                              jnp.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0]]) * l1,
+                              jnp.stack([b1, b2]) * 1.0, jnp.array([0.0, 0.0, -1.0]) * g,
+                              _hand_frame(tree, "hand", l2)))
+    return eqx.tree_at(lambda p: p.tree, plant, tree)
+
+
+def CartPole(mc=10.0, mp=1.0, l=0.5, g=9.81) -> RigidBodySystem:
+    r"""The cart-pole (Underactuated ch. 3) from `cartpole.urdf`, with Drake's defaults: a cart
+    of mass `mc` pushed along x, a pole with a point mass `mp` at distance `l`, theta from
+    hanging straight down. State $[x, \theta, \dot x, \dot\theta]$, input the force on the cart."""
+    plant = RigidBodySystem.from_urdf(URDF_DIR / "cartpole.urdf")
+    tree = plant.tree
+    tree = eqx.tree_at(lambda t: (t.mass, t.com, t.gravity, t.frame_translation), tree,
+                       (jnp.stack([mc, mp]) * 1.0, jnp.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0]]) * l,
+                        jnp.array([0.0, 0.0, -1.0]) * g, _hand_frame(tree, "pole_tip", l)))
+    return eqx.tree_at(lambda p: p.tree, plant, tree)
+
+
+def DoublePendulum() -> RigidBodySystem:
+    """A planar double pendulum of two uniform 1 kg, 1 m rods (`double_pendulum.urdf`), both
+    joints actuated; angles from hanging straight down, the second relative to the first."""
+    return RigidBodySystem.from_urdf(URDF_DIR / "double_pendulum.urdf")
+
+
+def _hand_frame(tree, name, length):
+    k = tree.frame_names.index(name)
+    return tree.frame_translation.at[k].set(jnp.array([0.0, 0.0, -1.0]) * length)
