@@ -1,0 +1,277 @@
+"""Rigid bodies from URDF: Featherstone's algorithms against Pinocchio and closed forms,
+energy conservation, loop closures, gradients, and malformed URDFs."""
+
+import importlib.metadata
+import pathlib
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxdrake as jd
+from jaxdrake import multibody as mb
+from jaxdrake.models._rigid import URDF_DIR
+
+pin = pytest.importorskip("pinocchio")
+DATA = pathlib.Path(__file__).parent / "data"
+
+
+def example_robot(relative):
+    """A URDF from the installed example-robot-data package (no download)."""
+    root = importlib.metadata.distribution("example-robot-data").locate_file(
+        "cmeel.prefix/share/example-robot-data/robots")
+    path = pathlib.Path(root) / relative
+    if not path.exists():
+        pytest.skip(f"example-robot-data has no {relative}")
+    return path
+
+
+ROBOTS = {  # name: (path, floating base)
+    "double_pendulum": (lambda: URDF_DIR / "double_pendulum.urdf", False),
+    "acrobot": (lambda: URDF_DIR / "acrobot.urdf", False),
+    "cartpole": (lambda: URDF_DIR / "cartpole.urdf", False),
+    "panda (7-dof arm + gripper)": (lambda: example_robot("panda_description/urdf/panda.urdf"), False),
+    "ur5": (lambda: example_robot("ur_description/urdf/ur5_robot.urdf"), False),
+    "solo12 (floating quadruped)": (lambda: example_robot("solo_description/robots/solo12.urdf"), True),
+}
+
+
+class PinocchioTwin:
+    """The same URDF in Pinocchio, with maps between our coordinates and Pinocchio's
+    (Pinocchio gives a continuous joint two coordinates, cos and sin)."""
+
+    def __init__(self, path, tree):
+        self.model = (pin.buildModelFromUrdf(str(path), pin.JointModelFreeFlyer()) if tree.has_floating_base
+                      else pin.buildModelFromUrdf(str(path)))
+        self.data = self.model.createData()
+        self.tree = tree
+        self.v_perm = []
+        for name, kind in zip(tree.joint_names, tree.joint_types):
+            joint = self.model.joints[1 if kind == "floating" else self.model.getJointId(name)]
+            self.v_perm += list(range(joint.idx_v, joint.idx_v + joint.nv))
+        self.v_perm = np.array(self.v_perm)
+
+    def q(self, q):
+        out = np.zeros(self.model.nq)
+        for name, kind, s in zip(self.tree.joint_names, self.tree.joint_types, self.tree.q_starts):
+            joint = self.model.joints[1 if kind == "floating" else self.model.getJointId(name)]
+            i = joint.idx_q
+            if kind == "floating":
+                out[i: i + 7] = q[s: s + 7]
+            elif joint.nq == 2:
+                out[i: i + 2] = np.cos(q[s]), np.sin(q[s])
+            else:
+                out[i] = q[s]
+        return out
+
+    def v(self, v):
+        out = np.zeros(self.model.nv)
+        out[self.v_perm] = v
+        return out
+
+    def ours(self, vec):
+        return np.asarray(vec)[self.v_perm]
+
+
+def random_states(tree, n, seed):
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(-np.pi, np.pi, (n, tree.nq))
+    for s, kind in zip(tree.q_starts, tree.joint_types):
+        if kind == "floating":
+            q[:, s: s + 3] = rng.uniform(-1, 1, (n, 3))
+            quat = rng.normal(size=(n, 4))
+            q[:, s + 3: s + 7] = quat / np.linalg.norm(quat, axis=1, keepdims=True)
+    return q, rng.uniform(-2, 2, (n, tree.nv)), rng.uniform(-2, 2, (n, tree.nv))
+
+
+@pytest.mark.parametrize("robot", list(ROBOTS))
+def test_dynamics_agree_with_pinocchio(robot):
+    path, floating = ROBOTS[robot][0](), ROBOTS[robot][1]
+    tree, _ = mb.tree_from_urdf(path, floating_base=floating)
+    twin = PinocchioTwin(path, tree)
+    qs, vs, xs = random_states(tree, 20, seed=len(robot))
+    ours = jax.jit(jax.vmap(lambda q, v, x: (mb.mass_matrix(tree, q), mb.bias_forces(tree, q, v),
+                                              mb.rnea(tree, q, v, x), mb.aba(tree, q, v, x))))
+    H, bias, tau, qdd = map(np.asarray, ours(qs, vs, xs))
+    for k in range(20):
+        q, v, x = twin.q(qs[k]), twin.v(vs[k]), twin.v(xs[k])
+        H_pin = pin.crba(twin.model, twin.data, q)
+        H_pin = np.triu(H_pin) + np.triu(H_pin, 1).T
+        scale = lambda a: 1e-9 * max(1.0, np.max(np.abs(a)))
+        np.testing.assert_allclose(H[k], H_pin[np.ix_(twin.v_perm, twin.v_perm)], rtol=0, atol=scale(H_pin))
+        nle = twin.ours(pin.nonLinearEffects(twin.model, twin.data, q, v))
+        np.testing.assert_allclose(bias[k], nle, rtol=0, atol=scale(nle))
+        rnea_pin = twin.ours(pin.rnea(twin.model, twin.data, q, v, x))
+        np.testing.assert_allclose(tau[k], rnea_pin, rtol=0, atol=scale(rnea_pin))
+        aba_pin = twin.ours(pin.aba(twin.model, twin.data, q, v, x))
+        np.testing.assert_allclose(qdd[k], aba_pin, rtol=0, atol=scale(aba_pin))
+
+
+def test_frame_poses_and_jacobians_agree_with_pinocchio():
+    path = example_robot("panda_description/urdf/panda.urdf")
+    tree, _ = mb.tree_from_urdf(path)
+    twin = PinocchioTwin(path, tree)
+    qs, vs, _ = random_states(tree, 5, seed=3)
+    fid = twin.model.getFrameId("panda_hand")
+    for q, v in zip(qs, vs):
+        qp = twin.q(q)
+        pin.forwardKinematics(twin.model, twin.data, qp)
+        pin.updateFramePlacements(twin.model, twin.data)
+        R, p = mb.frame_pose(tree, jnp.asarray(q), "panda_hand")
+        np.testing.assert_allclose(R, twin.data.oMf[fid].rotation, atol=1e-12)
+        np.testing.assert_allclose(p, twin.data.oMf[fid].translation, atol=1e-12)
+        J_pin = pin.computeFrameJacobian(twin.model, twin.data, qp, fid, pin.LOCAL_WORLD_ALIGNED)
+        J = np.asarray(mb.frame_jacobian(tree, jnp.asarray(q), "panda_hand"))
+        np.testing.assert_allclose(J[:3], J_pin[3:][:, twin.v_perm], atol=1e-12)   # angular
+        np.testing.assert_allclose(J[3:], J_pin[:3][:, twin.v_perm], atol=1e-12)   # linear
+
+
+def acrobot_closed_form(q, v, m1=1.0, m2=1.0, l1=1.0, lc1=0.5, lc2=1.0, Ic1=0.083, Ic2=0.33, g=9.81):
+    """Underactuated ch. 3: H, C, tau_g (tau_g on the right, so G = -tau_g)."""
+    I1, I2 = Ic1 + m1 * lc1 ** 2, Ic2 + m2 * lc2 ** 2
+    c2, s1, s2, s12 = np.cos(q[1]), np.sin(q[0]), np.sin(q[1]), np.sin(q[0] + q[1])
+    H = np.array([[I1 + I2 + m2 * l1 ** 2 + 2 * m2 * l1 * lc2 * c2, I2 + m2 * l1 * lc2 * c2],
+                  [I2 + m2 * l1 * lc2 * c2, I2]])
+    C = np.array([[-2 * m2 * l1 * lc2 * s2 * v[1], -m2 * l1 * lc2 * s2 * v[1]], [m2 * l1 * lc2 * s2 * v[0], 0.0]])
+    tau_g = np.array([-m1 * g * lc1 * s1 - m2 * g * (l1 * s1 + lc2 * s12), -m2 * g * lc2 * s12])
+    return H, C, tau_g, np.array([[0.0], [1.0]])
+
+
+def cartpole_closed_form(q, v, mc=10.0, mp=1.0, l=0.5, g=9.81):
+    c, s = np.cos(q[1]), np.sin(q[1])
+    H = np.array([[mc + mp, mp * l * c], [mp * l * c, mp * l ** 2]])
+    C = np.array([[0.0, -mp * l * v[1] * s], [0.0, 0.0]])
+    return H, C, np.array([0.0, -mp * g * l * s]), np.array([[1.0], [0.0]])
+
+
+@pytest.mark.parametrize("model, closed_form, params", [
+    (jd.models.Acrobot, acrobot_closed_form, {}),
+    (jd.models.Acrobot, acrobot_closed_form, dict(m1=1.3, m2=0.7, l1=1.2, lc1=0.4, lc2=0.9, Ic1=0.1, Ic2=0.2, g=9.7)),
+    (jd.models.CartPole, cartpole_closed_form, {}),
+    (jd.models.CartPole, cartpole_closed_form, dict(mc=2.0, mp=0.3, l=0.8, g=9.7)),
+])
+def test_acrobot_and_cartpole_from_urdf_match_their_closed_forms(model, closed_form, params):
+    plant = model(**params)
+    rng = np.random.default_rng(1)
+    for q, v in zip(rng.uniform(-np.pi, np.pi, (20, 2)), rng.uniform(-3, 3, (20, 2))):
+        H, Cv, G, B = map(np.asarray, plant.manipulator_dynamics(jnp.asarray(q), jnp.asarray(v)))
+        H_ref, C_ref, tau_g, B_ref = closed_form(q, v, **params)
+        np.testing.assert_allclose(H, H_ref, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(Cv, C_ref @ v, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(G, -tau_g, rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(B, B_ref)
+
+
+def test_forward_and_inverse_dynamics_include_urdf_damping():
+    plant = jd.models.Acrobot(b1=0.3, b2=0.2)
+    q, v, u = jnp.array([0.4, -0.3]), jnp.array([1.0, -2.0]), jnp.array([0.7])
+    H, Cv, G, B = plant.manipulator_dynamics(q, v)
+    expected = np.linalg.solve(H, B @ u - Cv - G - jnp.array([0.3, 0.2]) * v)
+    np.testing.assert_allclose(plant.forward_dynamics(q, v, u), expected, atol=1e-12)
+    np.testing.assert_allclose(plant.inverse_dynamics(q, v, expected), B @ u, atol=1e-12)
+
+
+def test_double_pendulum_conserves_energy():
+    plant = jd.models.DoublePendulum()
+    traj = jd.simulate(plant, (0.0, 10.0), jnp.array([1.0, 0.5, 0.0, 0.0]), rtol=1e-12, atol=1e-12,
+                       max_steps=20000)
+    E = jax.vmap(plant.energy)(traj.state(jnp.linspace(0.0, 10.0, 201)))
+    assert float(jnp.max(jnp.abs(E - E[0]))) < 1e-8
+
+
+def test_floating_base_robot_in_zero_gravity_conserves_energy_and_momentum_direction():
+    path = example_robot("solo_description/robots/solo12.urdf")
+    plant = jd.RigidBodySystem.from_urdf(path, floating_base=True, gravity=False)
+    assert plant.num_positions == 19 and plant.num_velocities == 18
+    q0 = plant.tree.neutral_configuration()
+    rng = np.random.default_rng(0)
+    x0 = jnp.concatenate([q0, jnp.asarray(rng.uniform(-1, 1, 18))])
+    traj = jd.simulate(plant, (0.0, 10.0), x0, rtol=1e-12, atol=1e-12, max_steps=30000)
+    xs = traj.state(jnp.linspace(0.0, 10.0, 101))
+    E = jax.vmap(plant.energy)(xs)
+    assert float(jnp.max(jnp.abs(E - E[0]))) < 1e-8
+    quat_norm = jnp.linalg.norm(xs[:, 3:7], axis=1)
+    assert float(jnp.max(jnp.abs(quat_norm - 1))) < 1e-8
+
+
+def test_four_bar_linkage_stays_closed():
+    plant = jd.RigidBodySystem.from_urdf(DATA / "fourbar.urdf",
+                                         loops=[jd.LoopConstraint("coupler_end", "rocker_end", ("x", "z"))])
+    assert plant.num_state_constraints == 4
+    # an open-ish initial guess: simulate projects it onto phi(q) = 0, J v = 0 first
+    traj = jd.simulate(plant, (0.0, 10.0), jnp.array([-1.2, 1.4, -1.9, 0.0, 0.0, 0.0]),
+                       rtol=1e-10, atol=1e-10, max_steps=20000)
+    xs = traj.state(jnp.linspace(0.0, 10.0, 401))
+    phi = jax.vmap(lambda x: plant.loop_residual(x[:3]))(xs)
+    assert float(jnp.max(jnp.abs(phi))) < 1e-8
+    E = jax.vmap(plant.energy)(xs)
+    assert float(jnp.max(jnp.abs(E - E[0]))) < 1e-7  # constraint forces do no work
+    assert float(jnp.ptp(xs[:, 0])) > 0.5            # and the linkage does move
+
+
+def test_gradient_of_an_acrobot_simulation_wrt_a_link_mass():
+    def loss(m2):
+        traj = jd.simulate(jd.models.Acrobot(m2=m2), (0.0, 1.0), jnp.array([0.5, -0.3, 0.0, 0.0]),
+                           inputs=lambda t: jnp.array([jnp.sin(3 * t)]), rtol=1e-11, atol=1e-12)
+        return jnp.sum(traj.final_state ** 2)
+
+    g = jax.grad(loss)(1.0)
+    fd = (loss(1.0 + 1e-5) - loss(1.0 - 1e-5)) / 2e-5
+    np.testing.assert_allclose(g, fd, rtol=1e-6)
+
+
+def test_vmap_over_states_and_parameters():
+    plant = jd.models.CartPole()
+    xs = jnp.asarray(np.random.default_rng(2).uniform(-1, 1, (50, 4)))
+    batched = jax.vmap(lambda x: plant.dynamics(0.0, x, jnp.array([1.0])))(xs)
+    looped = np.stack([plant.dynamics(0.0, x, jnp.array([1.0])) for x in xs])
+    np.testing.assert_allclose(batched, looped, rtol=1e-13, atol=1e-14)
+    masses = jnp.linspace(0.5, 2.0, 7)
+    per_mass = jax.vmap(lambda mp: jd.models.CartPole(mp=mp).dynamics(0.0, xs[0], jnp.zeros(1)))(masses)
+    np.testing.assert_allclose(per_mass[3], jd.models.CartPole(mp=float(masses[3])).dynamics(0.0, xs[0], jnp.zeros(1)),
+                               rtol=1e-13)
+
+
+MALFORMED = {
+    "missing parent": ('<robot name="r"><link name="a"/><joint name="j" type="revolute">'
+                       '<parent link="nope"/><child link="a"/><axis xyz="0 0 1"/></joint></robot>',
+                       "parent link 'nope'"),
+    "cycle": ('<robot name="r"><link name="a"/><link name="b"/>'
+              '<joint name="j1" type="revolute"><parent link="a"/><child link="b"/></joint>'
+              '<joint name="j2" type="revolute"><parent link="b"/><child link="a"/></joint></robot>',
+              "root link"),
+    "unknown joint type": ('<robot name="r"><link name="a"/><link name="b"/><joint name="j" type="spherical">'
+                           '<parent link="a"/><child link="b"/></joint></robot>', "type 'spherical'"),
+    "non-positive-definite inertia": (
+        '<robot name="r"><link name="a"/><link name="b"><inertial><mass value="1"/>'
+        '<inertia ixx="1" ixy="0" ixz="0" iyy="-1" iyz="0" izz="1"/></inertial></link>'
+        '<joint name="j" type="revolute"><parent link="a"/><child link="b"/></joint></robot>',
+        "not positive semi-definite"),
+    "billion laughs": ('<?xml version="1.0"?><!DOCTYPE lolz [<!ENTITY lol "lol">'
+                       + "".join(f'<!ENTITY lol{i} "{("&lol" + (str(i - 1) if i > 1 else "") + ";") * 10}">'
+                                 for i in range(1, 10))
+                       + ']><robot name="&lol9;"><link name="a"/></robot>', "DOCTYPE"),
+    "external entity": ('<?xml version="1.0"?><!DOCTYPE r [<!ENTITY x SYSTEM "http://127.0.0.1:9/x">]>'
+                        '<robot name="&x;"><link name="a"/></robot>', "DOCTYPE"),
+    "not xml": ("<robot name='r'><link name='a'>", "not well-formed"),
+}
+
+
+@pytest.mark.parametrize("case", list(MALFORMED))
+def test_malformed_urdfs_raise_a_clear_error_quickly(case, tmp_path):
+    text, message = MALFORMED[case]
+    path = tmp_path / "bad.urdf"
+    path.write_text(text)
+    start = time.perf_counter()
+    with pytest.raises(jd.multibody.URDFError, match=message):
+        jd.RigidBodySystem.from_urdf(path)
+    assert time.perf_counter() - start < 1.0
+
+
+def test_bad_actuator_and_loop_names_are_errors():
+    with pytest.raises(ValueError, match="no joint 'wrist'"):
+        jd.RigidBodySystem.from_urdf(URDF_DIR / "acrobot.urdf", actuated=["wrist"])
+    with pytest.raises(ValueError, match="frame 'nowhere'"):
+        jd.RigidBodySystem.from_urdf(DATA / "fourbar.urdf", loops=[jd.LoopConstraint("nowhere", "rocker_end")])
