@@ -275,3 +275,34 @@ def test_bad_actuator_and_loop_names_are_errors():
         jd.RigidBodySystem.from_urdf(URDF_DIR / "acrobot.urdf", actuated=["wrist"])
     with pytest.raises(ValueError, match="frame 'nowhere'"):
         jd.RigidBodySystem.from_urdf(DATA / "fourbar.urdf", loops=[jd.LoopConstraint("nowhere", "rocker_end")])
+
+
+@pytest.mark.parametrize("robot", ["acrobot", "solo12 (floating quadruped)"])
+def test_a_pinocchio_model_is_a_source_too(robot):
+    path, floating = ROBOTS[robot][0](), ROBOTS[robot][1]
+    from_urdf = jd.RigidBodySystem.from_urdf(path, floating_base=floating)
+    model = (pin.buildModelFromUrdf(str(path), pin.JointModelFreeFlyer()) if floating
+             else pin.buildModelFromUrdf(str(path)))
+    from_pin = jd.RigidBodySystem.from_pinocchio(model)
+    ours, theirs = from_urdf.tree, from_pin.tree
+    assert sorted(theirs.joint_types) == sorted(ours.joint_types)
+
+    def perm(tree, starts, sizes):  # coordinates in the URDF tree's joint order, by joint name
+        names = ["floating" if k == "floating" else n for n, k in zip(tree.joint_names, tree.joint_types)]
+        order = ["floating" if k == "floating" else n for n, k in zip(ours.joint_names, ours.joint_types)]
+        idx = []
+        for n in order:
+            i = names.index(n)
+            idx += list(range(starts(tree)[i], starts(tree)[i] + sizes[tree.joint_types[i]]))
+        return np.array(idx)
+
+    vp = perm(theirs, lambda t: t.v_starts, {"floating": 6, "revolute": 1, "prismatic": 1})
+    qp = perm(theirs, lambda t: t.q_starts, {"floating": 7, "revolute": 1, "prismatic": 1})
+    q, v, a = random_states(ours, 1, seed=5)
+    q, v, a = jnp.asarray(q[0]), jnp.asarray(v[0]), jnp.asarray(a[0])
+    q_theirs = jnp.zeros_like(q).at[qp].set(q)
+    v_theirs, a_theirs = jnp.zeros_like(v).at[vp].set(v), jnp.zeros_like(a).at[vp].set(a)
+    np.testing.assert_allclose(mb.mass_matrix(theirs, q_theirs)[np.ix_(vp, vp)], mb.mass_matrix(ours, q), atol=1e-12)
+    np.testing.assert_allclose(mb.aba(theirs, q_theirs, v_theirs, a_theirs)[vp], mb.aba(ours, q, v, a),
+                               rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(theirs.damping[vp], ours.damping)

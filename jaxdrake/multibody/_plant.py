@@ -20,7 +20,7 @@ import numpy as np
 from ..systems import Frame, System
 from ..systems._system import _static
 from . import _algorithms as alg
-from ._tree import KinematicTree, URDFError, tree_from_urdf
+from ._tree import KinematicTree, URDFError, tree_from_pinocchio, tree_from_urdf
 
 _AXES = {"x": 0, "y": 1, "z": 2}
 
@@ -97,6 +97,13 @@ class RigidBodySystem(System):
         if actuated is None and transmitted:
             actuated = list(transmitted)
         return cls(tree, actuated, loops=loops, constraint_stiffness=constraint_stiffness)
+
+    @classmethod
+    def from_pinocchio(cls, model, *, actuated=None, loops=(),
+                       constraint_stiffness: float = 20.0) -> "RigidBodySystem":
+        """From a Pinocchio `pin.Model` (its gravity, damping and limits come along)."""
+        return cls(tree_from_pinocchio(model), actuated, loops=loops,
+                   constraint_stiffness=constraint_stiffness)
 
     @property
     def name(self) -> str:

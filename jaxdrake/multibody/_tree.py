@@ -289,3 +289,63 @@ def _build_tree(robot_name, root, links, joints, floating_base, gravity, path):
         damping=per_dof("damping"), friction=per_dof("friction"),
         position_lower=per_q("lower"), position_upper=per_q("upper"), effort_limit=per_dof("effort"),
         gravity=jnp.asarray(gravity, float))
+
+
+# ----- Pinocchio ---------------------------------------------------------------------------
+
+
+def tree_from_pinocchio(model) -> KinematicTree:
+    """A `KinematicTree` from a Pinocchio `pin.Model` (revolute, continuous, prismatic joints
+    on any axis, and a free-flyer root as the floating base); its frames become named frames."""
+    bodies, q_index = [], []
+    for i in range(1, model.njoints):
+        joint = model.joints[i]
+        kind = joint.shortname()
+        if kind == "JointModelFreeFlyer":
+            jtype, axis = "floating", np.zeros(3)
+        else:
+            data = joint.createData()
+            joint.calc(data, np.asarray(_pin_neutral(model)))
+            S = np.asarray(data.S).ravel()
+            if joint.nv != 1 or (np.linalg.norm(S[:3]) > 0) == (np.linalg.norm(S[3:]) > 0):
+                raise ValueError(f"Pinocchio joint {model.names[i]!r} ({kind}) is not supported: "
+                                 "revolute, continuous, prismatic and free-flyer joints are")
+            jtype, axis = ("prismatic", S[:3]) if np.linalg.norm(S[:3]) > 0 else ("revolute", S[3:])
+        placement, inertia = model.jointPlacements[i], model.inertias[i]
+        bodies.append(dict(
+            link=model.names[i], joint=model.names[i], type=jtype, parent=model.parents[i] - 1,
+            R=np.asarray(placement.rotation), p=np.asarray(placement.translation), axis=axis,
+            inertial=(float(inertia.mass), np.asarray(inertia.lever), np.asarray(inertia.inertia))))
+        q_index.append((joint.idx_q, joint.nq, joint.idx_v, joint.nv, jtype))
+    lower, upper = np.asarray(model.lowerPositionLimit), np.asarray(model.upperPositionLimit)
+    q_lower, q_upper = [], []
+    for iq, nq, _, _, jtype in q_index:
+        if jtype != "floating" and nq == 2:  # a continuous joint: (cos, sin) in Pinocchio
+            q_lower.append([-np.inf]), q_upper.append([np.inf])
+        else:
+            q_lower.append(lower[iq: iq + nq]), q_upper.append(upper[iq: iq + nq])
+    v_order = np.concatenate([np.arange(iv, iv + nv) for _, _, iv, nv, _ in q_index])
+    frames = [(f.name, f.parentJoint - 1, np.asarray(f.placement.rotation), np.asarray(f.placement.translation))
+              for f in model.frames if f.parentJoint > 0 or f.name != "universe"]
+    dtype_arr = lambda rows: jnp.asarray(np.array(rows, float))
+    return KinematicTree(
+        robot_name=model.name or "pinocchio_model", body_names=tuple(b["link"] for b in bodies),
+        joint_names=tuple(b["joint"] for b in bodies), joint_types=tuple(b["type"] for b in bodies),
+        parents=tuple(b["parent"] for b in bodies), frame_names=tuple(f[0] for f in frames),
+        frame_bodies=tuple(f[1] for f in frames), axes=dtype_arr([b["axis"] for b in bodies]),
+        origin_rotation=dtype_arr([b["R"] for b in bodies]),
+        origin_translation=dtype_arr([b["p"] for b in bodies]),
+        mass=dtype_arr([b["inertial"][0] for b in bodies]), com=dtype_arr([b["inertial"][1] for b in bodies]),
+        inertia=dtype_arr([b["inertial"][2] for b in bodies]),
+        frame_rotation=dtype_arr([f[2] for f in frames]), frame_translation=dtype_arr([f[3] for f in frames]),
+        damping=jnp.asarray(np.asarray(model.damping)[v_order], float),
+        friction=jnp.asarray(np.asarray(model.friction)[v_order], float),
+        position_lower=jnp.asarray(np.concatenate(q_lower), float),
+        position_upper=jnp.asarray(np.concatenate(q_upper), float),
+        effort_limit=jnp.asarray(np.asarray(model.effortLimit)[v_order], float),
+        gravity=jnp.asarray(np.asarray(model.gravity.linear), float))
+
+
+def _pin_neutral(model):
+    import pinocchio as pin
+    return pin.neutral(model)
