@@ -306,3 +306,34 @@ def test_a_pinocchio_model_is_a_source_too(robot):
     np.testing.assert_allclose(mb.aba(theirs, q_theirs, v_theirs, a_theirs)[vp], mb.aba(ours, q, v, a),
                                rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(theirs.damping[vp], ours.damping)
+
+
+def test_quadrotor_matches_drakes_quadrotor_plant():
+    examples = pytest.importorskip("pydrake.examples")
+    drake = examples.QuadrotorPlant()
+    context = drake.CreateDefaultContext()
+    ours = jd.models.Quadrotor()
+    assert ours.state_frame.coordinates[3:6] == ("roll", "pitch", "yaw")
+    rng = np.random.default_rng(0)
+    for x, u in zip(rng.uniform(-1, 1, (20, 12)), rng.uniform(0, 3, (20, 4))):
+        context.SetContinuousState(x)
+        drake.get_input_port(0).FixValue(context, u)
+        expected = drake.EvalTimeDerivatives(context).CopyToVector()
+        np.testing.assert_allclose(ours.dynamics(0.0, jnp.asarray(x), jnp.asarray(u)), expected,
+                                   rtol=0, atol=1e-12 * max(1.0, np.max(np.abs(expected))))
+
+
+def test_quadrotors_hover_and_respond_as_their_equations_say():
+    quad = jd.models.Quadrotor()
+    hover = jnp.full(4, quad.m * quad.g / 4)
+    np.testing.assert_allclose(quad.dynamics(0.0, jnp.zeros(12), hover), 0.0, atol=1e-15)
+    # more thrust on rotor 1 (+y) than rotor 3 (-y): positive roll acceleration L kF du / Ixx
+    xdot = quad.dynamics(0.0, jnp.zeros(12), hover + jnp.array([0.0, 0.1, 0.0, -0.1]))
+    np.testing.assert_allclose(xdot[9], quad.L * 0.2 / 0.0015, rtol=1e-12)
+    planar = jd.models.PlanarQuadrotor()
+    u = jnp.full(2, planar.m * planar.g / 2)
+    np.testing.assert_allclose(planar.dynamics(0.0, jnp.zeros(6), u), 0.0, atol=1e-15)
+    x = jnp.array([0.0, 0.0, 0.3, 0.0, 0.0, 0.0])
+    xdot = planar.dynamics(0.0, x, jnp.array([2.0, 1.0]))
+    np.testing.assert_allclose(xdot[3:], [-3.0 * np.sin(0.3) / planar.m, 3.0 * np.cos(0.3) / planar.m - planar.g,
+                                          planar.r / planar.I], rtol=1e-13)
