@@ -337,3 +337,21 @@ def test_quadrotors_hover_and_respond_as_their_equations_say():
     xdot = planar.dynamics(0.0, x, jnp.array([2.0, 1.0]))
     np.testing.assert_allclose(xdot[3:], [-3.0 * np.sin(0.3) / planar.m, 3.0 * np.cos(0.3) / planar.m - planar.g,
                                           planar.r / planar.I], rtol=1e-13)
+
+
+def test_feedback_cancellation_makes_the_double_pendulum_a_simple_pendulum():
+    """u = H qdd_d + C v + G with qdd_1 = -(g / l) sin q_1 (and the elbow held): the shoulder
+    follows a simple pendulum of length l simulated on its own (examples/feedback_cancellation.py)."""
+    plant = jd.models.DoublePendulum()
+
+    def torque(t, x, y, plant):
+        H, Cv, G, B = plant.manipulator_dynamics(y[:2], y[2:])
+        qdd = jnp.stack([-9.81 / 0.7 * jnp.sin(y[0]), -100.0 * y[1] - 20.0 * y[3]])
+        return jnp.linalg.solve(B, H @ qdd + Cv + G)
+
+    controller = jd.System.from_functions(output=torque, num_states=0, num_inputs=4, num_outputs=2, params=plant)
+    tight = dict(rtol=1e-11, atol=1e-12, max_steps=8192)
+    arm = jd.simulate(jd.feedback(plant, controller), (0.0, 3.0), jnp.array([1.2, 0.0, 0.0, 0.0]), **tight)
+    simple = jd.simulate(jd.models.Pendulum(l=0.7, b=0.0), (0.0, 3.0), jnp.array([1.2, 0.0]), **tight)
+    ts = jnp.linspace(0.0, 3.0, 61)
+    np.testing.assert_allclose(arm.state(ts)[:, 0], simple.state(ts)[:, 0], atol=1e-9)
