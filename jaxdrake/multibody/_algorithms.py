@@ -14,8 +14,9 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ._spatial import (axis_angle, cross_force, cross_motion, pose_transform, quaternion_matrix,
-                       skew, spatial_inertia)
+from ._spatial import (axis_angle, force_cross, motion_cross, pose_transform,
+                       quaternion_matrix, skew, spatial_inertia, transform_force_back, transform_inertia,
+                       transform_motion)
 from ._tree import KinematicTree
 
 
@@ -47,13 +48,14 @@ def _body_inertia(tree, i):
 
 
 def _transforms(tree, q):
-    """X_up[i] = ^i X_parent(i), and S[i]."""
-    X_up, S = [], []
+    """X_up[i] = ^i X_parent(i), S[i], and the poses (R, p) that make X_up[i] (E = R^T, r = p)."""
+    X_up, S, poses = [], [], []
     for i in range(tree.num_bodies):
         R, p, S_i = _joint(tree, i, q)
         X_up.append(pose_transform(R, p))
         S.append(S_i)
-    return X_up, S
+        poses.append((R, p))
+    return X_up, S, poses
 
 
 def _base_acceleration(tree, dtype, gravity: bool):
@@ -62,38 +64,39 @@ def _base_acceleration(tree, dtype, gravity: bool):
 
 
 def rnea(tree: KinematicTree, q, v, a, *, gravity: bool = True):
-    r"""Inverse dynamics: $\tau = H(q)\dot v + C(q, v) v + G(q)$ (recursive Newton-Euler)."""
-    X_up, S = _transforms(tree, q)
+    r"""Inverse dynamics: $\tau = H(q)\dot v + C(q, v) v + G(q)$ (recursive Newton-Euler),
+    with the spatial products by blocks (see `aba`)."""
+    _, S, poses = _transforms(tree, q)
     n = tree.num_bodies
     vel, acc, force = [None] * n, [None] * n, [None] * n
     a0 = _base_acceleration(tree, q.dtype, gravity)
     for i in range(n):
         p = tree.parents[i]
+        E, r = poses[i][0].T, poses[i][1]
         vJ = S[i] @ _velocity(tree, i, v)
-        v_parent = vel[p] if p >= 0 else jnp.zeros(6, q.dtype)
-        a_parent = acc[p] if p >= 0 else a0
-        vel[i] = X_up[i] @ v_parent + vJ
-        acc[i] = X_up[i] @ a_parent + S[i] @ _velocity(tree, i, a) + cross_motion(vel[i]) @ vJ
+        vel[i] = (transform_motion(E, r, vel[p]) if p >= 0 else jnp.zeros(6, q.dtype)) + vJ
+        acc[i] = (transform_motion(E, r, acc[p] if p >= 0 else a0) + S[i] @ _velocity(tree, i, a)
+                  + motion_cross(vel[i], vJ))
         I = _body_inertia(tree, i)
-        force[i] = I @ acc[i] + cross_force(vel[i]) @ (I @ vel[i])
+        force[i] = I @ acc[i] + force_cross(vel[i], I @ vel[i])
     tau = [None] * n
     for i in reversed(range(n)):
         tau[i] = S[i].T @ force[i]
         p = tree.parents[i]
         if p >= 0:
-            force[p] = force[p] + X_up[i].T @ force[i]
+            force[p] = force[p] + transform_force_back(poses[i][0].T, poses[i][1], force[i])
     return jnp.concatenate(tau)
 
 
 def mass_matrix(tree: KinematicTree, q):
     """H(q) by the composite-rigid-body algorithm."""
-    X_up, S = _transforms(tree, q)
+    X_up, S, poses = _transforms(tree, q)
     n = tree.num_bodies
     Ic = [_body_inertia(tree, i) for i in range(n)]
     for i in reversed(range(n)):
         p = tree.parents[i]
         if p >= 0:
-            Ic[p] = Ic[p] + X_up[i].T @ Ic[i] @ X_up[i]
+            Ic[p] = Ic[p] + transform_inertia(poses[i][0].T, poses[i][1], Ic[i])
     H = jnp.zeros((tree.nv, tree.nv), q.dtype)
     starts = tree.v_starts
     for i in range(n):
@@ -122,35 +125,57 @@ def gravity_forces(tree: KinematicTree, q):
 
 
 def aba(tree: KinematicTree, q, v, tau, *, gravity: bool = True):
-    r"""Forward dynamics $\dot v = H^{-1}(\tau - C v - G)$ by the articulated-body algorithm, O(n)."""
-    X_up, S = _transforms(tree, q)
+    r"""Forward dynamics $\dot v = H^{-1}(\tau - C v - G)$ by the articulated-body algorithm, O(n).
+
+    Spatial products are written by blocks ((E, r) transforms, cross products) rather than
+    as 6x6 matrices, and one-dof joints use a motion-subspace vector: the vmapped batch on
+    a CPU is about twice as fast as with dense 6x6 products."""
+    _, S, poses = _transforms(tree, q)
     n = tree.num_bodies
+    E = [R.T for R, _ in poses]
+    r = [p for _, p in poses]
+    single = [S_i.shape[1] == 1 for S_i in S]
+    S = [S_i[:, 0] if one else S_i for S_i, one in zip(S, single)]
     vel, c, IA, pA = [None] * n, [None] * n, [None] * n, [None] * n
     for i in range(n):
         p = tree.parents[i]
-        vJ = S[i] @ _velocity(tree, i, v)
-        vel[i] = (X_up[i] @ vel[p] if p >= 0 else jnp.zeros(6, q.dtype)) + vJ
-        c[i] = cross_motion(vel[i]) @ vJ
+        qd = _velocity(tree, i, v)
+        vJ = S[i] * qd[0] if single[i] else S[i] @ qd
+        vel[i] = (transform_motion(E[i], r[i], vel[p]) if p >= 0 else jnp.zeros(6, q.dtype)) + vJ
+        c[i] = motion_cross(vel[i], vJ)
         IA[i] = _body_inertia(tree, i)
-        pA[i] = cross_force(vel[i]) @ (IA[i] @ vel[i])
+        pA[i] = force_cross(vel[i], IA[i] @ vel[i])
     U, D_inv, u = [None] * n, [None] * n, [None] * n
     for i in reversed(range(n)):
-        U[i] = IA[i] @ S[i]
-        D_inv[i] = jnp.linalg.inv(S[i].T @ U[i])
-        u[i] = _velocity(tree, i, tau) - S[i].T @ pA[i]
+        if single[i]:
+            U[i] = IA[i] @ S[i]
+            D_inv[i] = 1.0 / (S[i] @ U[i])
+            u[i] = tau[tree.v_starts[i]] - S[i] @ pA[i]
+            Ia = IA[i] - D_inv[i] * jnp.outer(U[i], U[i])
+            pa_joint = U[i] * (D_inv[i] * u[i])
+        else:
+            U[i] = IA[i] @ S[i]
+            D_inv[i] = jnp.linalg.inv(S[i].T @ U[i])
+            u[i] = _velocity(tree, i, tau) - S[i].T @ pA[i]
+            Ia = IA[i] - U[i] @ D_inv[i] @ U[i].T
+            pa_joint = U[i] @ (D_inv[i] @ u[i])
         p = tree.parents[i]
         if p >= 0:
-            Ia = IA[i] - U[i] @ D_inv[i] @ U[i].T
-            pa = pA[i] + Ia @ c[i] + U[i] @ (D_inv[i] @ u[i])
-            IA[p] = IA[p] + X_up[i].T @ Ia @ X_up[i]
-            pA[p] = pA[p] + X_up[i].T @ pa
+            pa = pA[i] + Ia @ c[i] + pa_joint
+            IA[p] = IA[p] + transform_inertia(E[i], r[i], Ia)
+            pA[p] = pA[p] + transform_force_back(E[i], r[i], pa)
     acc, qdd = [None] * n, [None] * n
     a0 = _base_acceleration(tree, q.dtype, gravity)
     for i in range(n):
         p = tree.parents[i]
-        a = X_up[i] @ (acc[p] if p >= 0 else a0) + c[i]
-        qdd[i] = D_inv[i] @ (u[i] - U[i].T @ a)
-        acc[i] = a + S[i] @ qdd[i]
+        a = transform_motion(E[i], r[i], acc[p] if p >= 0 else a0) + c[i]
+        if single[i]:
+            qdd_i = D_inv[i] * (u[i] - U[i] @ a)
+            acc[i] = a + S[i] * qdd_i
+            qdd[i] = qdd_i[None]
+        else:
+            qdd[i] = D_inv[i] @ (u[i] - U[i].T @ a)
+            acc[i] = a + S[i] @ qdd[i]
     return jnp.concatenate(qdd)
 
 

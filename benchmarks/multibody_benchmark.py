@@ -1,0 +1,160 @@
+"""Rigid-body algorithms: jaxdrake (JAX, jit + vmap) against Pinocchio (C++ through Python) and
+MuJoCo MJX, on the same URDFs from example-robot-data.
+
+Robots: the Panda arm with its fingers welded (7 dof) and Solo-12 (floating base, 18 dof).
+Quantities: the mass matrix H (CRBA), the bias C v + G (RNEA with zero acceleration) and
+forward dynamics (ABA), at random states, float64. jaxdrake: one jitted call, and vmapped
+batches; Pinocchio: one call, and a Python loop over the batch; MJX (the arm only: MuJoCo's
+URDF import gives no floating base): `mjx.forward` vmapped (it computes qacc, i.e. forward
+dynamics including the URDF's joint damping, plus the rest of the pipeline). Reported as
+evaluations per second; JAX programs are compiled first and timed separately.
+
+    python benchmarks/multibody_benchmark.py [--batches 1000 100000]
+    PYTHONPATH=. python3 benchmarks/multibody_benchmark.py --gpu --batches 100000 1000000
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.metadata
+import pathlib
+import platform
+import re
+import tempfile
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from _timing import best_time  # benchmarks/_timing.py
+from jaxdrake import multibody as mb
+
+jax.config.update("jax_enable_x64", True)
+
+
+def robot_path(relative):
+    root = importlib.metadata.distribution("example-robot-data").locate_file(
+        "cmeel.prefix/share/example-robot-data/robots")
+    return pathlib.Path(root) / relative
+
+
+def panda7(tmp):
+    """panda.urdf with the finger joints welded: the 7-dof arm."""
+    text = robot_path("panda_description/urdf/panda.urdf").read_text()
+    text = re.sub(r'(<joint name="panda_finger_joint\d" type=)"prismatic"', r'\1"fixed"', text)
+    path = pathlib.Path(tmp) / "panda7.urdf"
+    path.write_text(text)
+    return path
+
+
+def random_inputs(tree, n, seed=0):
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(-1, 1, (n, tree.nq))
+    for s, kind in zip(tree.q_starts, tree.joint_types):
+        if kind == "floating":
+            quat = rng.normal(size=(n, 4))
+            q[:, s + 3: s + 7] = quat / np.linalg.norm(quat, axis=1, keepdims=True)
+    return q, rng.uniform(-1, 1, (n, tree.nv)), rng.uniform(-1, 1, (n, tree.nv))
+
+
+def jax_rates(tree, batches, repeats):
+    fns = {"H (CRBA)": lambda q, v, t: mb.mass_matrix(tree, q),
+           "C v + G": lambda q, v, t: mb.bias_forces(tree, q, v),
+           "ABA": lambda q, v, t: mb.aba(tree, q, v, t)}
+    out = {}
+    for name, fn in fns.items():
+        q, v, t = map(jnp.asarray, random_inputs(tree, max(batches)))
+        one = jax.jit(fn)
+        start = time.perf_counter()
+        jax.block_until_ready(one(q[0], v[0], t[0]))
+        compile_s = time.perf_counter() - start
+        single = best_time(lambda: jax.block_until_ready(one(q[0], v[0], t[0])), 50)
+        rows = {"single": (single, 1 / single, compile_s)}
+        for n in batches:
+            many = jax.jit(jax.vmap(fn))
+            args = (q[:n], v[:n], t[:n])
+            jax.block_until_ready(many(*args))
+            seconds = best_time(lambda: jax.block_until_ready(many(*args)), repeats)
+            rows[f"vmap {n}"] = (seconds, n / seconds, None)
+        out[name] = rows
+    return out
+
+
+def pinocchio_rates(path, tree, n):
+    import pinocchio as pin
+    model = (pin.buildModelFromUrdf(str(path), pin.JointModelFreeFlyer()) if tree.has_floating_base
+             else pin.buildModelFromUrdf(str(path)))
+    data = model.createData()
+    q, v, t = random_inputs(tree, n)  # the same numbers; only revolute joints here, nq matches
+    assert model.nq == tree.nq, "benchmark robots have no continuous joints"
+    fns = {"H (CRBA)": lambda k: pin.crba(model, data, q[k]),
+           "C v + G": lambda k: pin.nonLinearEffects(model, data, q[k], v[k]),
+           "ABA": lambda k: pin.aba(model, data, q[k], v[k], t[k])}
+    out = {}
+    for name, fn in fns.items():
+        single = best_time(lambda: fn(0), 200)
+        loop = best_time(lambda: [fn(k) for k in range(n)], 3)
+        out[name] = {"single": (single, 1 / single), f"loop {n}": (loop, n / loop)}
+    return out
+
+
+def mjx_rates(path, batches, repeats):
+    import mujoco
+    from mujoco import mjx
+    text = re.sub(r"<(visual|collision)>.*?</\1>", "", pathlib.Path(path).read_text(), flags=re.S)
+    with tempfile.TemporaryDirectory() as tmp:
+        bare = pathlib.Path(tmp) / "bare.urdf"
+        bare.write_text(text)
+        model = mujoco.MjModel.from_xml_path(str(bare))
+    model.opt.timestep = 1e-3
+    mx = mjx.put_model(model)
+    rng = np.random.default_rng(0)
+    out = {}
+    for n in batches:
+        qpos = jnp.asarray(rng.uniform(-1, 1, (n, model.nq)))
+        qvel = jnp.asarray(rng.uniform(-1, 1, (n, model.nv)))
+        ctrl_free = mjx.make_data(mx)
+        step = jax.jit(jax.vmap(lambda qp, qv: mjx.forward(mx, ctrl_free.replace(qpos=qp, qvel=qv)).qacc))
+        jax.block_until_ready(step(qpos, qvel))
+        seconds = best_time(lambda: jax.block_until_ready(step(qpos, qvel)), repeats)
+        out[f"vmap {n}"] = (seconds, n / seconds)
+    return out
+
+
+def main(batches, repeats, gpu):
+    device = jax.devices()[0]
+    print(f"machine: {platform.processor() or platform.machine()}, {device.platform} ({device.device_kind}), "
+          f"jax {jax.__version__}, float64")
+    with tempfile.TemporaryDirectory() as tmp:
+        robots = {"panda (7 dof)": panda7(tmp),
+                  "solo12 (floating, 18 dof)": robot_path("solo_description/robots/solo12.urdf")}
+        for label, path in robots.items():
+            tree, _ = mb.tree_from_urdf(path, floating_base="solo" in label)
+            ours = jax_rates(tree, batches, repeats)
+            theirs = None if gpu else pinocchio_rates(path, tree, 1000)
+            print(f"\n{label}: evaluations per second (time)")
+            for name, rows in ours.items():
+                base = theirs[name]["loop 1000"][1] if theirs else None
+                for kind, (seconds, rate, compile_s) in rows.items():
+                    extra = f"   (compile {compile_s:.2f} s)" if compile_s else ""
+                    ratio = f"{rate / base:8.1f}x vs pinocchio loop" if base else ""
+                    print(f"  {name:9s} jaxdrake {kind:12s} {rate:14,.0f}/s ({seconds * 1e3:9.3f} ms) {ratio}{extra}")
+                if theirs:
+                    for kind, (seconds, rate) in theirs[name].items():
+                        print(f"  {name:9s} pinocchio {kind:11s} {rate:14,.0f}/s ({seconds * 1e3:9.3f} ms)")
+            if "panda" in label:
+                try:
+                    for kind, (seconds, rate) in mjx_rates(path, batches, repeats).items():
+                        print(f"  {'qacc':9s} mjx.forward {kind:9s} {rate:14,.0f}/s ({seconds * 1e3:9.3f} ms)")
+                except ImportError:
+                    print("  (mujoco-mjx not installed: skipped)")
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--batches", type=int, nargs="+", default=[1000, 100000])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--gpu", action="store_true", help="JAX rows only (no Pinocchio)")
+    args = parser.parse_args()
+    main(args.batches, args.repeats, args.gpu)
