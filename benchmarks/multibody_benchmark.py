@@ -10,13 +10,15 @@ dynamics including the URDF's joint damping, plus the rest of the pipeline). Rep
 evaluations per second; JAX programs are compiled first and timed separately.
 
     python benchmarks/multibody_benchmark.py [--batches 1000 100000]
-    PYTHONPATH=. python3 benchmarks/multibody_benchmark.py --gpu --batches 100000 1000000
+    EXAMPLE_ROBOT_DATA=<copy of robots/> PYTHONPATH=. python3 benchmarks/multibody_benchmark.py \
+        --gpu --batches 100000 1000000
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib.metadata
+import os
 import pathlib
 import platform
 import re
@@ -30,12 +32,12 @@ import numpy as np
 from _timing import best_time  # benchmarks/_timing.py
 from jaxdrake import multibody as mb
 
-jax.config.update("jax_enable_x64", True)
 
 
 def robot_path(relative):
-    root = importlib.metadata.distribution("example-robot-data").locate_file(
-        "cmeel.prefix/share/example-robot-data/robots")
+    """A URDF of example-robot-data; `$EXAMPLE_ROBOT_DATA` may point at a copy of its robots/."""
+    root = os.environ.get("EXAMPLE_ROBOT_DATA") or importlib.metadata.distribution(
+        "example-robot-data").locate_file("cmeel.prefix/share/example-robot-data/robots")
     return pathlib.Path(root) / relative
 
 
@@ -122,10 +124,11 @@ def mjx_rates(path, batches, repeats):
     return out
 
 
-def main(batches, repeats, gpu):
+def main(batches, repeats, gpu, float32):
+    jax.config.update("jax_enable_x64", not float32)
     device = jax.devices()[0]
     print(f"machine: {platform.processor() or platform.machine()}, {device.platform} ({device.device_kind}), "
-          f"jax {jax.__version__}, float64")
+          f"jax {jax.__version__}, {'float32' if float32 else 'float64'}")
     with tempfile.TemporaryDirectory() as tmp:
         robots = {"panda (7 dof)": panda7(tmp),
                   "solo12 (floating, 18 dof)": robot_path("solo_description/robots/solo12.urdf")}
@@ -156,5 +159,6 @@ if __name__ == "__main__":
     parser.add_argument("--batches", type=int, nargs="+", default=[1000, 100000])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--gpu", action="store_true", help="JAX rows only (no Pinocchio)")
+    parser.add_argument("--float32", action="store_true", help="JAX in float32 (the GPU default)")
     args = parser.parse_args()
-    main(args.batches, args.repeats, args.gpu)
+    main(args.batches, args.repeats, args.gpu, args.float32)
