@@ -355,3 +355,19 @@ def test_feedback_cancellation_makes_the_double_pendulum_a_simple_pendulum():
     simple = jd.simulate(jd.models.Pendulum(l=0.7, b=0.0), (0.0, 3.0), jnp.array([1.2, 0.0]), **tight)
     ts = jnp.linspace(0.0, 3.0, 61)
     np.testing.assert_allclose(arm.state(ts)[:, 0], simple.state(ts)[:, 0], atol=1e-9)
+
+
+def test_welded_joints_and_the_panda_model():
+    arm = jd.models.Panda()
+    assert arm.num_positions == 7 and arm.num_inputs == 7
+    full = jd.models.Panda(fingers=True)
+    assert full.num_positions == 9
+    q = jnp.array([0.1, -0.3, 0.2, -2.0, 0.1, 1.8, 0.5])
+    # welding the fingers at zero: the arm's H is the full model's arm block at fingers = 0
+    np.testing.assert_allclose(mb.mass_matrix(arm.tree, q),
+                               mb.mass_matrix(full.tree, jnp.concatenate([q, jnp.zeros(2)]))[:7, :7], atol=1e-12)
+    # gravity compensation holds the arm: qdd = 0 under u = G(q)
+    H, Cv, G, B = arm.manipulator_dynamics(q, jnp.zeros(7))
+    np.testing.assert_allclose(arm.forward_dynamics(q, jnp.zeros(7), G), 0.0, atol=1e-10)
+    with pytest.raises(jd.multibody.URDFError, match="cannot weld joint 'nope'"):
+        jd.RigidBodySystem.from_urdf(URDF_DIR / "acrobot.urdf", welded=["nope"])

@@ -3,10 +3,10 @@
 from ._hybrid import BallFlightPhasePlant, BouncingBall, RimlessWheel, RimlessWheelStance
 from ._pendulum import Pendulum
 from ._quadrotor import PlanarQuadrotor, Quadrotor
-from ._rigid import Acrobot, CartPole, DoublePendulum
+from ._rigid import Acrobot, CartPole, DoublePendulum, Panda
 from ._simple import (DoubleIntegrator, LinearGaussianExample, SimpleCTExample, SimpleDTExample,
                       SimpleMixedCTDTExample, VanDerPol)
 
-__all__ = ["Acrobot", "BallFlightPhasePlant", "BouncingBall", "CartPole", "DoubleIntegrator", "DoublePendulum", "LinearGaussianExample", "Pendulum", "PlanarQuadrotor", "Quadrotor", "RimlessWheel",
+__all__ = ["Acrobot", "BallFlightPhasePlant", "BouncingBall", "CartPole", "DoubleIntegrator", "DoublePendulum", "LinearGaussianExample", "Panda", "Pendulum", "PlanarQuadrotor", "Quadrotor", "RimlessWheel",
            "RimlessWheelStance", "SimpleCTExample", "SimpleDTExample", "SimpleMixedCTDTExample",
            "VanDerPol"]

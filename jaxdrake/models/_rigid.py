@@ -58,3 +58,21 @@ def DoublePendulum() -> RigidBodySystem:
 def _hand_frame(tree, name, length):
     k = tree.frame_names.index(name)
     return tree.frame_translation.at[k].set(jnp.array([0.0, 0.0, -1.0]) * length)
+
+
+def Panda(fingers: bool = False) -> RigidBodySystem:
+    """The Franka Emika Panda arm (the notes' "robot manipulators" example, ch. 1: a multi-link
+    arm from a URDF), from the `example-robot-data` package (`pip install example-robot-data`;
+    installed with the test extras). 7 revolute joints; the two prismatic fingers are welded
+    unless `fingers=True`. URDF joint damping included; every joint actuated."""
+    import importlib.metadata
+
+    try:
+        root = importlib.metadata.distribution("example-robot-data").locate_file(
+            "cmeel.prefix/share/example-robot-data/robots")
+    except importlib.metadata.PackageNotFoundError:
+        raise ImportError("Panda() reads panda.urdf from the example-robot-data package: "
+                          "pip install example-robot-data") from None
+    welded = () if fingers else ("panda_finger_joint1", "panda_finger_joint2")
+    return RigidBodySystem.from_urdf(pathlib.Path(str(root)) / "panda_description/urdf/panda.urdf",
+                                     welded=welded)

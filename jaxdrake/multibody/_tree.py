@@ -126,9 +126,10 @@ def _float_attr(element, name, default=0.0):
     return float(default if value is None else value)
 
 
-def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.81)):
+def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.81), welded=()):
     """Parse a URDF into a `KinematicTree`; also returns the names of the joints its
-    `<transmission>`s actuate (empty without transmissions)."""
+    `<transmission>`s actuate (empty without transmissions). Joints named in `welded` are
+    treated as fixed at zero (e.g. a gripper's fingers)."""
     import xml.etree.ElementTree as ET
 
     path = pathlib.Path(path)
@@ -171,7 +172,7 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
             raise URDFError(f"{path}: joint {name!r} has a zero axis")
         limit, dynamics = joint.find("limit"), joint.find("dynamics")
         joints.append(dict(
-            name=name, type=_URDF_TYPES[kind], continuous=kind == "continuous", parent=parent, child=child,
+            name=name, type="fixed" if name in welded else _URDF_TYPES[kind], continuous=kind == "continuous", parent=parent, child=child,
             origin=_origin(joint.find("origin")), axis=axis / max(np.linalg.norm(axis), 1e-300),
             lower=_float_attr(limit, "lower", -np.inf) if kind != "continuous" else -np.inf,
             upper=_float_attr(limit, "upper", np.inf) if kind != "continuous" else np.inf,
@@ -181,11 +182,15 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
     if len(roots) != 1:
         raise URDFError(f"{path}: a URDF tree has exactly one root link (a link that is no joint's "
                         f"child); found {roots or 'none (the joints form a cycle)'}")
+    known = {j["name"] for j in joints}
+    for name in welded:
+        if name not in known:
+            raise URDFError(f"{path}: cannot weld joint {name!r}: it is not defined")
     actuated = []
     for transmission in root.findall("transmission"):
         for joint in transmission.findall("joint"):
-            actuated.append(joint.get("name"))
-    known = {j["name"] for j in joints}
+            if joint.get("name") not in welded:
+                actuated.append(joint.get("name"))
     for name in actuated:
         if name not in known:
             raise URDFError(f"{path}: a <transmission> actuates joint {name!r}, which is not defined")
