@@ -371,3 +371,17 @@ def test_welded_joints_and_the_panda_model():
     np.testing.assert_allclose(arm.forward_dynamics(q, jnp.zeros(7), G), 0.0, atol=1e-10)
     with pytest.raises(jd.multibody.URDFError, match="cannot weld joint 'nope'"):
         jd.RigidBodySystem.from_urdf(URDF_DIR / "acrobot.urdf", welded=["nope"])
+
+
+def test_mesh_paths_are_never_opened(tmp_path):
+    """package:// and http:// mesh references are not resolved (no file or network access)."""
+    path = tmp_path / "meshes.urdf"
+    path.write_text(
+        '<robot name="r"><link name="a"/><link name="b"><inertial><mass value="1"/>'
+        '<inertia ixx="1" ixy="0" ixz="0" iyy="1" iyz="0" izz="1"/></inertial>'
+        '<visual><geometry><mesh filename="package://nowhere/b.dae"/></geometry></visual>'
+        '<collision><geometry><mesh filename="http://127.0.0.1:9/b.stl"/></geometry></collision></link>'
+        '<joint name="j" type="revolute"><parent link="a"/><child link="b"/><axis xyz="0 0 1"/></joint></robot>')
+    start = time.perf_counter()
+    plant = jd.RigidBodySystem.from_urdf(path)
+    assert plant.num_positions == 1 and time.perf_counter() - start < 1.0

@@ -19,7 +19,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from ._system import System, _static
+from ._system import Functions, System
 
 
 class StochasticSystem(System):
@@ -121,32 +121,23 @@ class StochasticSystem(System):
 class FunctionStochasticSystem(StochasticSystem):
     """A stochastic system from plain functions (see `StochasticSystem.from_functions`)."""
 
-    dynamics_fn: Callable | None = _static(default=None)
-    update_fn: Callable | None = _static(default=None)
-    output_fn: Callable | None = _static(default=None)
-    params: Any = None
-    x0: Any = None
+    functions: Functions
 
     def __init__(self, dynamics_fn=None, update_fn=None, output_fn=None, *, params=None,
                  initial_state=None, **kwargs):
-        self.dynamics_fn, self.update_fn, self.output_fn = dynamics_fn, update_fn, output_fn
-        self.params = params
-        self.x0 = None if initial_state is None else jnp.asarray(initial_state)
+        self.functions = Functions(dynamics_fn, update_fn, output_fn, params, initial_state)
         super().__init__(**kwargs)
 
-    def _call(self, fn, t, x, u, w):
-        return fn(t, x, u, w) if self.params is None else fn(t, x, u, w, self.params)
-
     def stochastic_dynamics(self, t, x, u, w):
-        return self._call(self.dynamics_fn, t, x, u, w)
+        return self.functions.call(self.functions.dynamics, t, x, u, w)
 
     def stochastic_update(self, t, x, u, w):
-        return self._call(self.update_fn, t, x, u, w)
+        return self.functions.call(self.functions.update, t, x, u, w)
 
     def stochastic_output(self, t, x, u, w):
-        if self.output_fn is None:
+        if self.functions.output is None:
             return super().stochastic_output(t, x, u, w)
-        return self._call(self.output_fn, t, x, u, w)
+        return self.functions.call(self.functions.output, t, x, u, w)
 
     def initial_state(self):
-        return super().initial_state() if self.x0 is None else self.x0
+        return super().initial_state() if self.functions.x0 is None else self.functions.x0

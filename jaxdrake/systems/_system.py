@@ -244,44 +244,51 @@ class System(eqx.Module):
                               num_discrete_states=num_discrete_states, num_inputs=num_inputs, **kwargs)
 
 
-class FunctionSystem(System):
-    """A system whose dynamics, update and output are plain functions (see `System.from_functions`)."""
+class Functions(eqx.Module):
+    """The plain functions, parameters and initial state behind a `from_functions` system:
+    each function is called as `f(*args)` or, with `params`, `f(*args, params)`."""
 
-    dynamics_fn: Callable | None = _static(default=None)
-    update_fn: Callable | None = _static(default=None)
-    output_fn: Callable | None = _static(default=None)
+    dynamics: Callable | None = _static(default=None)
+    update: Callable | None = _static(default=None)
+    output: Callable | None = _static(default=None)
     params: Any = None
     x0: Any = None
 
+    def __init__(self, dynamics=None, update=None, output=None, params=None, initial_state=None):
+        self.dynamics, self.update, self.output, self.params = dynamics, update, output, params
+        self.x0 = None if initial_state is None else jnp.asarray(initial_state)
+
+    def call(self, fn, *args):
+        return fn(*args) if self.params is None else fn(*args, self.params)
+
+
+class FunctionSystem(System):
+    """A system whose dynamics, update and output are plain functions (see `System.from_functions`)."""
+
+    functions: Functions
+
     def __init__(self, dynamics_fn=None, update_fn=None, output_fn=None, *, params=None,
                  initial_state=None, **kwargs):
-        self.dynamics_fn = dynamics_fn
-        self.update_fn = update_fn
-        self.output_fn = output_fn
-        self.params = params
-        self.x0 = None if initial_state is None else jnp.asarray(initial_state)
+        self.functions = Functions(dynamics_fn, update_fn, output_fn, params, initial_state)
         super().__init__(**kwargs)
 
-    def _call(self, fn, t, x, u):
-        return fn(t, x, u) if self.params is None else fn(t, x, u, self.params)
-
     def dynamics(self, t, x, u):
-        if self.dynamics_fn is None:
+        if self.functions.dynamics is None:
             return super().dynamics(t, x, u)
-        return self._call(self.dynamics_fn, t, x, u)
+        return self.functions.call(self.functions.dynamics, t, x, u)
 
     def update(self, t, x, u):
-        if self.update_fn is None:
+        if self.functions.update is None:
             return super().update(t, x, u)
-        return self._call(self.update_fn, t, x, u)
+        return self.functions.call(self.functions.update, t, x, u)
 
     def output(self, t, x, u):
-        if self.output_fn is None:
+        if self.functions.output is None:
             return super().output(t, x, u)
-        return self._call(self.output_fn, t, x, u)
+        return self.functions.call(self.functions.output, t, x, u)
 
     def initial_state(self):
-        return super().initial_state() if self.x0 is None else self.x0
+        return super().initial_state() if self.functions.x0 is None else self.functions.x0
 
 
 def _check_frame(frame, system_name, role, size, prefix):
