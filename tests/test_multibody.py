@@ -86,9 +86,12 @@ def random_states(tree, n, seed):
     return q, rng.uniform(-2, 2, (n, tree.nv)), rng.uniform(-2, 2, (n, tree.nv))
 
 
-@pytest.mark.parametrize("robot", list(ROBOTS))
+ROBOTS_SLOW = {"talos (floating humanoid, 38 dof)": (lambda: example_robot("talos_data/robots/talos_reduced.urdf"), True)}
+
+
+@pytest.mark.parametrize("robot", list(ROBOTS) + [pytest.param(r, marks=pytest.mark.slow) for r in ROBOTS_SLOW])
 def test_dynamics_agree_with_pinocchio(robot):
-    path, floating = ROBOTS[robot][0](), ROBOTS[robot][1]
+    path, floating = {**ROBOTS, **ROBOTS_SLOW}[robot][0](), {**ROBOTS, **ROBOTS_SLOW}[robot][1]
     tree, _ = mb.tree_from_urdf(path, floating_base=floating)
     twin = PinocchioTwin(path, tree)
     qs, vs, xs = random_states(tree, 20, seed=len(robot))
