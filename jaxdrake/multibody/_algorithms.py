@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ._spatial import (axis_angle, force_cross, motion_cross, pose_transform,
+from ._spatial import (axis_angle, force_cross, motion_cross,
                        quaternion_matrix, skew, spatial_inertia, transform_force_back, transform_inertia,
                        transform_motion)
 from ._tree import KinematicTree
@@ -48,14 +48,14 @@ def _body_inertia(tree, i):
 
 
 def _transforms(tree, q):
-    """X_up[i] = ^i X_parent(i), S[i], and the poses (R, p) that make X_up[i] (E = R^T, r = p)."""
-    X_up, S, poses = [], [], []
+    """For every body i: S[i], and its pose (R, p) in its parent's frame, which makes the
+    transform ^i X_parent(i) = (E, r) = (R^T, p)."""
+    S, poses = [], []
     for i in range(tree.num_bodies):
         R, p, S_i = _joint(tree, i, q)
-        X_up.append(pose_transform(R, p))
         S.append(S_i)
         poses.append((R, p))
-    return X_up, S, poses
+    return S, poses
 
 
 def _base_acceleration(tree, dtype, gravity: bool):
@@ -66,7 +66,7 @@ def _base_acceleration(tree, dtype, gravity: bool):
 def rnea(tree: KinematicTree, q, v, a, *, gravity: bool = True):
     r"""Inverse dynamics: $\tau = H(q)\dot v + C(q, v) v + G(q)$ (recursive Newton-Euler),
     with the spatial products by blocks (see `aba`)."""
-    _, S, poses = _transforms(tree, q)
+    S, poses = _transforms(tree, q)
     n = tree.num_bodies
     vel, acc, force = [None] * n, [None] * n, [None] * n
     a0 = _base_acceleration(tree, q.dtype, gravity)
@@ -90,28 +90,30 @@ def rnea(tree: KinematicTree, q, v, a, *, gravity: bool = True):
 
 def mass_matrix(tree: KinematicTree, q):
     """H(q) by the composite-rigid-body algorithm."""
-    X_up, S, poses = _transforms(tree, q)
+    S, poses = _transforms(tree, q)
     n = tree.num_bodies
     Ic = [_body_inertia(tree, i) for i in range(n)]
     for i in reversed(range(n)):
         p = tree.parents[i]
         if p >= 0:
             Ic[p] = Ic[p] + transform_inertia(poses[i][0].T, poses[i][1], Ic[i])
-    H = jnp.zeros((tree.nv, tree.nv), q.dtype)
-    starts = tree.v_starts
+    # blocks H_ij for j = i and its ancestors, then H assembled by concatenation (no scatters)
+    blocks = {}
     for i in range(n):
         F = Ic[i] @ S[i]
-        si, ki = starts[i], S[i].shape[1]
-        H = H.at[si: si + ki, si: si + ki].set(S[i].T @ F)
+        blocks[i, i] = S[i].T @ F
         j = i
         while tree.parents[j] >= 0:
-            F = X_up[j].T @ F
+            E, r = poses[j][0].T, poses[j][1]
+            F = (transform_force_back(E, r, F[:, 0])[:, None] if F.shape[1] == 1
+                 else jnp.stack([transform_force_back(E, r, f) for f in F.T], axis=1))
             j = tree.parents[j]
-            sj, kj = starts[j], S[j].shape[1]
-            block = F.T @ S[j]
-            H = H.at[si: si + ki, sj: sj + kj].set(block)
-            H = H.at[sj: sj + kj, si: si + ki].set(block.T)
-    return H
+            blocks[i, j] = F.T @ S[j]
+            blocks[j, i] = blocks[i, j].T
+    dofs = [S_i.shape[1] for S_i in S]
+    rows = [jnp.concatenate([blocks.get((i, j), jnp.zeros((dofs[i], dofs[j]), q.dtype)) for j in range(n)], axis=1)
+            for i in range(n)]
+    return jnp.concatenate(rows, axis=0)
 
 
 def bias_forces(tree: KinematicTree, q, v, *, gravity: bool = True):
@@ -130,7 +132,7 @@ def aba(tree: KinematicTree, q, v, tau, *, gravity: bool = True):
     Spatial products are written by blocks ((E, r) transforms, cross products) rather than
     as 6x6 matrices, and one-dof joints use a motion-subspace vector: the vmapped batch on
     a CPU is about twice as fast as with dense 6x6 products."""
-    _, S, poses = _transforms(tree, q)
+    S, poses = _transforms(tree, q)
     n = tree.num_bodies
     E = [R.T for R, _ in poses]
     r = [p for _, p in poses]

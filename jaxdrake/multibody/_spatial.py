@@ -4,7 +4,8 @@ A spatial motion vector is $[\omega; v]$ (angular velocity, then the velocity of
 at the frame's origin), a force $[n; f]$. A Plücker transform ${}^B X_A$ from frame A to
 frame B, where B's origin is at $r$ (A coordinates) and $E$ rotates A coordinates into B
 coordinates, is $\begin{bmatrix} E & 0 \\ -E [r]_\times & E \end{bmatrix}$; forces transform
-with ${}^B X_A^{*} = {}^B X_A^{-T}$. All functions are plain `jax.numpy` on small arrays.
+with ${}^B X_A^{*} = {}^B X_A^{-T}$. Transforms are kept as the pair (E, r) and applied by
+blocks (cross products, 3x3 products), never as dense 6x6 matrices. Plain `jax.numpy`.
 """
 
 from __future__ import annotations
@@ -40,18 +41,6 @@ def quaternion_matrix(quat):
         jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)]),
         jnp.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)]),
         jnp.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)])])
-
-
-def plucker(E, r):
-    """The 6x6 motion transform with rotation E and origin offset r (see the module doc)."""
-    zero = jnp.zeros((3, 3), E.dtype)
-    return jnp.block([[E, zero], [-E @ skew(r), E]])
-
-
-def pose_transform(R, p):
-    """${}^{child}X_{parent}$ for a child frame at position p with orientation R (columns: the
-    child's axes) in parent coordinates: E = R^T, r = p."""
-    return plucker(R.T, p)
 
 
 def spatial_inertia(mass, com, inertia_com):
