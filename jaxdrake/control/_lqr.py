@@ -1,0 +1,106 @@
+r"""Linearization and the linear-quadratic regulator (Underactuated ch. 8; Drake's
+`Linearize`, `LinearQuadraticRegulator`).
+
+`linearize(system, x0, u0)` differentiates the dynamics (or the discrete update) and the
+output at an operating point with `jax.jacfwd`: $\dot{\tilde x} = A \tilde x + B \tilde u$,
+$\tilde y = C \tilde x + D \tilde u$ in the deviations $\tilde x = x - x_0$,
+$\tilde u = u - u_0$, $\tilde y = y - g(x_0, u_0)$. `lqr` solves the Riccati equation of the
+linearization for $\int \tilde x^T Q \tilde x + \tilde u^T R \tilde u + 2 \tilde x^T N \tilde u\,dt$
+(or the sum, for a discrete system) and returns $K$, $S$ and the controller
+$u = u_0 - K (x - x_0)$ as a system ready for `feedback`.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..systems import Frame, LinearSystem, System
+from ._riccati import solve_continuous_are, solve_discrete_are
+
+
+def linearize(system: System, x0, u0=None, *, t=0.0, check_equilibrium: bool = True,
+              tolerance: float = 1e-6) -> LinearSystem:
+    """The `LinearSystem` (continuous, or discrete with the system's sample time) of the
+    deviations from (x0, u0). With `check_equilibrium`, (x0, u0) must be a fixed point:
+    $|f(x_0, u_0)| \\le$ tolerance (continuous) or $|f_d(x_0, u_0) - x_0| \\le$ tolerance
+    (discrete); otherwise a ValueError gives the residual."""
+    if not isinstance(system, System):
+        raise TypeError(f"linearize needs a jaxdrake.System, got {type(system).__name__}")
+    if system.is_hybrid or system.is_stochastic:
+        raise ValueError(f"linearize: {system.name} is hybrid or stochastic; linearize a mode "
+                         "(or the nominal deterministic system) instead")
+    if system.has_continuous_state and system.has_discrete_state:
+        raise ValueError(f"linearize: {system.name} mixes continuous and discrete states")
+    x0 = jnp.asarray(x0, dtype=float).reshape(system.num_states)
+    u0 = jnp.zeros(system.num_inputs) if u0 is None else jnp.asarray(u0, dtype=float).reshape(system.num_inputs)
+    discrete = system.has_discrete_state
+    f = system.update if discrete else system.dynamics
+    if check_equilibrium:
+        residual = f(t, x0, u0) - (x0 if discrete else 0.0)
+        if not isinstance(residual, jax.core.Tracer):
+            worst = float(jnp.max(jnp.abs(residual))) if residual.size else 0.0
+            if worst > tolerance:
+                raise ValueError(f"linearize: ({x0}, {u0}) is not an equilibrium of {system.name}: "
+                                 f"the {'update moves x by' if discrete else 'derivative is'} up to {worst:.3g} "
+                                 "(pass check_equilibrium=False to linearize anyway)")
+    A, B = jax.jacfwd(f, argnums=(1, 2))(t, x0, u0)
+    C, D = jax.jacfwd(system.output, argnums=(1, 2))(t, x0, u0)
+    return LinearSystem(A, B.reshape(system.num_states, system.num_inputs), C,
+                        D.reshape(system.num_outputs, system.num_inputs),
+                        sample_time=system.sample_time if discrete else None,
+                        input_frame=system.input_frame, state_frame=system.state_frame,
+                        output_frame=system.output_frame)
+
+
+class LQRResult(NamedTuple):
+    """`K` (gain), `S` (cost-to-go $\\tilde x^T S \\tilde x$), the `linearization`, and the
+    `controller` system $u = u_0 - K(x - x_0)$ (input: the plant's state; output: its input)."""
+
+    K: jax.Array
+    S: jax.Array
+    linearization: LinearSystem
+    controller: System
+
+
+def _affine_gain(t, x, y, params):
+    K, x0, u0 = params
+    return u0 - K @ (y - x0)
+
+
+def lqr(system: System, Q, R, x0=None, u0=None, *, N=None, check_equilibrium: bool = True) -> LQRResult:
+    """The infinite-horizon LQR of `system` about (x0, u0) (default: the origin, u = 0):
+    continuous or discrete to match the system; `N` the cross term. Differentiable with
+    respect to Q, R and the plant's parameters."""
+    n, m = system.num_states, system.num_inputs
+    x0 = jnp.zeros(n) if x0 is None else jnp.asarray(x0, float).reshape(n)
+    u0 = jnp.zeros(m) if u0 is None else jnp.asarray(u0, float).reshape(m)
+    Q, R = jnp.atleast_2d(jnp.asarray(Q, float)), jnp.atleast_2d(jnp.asarray(R, float))
+    for label, M, size in (("Q", Q, n), ("R", R, m)):
+        if M.shape != (size, size):
+            raise ValueError(f"lqr: {label} must be ({size}, {size}) for {system.name}, got {M.shape}")
+    if N is not None:
+        N = jnp.asarray(N, float).reshape(n, m)
+    if not isinstance(R, jax.core.Tracer) and np.min(np.linalg.eigvalsh(np.asarray(R))) <= 0:
+        raise ValueError("lqr: R must be positive definite")
+    lin = linearize(system, x0, u0, check_equilibrium=check_equilibrium)
+    A, B = lin.A, lin.B
+    if lin.is_discrete:
+        S = solve_discrete_are(A, B, Q, R, N)
+        cross = B.T @ S @ A + (0.0 if N is None else N.T)
+        K = jnp.linalg.solve(R + B.T @ S @ B, cross)
+    else:
+        S = solve_continuous_are(A, B, Q, R, N)
+        K = jnp.linalg.solve(R, B.T @ S + (0.0 if N is None else N.T))
+    controller = System.from_functions(
+        output=_affine_gain, num_states=0, num_inputs=n, num_outputs=m, params=(K, x0, u0),
+        input_frame=system.state_frame, output_frame=_controller_output_frame(system))
+    return LQRResult(K, S, lin, controller)
+
+
+def _controller_output_frame(system):
+    frame = system.input_frame
+    return frame if not frame.generic else Frame(f"{system.name}LQRCommand", frame.coordinates, generic=True)
