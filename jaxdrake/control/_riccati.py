@@ -76,13 +76,18 @@ def _care(A, B, Q, R):
     return S
 
 
+def _implicit_tangent(residual, operator, S, primals, tangents):
+    """(S, dS) with dS solving operator(dS) = -(dF/dtheta) dtheta at the solution S."""
+    dF = jax.jvp(lambda *p: residual(S, *p), primals, tangents)[1]
+    return S, _symmetric(_kron_solve(operator, -dF))
+
+
 @_care.defjvp
 def _care_jvp(primals, tangents):
     A, B, Q, R = primals
     S = _care(A, B, Q, R)
-    dF = jax.jvp(lambda *p: _care_residual(S, *p), primals, tangents)[1]
     Ac = A - B @ jnp.linalg.solve(R, B.T @ S)
-    return S, _symmetric(_kron_solve(_lyapunov_operator(Ac), -dF))
+    return _implicit_tangent(_care_residual, _lyapunov_operator(Ac), S, primals, tangents)
 
 
 @jax.custom_jvp
@@ -106,9 +111,8 @@ def _dare(A, B, Q, R):
 def _dare_jvp(primals, tangents):
     A, B, Q, R = primals
     S = _dare(A, B, Q, R)
-    dF = jax.jvp(lambda *p: _dare_residual(S, *p), primals, tangents)[1]
     K = jnp.linalg.solve(R + B.T @ S @ B, B.T @ S @ A)
-    return S, _symmetric(_kron_solve(_stein_operator(A - B @ K), -dF))
+    return _implicit_tangent(_dare_residual, _stein_operator(A - B @ K), S, primals, tangents)
 
 
 def _without_cross_term(A, B, Q, R, N):
