@@ -194,23 +194,24 @@ def body_poses(tree: KinematicTree, q):
     return jnp.stack(Rs), jnp.stack(ps)
 
 
-def frame_pose(tree: KinematicTree, q, frame: str):
-    """World rotation and position of a named frame (any URDF link)."""
+def frame_pose(tree: KinematicTree, q, frame: str, *, poses=None):
+    """World rotation and position of a named frame (any URDF link). `poses`: the bodies'
+    `body_poses(tree, q)`, when the caller already has them."""
     k = _frame_index(tree, frame)
     body = tree.frame_bodies[k]
     R_f, p_f = tree.frame_rotation[k], tree.frame_translation[k]
     if body < 0:
         return R_f, p_f
-    Rs, ps = body_poses(tree, q)
+    Rs, ps = body_poses(tree, q) if poses is None else poses
     return Rs[body] @ R_f, Rs[body] @ p_f + ps[body]
 
 
-def frame_jacobian(tree: KinematicTree, q, frame: str):
+def frame_jacobian(tree: KinematicTree, q, frame: str, *, poses=None):
     r"""The 6 x nv Jacobian of a named frame, world-aligned: $[\omega; \dot p] = J(q)\, v$ with
     $\omega$ the frame's angular velocity and $\dot p$ the velocity of its origin, both in
-    world coordinates."""
+    world coordinates. `poses` as for `frame_pose`."""
     k = _frame_index(tree, frame)
-    Rs, ps = body_poses(tree, q)
+    Rs, ps = body_poses(tree, q) if poses is None else poses
     body = tree.frame_bodies[k]
     J = jnp.zeros((6, tree.nv), q.dtype)
     if body < 0:

@@ -160,21 +160,21 @@ class RigidBodySystem(System):
 
     def loop_residual(self, q):
         """phi(q): the stacked world-position differences of every loop's frames."""
-        parts = []
+        parts, poses = [], alg.body_poses(self.tree, q)
         for loop in self.loops:
             idx = np.array([_AXES[a] for a in loop.axes])
-            pa = alg.frame_pose(self.tree, q, loop.frame_a)[1]
-            pb = alg.frame_pose(self.tree, q, loop.frame_b)[1]
+            pa = alg.frame_pose(self.tree, q, loop.frame_a, poses=poses)[1]
+            pb = alg.frame_pose(self.tree, q, loop.frame_b, poses=poses)[1]
             parts.append((pa - pb)[idx])
         return jnp.concatenate(parts) if parts else jnp.zeros(0, q.dtype)
 
     def loop_jacobian(self, q):
         """d phi / d q in velocity coordinates: phi_dot = J(q) v."""
-        parts = []
+        parts, poses = [], alg.body_poses(self.tree, q)
         for loop in self.loops:
             idx = 3 + np.array([_AXES[a] for a in loop.axes])
-            parts.append((alg.frame_jacobian(self.tree, q, loop.frame_a)
-                          - alg.frame_jacobian(self.tree, q, loop.frame_b))[idx])
+            parts.append((alg.frame_jacobian(self.tree, q, loop.frame_a, poses=poses)
+                          - alg.frame_jacobian(self.tree, q, loop.frame_b, poses=poses))[idx])
         return jnp.concatenate(parts) if parts else jnp.zeros((0, self.tree.nv), q.dtype)
 
     def state_constraints(self, x):

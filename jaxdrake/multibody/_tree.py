@@ -18,10 +18,13 @@ from __future__ import annotations
 
 import pathlib
 import re
+import xml.etree.ElementTree as ET
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
+
+from ._spatial import rpy
 
 JOINT_DOFS = {"revolute": (1, 1), "prismatic": (1, 1), "floating": (7, 6)}
 _URDF_TYPES = {"revolute": "revolute", "continuous": "revolute", "prismatic": "prismatic",
@@ -130,8 +133,6 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
     """Parse a URDF into a `KinematicTree`; also returns the names of the joints its
     `<transmission>`s actuate (empty without transmissions). Joints named in `welded` are
     treated as fixed at zero (e.g. a gripper's fingers)."""
-    import xml.etree.ElementTree as ET
-
     path = pathlib.Path(path)
     text = read_urdf_text(path)
     try:
@@ -202,7 +203,6 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
 def _origin(element):
     xyz = np.array([float(v) for v in element.get("xyz", "0 0 0").split()]) if element is not None else np.zeros(3)
     angles = np.array([float(v) for v in element.get("rpy", "0 0 0").split()]) if element is not None else np.zeros(3)
-    from ._spatial import rpy
     return np.asarray(rpy(*angles)), xyz
 
 

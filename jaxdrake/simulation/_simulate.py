@@ -130,12 +130,13 @@ class _NoisyInput(_InputSource):
     Noise group g (size n, period tau, scale c) is held constant on [k tau, (k+1) tau) with
     the value c * N(0, I) drawn from fold_in(fold_in(key, g), k): a pure function of the key
     and k, so paths are reproducible and independent across keys. The instants k tau are
-    breakpoints: a step never straddles a jump of w."""
+    breakpoints: a step never straddles a jump of w, so `on_step` draws the step's samples
+    once and every stage of the step reuses them."""
 
     inputs: _InputSource
     key: jax.Array
     groups: tuple = eqx.field(static=True)
-    pieces: jax.Array | None = None
+    samples: jax.Array | None = None
     has_breakpoints = True
 
     def _periods(self, t):
@@ -149,19 +150,22 @@ class _NoisyInput(_InputSource):
         k = jnp.where((k + 1) * tau <= t, k + 1, k)
         return jnp.where(k * tau > t, k - 1, k)
 
+    def _draw(self, t):
+        pieces = self._piece(t).astype(jnp.int32)
+        return jnp.concatenate([c * jax.random.normal(jax.random.fold_in(jax.random.fold_in(self.key, g), pieces[g]),
+                                                      (n,), t.dtype)
+                                for g, (n, _, c) in enumerate(self.groups)])
+
     def __call__(self, t):
-        pieces = self._piece(t) if self.pieces is None else self.pieces
-        w = [c * jax.random.normal(jax.random.fold_in(jax.random.fold_in(self.key, g), pieces[g].astype(jnp.int32)),
-                                   (n,), t.dtype)
-             for g, (n, _, c) in enumerate(self.groups)]
-        return jnp.concatenate([self.inputs(t)] + w)
+        w = self._draw(t) if self.samples is None else self.samples.astype(t.dtype)
+        return jnp.concatenate([self.inputs(t), w])
 
     def next_breakpoint(self, t):
         tau = self._periods(t)
         return jnp.minimum(self.inputs.next_breakpoint(t), jnp.min((self._piece(t) + 1) * tau))
 
     def on_step(self, t):
-        return _NoisyInput(self.inputs.on_step(t), self.key, self.groups, self._piece(t))
+        return _NoisyInput(self.inputs.on_step(t), self.key, self.groups, self._draw(t))
 
 
 # ----- input limits as events ----------------------------------------------------------------

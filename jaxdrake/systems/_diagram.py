@@ -158,20 +158,30 @@ class Diagram(System):
                 u = u.at[np.asarray(w.target_index, int)].add(y)
         return self.subsystems[i].saturate(u)
 
+    def _outputs(self, mode, t, x, u):
+        """Every subsystem's output, in the static topological order, and the inputs of the
+        direct-feedthrough ones (computed on the way: their sources come first); None for
+        the others, whose outputs do not read their input."""
+        u_ext, dtype = u[: self.num_inputs], x.dtype
+        subs = self.subsystems
+        ys, inputs = [None] * len(subs), [None] * len(subs)
+        for i in self.order:
+            s = subs[i]
+            if s.direct_feedthrough:
+                inputs[i] = self._input(i, u_ext, ys, dtype)
+            u_i = inputs[i] if inputs[i] is not None else jnp.zeros(s.num_inputs, dtype)
+            ys[i] = s.mode_output(self.subsystem_mode(i, mode), t, self.subsystem_state(i, x),
+                                  jnp.concatenate([u_i, self._noise(i, u)]))
+        return inputs, ys
+
     def signals(self, mode, t, x, u):
         """Every subsystem's (full) input and output at (t, x, u): two lists, in subsystem
         order. `u` is the diagram's full input (inputs, then noise samples)."""
-        u_ext, dtype = u[: self.num_inputs], x.dtype
-        subs = self.subsystems
-        ys = [None] * len(subs)
-        for i in self.order:
-            s = subs[i]
-            u_i = (self._input(i, u_ext, ys, dtype) if s.direct_feedthrough
-                   else jnp.zeros(s.num_inputs, dtype))
-            ys[i] = s.mode_output(self.subsystem_mode(i, mode), t, self.subsystem_state(i, x),
-                                  jnp.concatenate([u_i, self._noise(i, u)]))
-        us = [jnp.concatenate([self._input(i, u_ext, ys, dtype), self._noise(i, u)])
-              for i in range(len(subs))]
+        inputs, ys = self._outputs(mode, t, x, u)
+        u_ext = u[: self.num_inputs]
+        us = [jnp.concatenate([u_i if u_i is not None else self._input(i, u_ext, ys, x.dtype),
+                               self._noise(i, u)])
+              for i, u_i in enumerate(inputs)]
         return us, ys
 
     # ----- the mode view (what the simulator calls) ---------------------------------------
@@ -198,7 +208,7 @@ class Diagram(System):
         return self.mode_update(self.initial_mode, t, x, self._with_zero_noise(u, x), due)
 
     def mode_output(self, mode, t, x, u):
-        _, ys = self.signals(mode, t, x, u)
+        _, ys = self._outputs(mode, t, x, u)
         return jnp.stack([ys[i][j] for i, j in self.outputs]) if self.outputs else jnp.zeros(0, x.dtype)
 
     def transition_guards(self, mode, t, x, u):
