@@ -14,15 +14,13 @@ JAX programs are compiled first and timed separately; each timing is the best of
 
 from __future__ import annotations
 
-import argparse
-import platform
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import jaxdrake as jd
-from _timing import best_time  # benchmarks/_timing.py
+from _common import argument_parser, best_time, machine_line  # benchmarks/_common.py
 from jaxdrake.models import Pendulum
 
 jax.config.update("jax_enable_x64", True)
@@ -88,9 +86,7 @@ def drake_runner(sampled):
 
 
 def main(batch, repeats, gpu):
-    device = jax.devices()[0]
-    print(f"machine: {platform.processor() or platform.machine()}, {device.platform} "
-          f"({device.device_kind}), jax {jax.__version__}, float64")
+    print(machine_line())
     x0s = np.random.default_rng(0).uniform([0.0, -1.0], [2 * np.pi, 1.0], (batch, 2))
     results = {}
     for label, system in jaxdrake_systems().items():
@@ -121,9 +117,5 @@ def main(batch, repeats, gpu):
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--batch", type=int, default=1000)
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--gpu", action="store_true", help="JAX rows only (no Drake)")
-    args = parser.parse_args()
+    args = argument_parser(__doc__, batch=1000, repeats=3, gpu_help="JAX rows only (no Drake)").parse_args()
     main(args.batch, args.repeats, args.gpu)

@@ -22,8 +22,6 @@ The error column is the largest final-state error against a SciPy DOP853 events 
 
 from __future__ import annotations
 
-import argparse
-import platform
 import time
 
 import jax
@@ -32,7 +30,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 import jaxdrake as jd
-from _timing import best_time  # benchmarks/_timing.py
+from _common import argument_parser, best_time, machine_line  # benchmarks/_common.py
 
 jax.config.update("jax_enable_x64", True)
 
@@ -128,9 +126,7 @@ def jaxdrake_runner(problem):
 
 
 def run(batch, gpu, repeats):
-    device = jax.devices()[0]
-    print(f"machine: {platform.machine()}, {device.platform} ({device.device_kind}), "
-          f"jax {jax.__version__}, float64")
+    print(machine_line())
     print(f"{'problem':8s} {'contender':36s} {'time':>12s} {'vs jaxdrake':>12s} {'max error':>10s}")
     for name, problem in PROBLEMS.items():
         values = np.random.default_rng(0).uniform(problem["low"], problem["high"], batch)
@@ -182,9 +178,6 @@ def run(batch, gpu, repeats):
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--batch", type=int, default=10_000)
-    parser.add_argument("--gpu", action="store_true", help="JAX rows only (for the accelerator)")
-    parser.add_argument("--repeats", type=int, default=3)
-    args = parser.parse_args()
+    args = argument_parser(__doc__, batch=10_000, repeats=3,
+                           gpu_help="JAX rows only (for the accelerator)").parse_args()
     run(args.batch, args.gpu, args.repeats)

@@ -16,11 +16,9 @@ evaluations per second; JAX programs are compiled first and timed separately.
 
 from __future__ import annotations
 
-import argparse
 import importlib.metadata
 import os
 import pathlib
-import platform
 import re
 import tempfile
 import time
@@ -29,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from _timing import best_time  # benchmarks/_timing.py
+from _common import argument_parser, best_time, machine_line  # benchmarks/_common.py
 from jaxdrake import multibody as mb
 
 
@@ -126,9 +124,7 @@ def mjx_rates(path, batches, repeats):
 
 def main(batches, repeats, gpu, float32):
     jax.config.update("jax_enable_x64", not float32)
-    device = jax.devices()[0]
-    print(f"machine: {platform.processor() or platform.machine()}, {device.platform} ({device.device_kind}), "
-          f"jax {jax.__version__}, {'float32' if float32 else 'float64'}")
+    print(machine_line())
     with tempfile.TemporaryDirectory() as tmp:
         robots = {"panda (7 dof)": panda7(tmp),
                   "solo12 (floating, 18 dof)": robot_path("solo_description/robots/solo12.urdf")}
@@ -155,10 +151,8 @@ def main(batches, repeats, gpu, float32):
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argument_parser(__doc__, repeats=3, gpu_help="JAX rows only (no Pinocchio)")
     parser.add_argument("--batches", type=int, nargs="+", default=[1000, 100000])
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--gpu", action="store_true", help="JAX rows only (no Pinocchio)")
     parser.add_argument("--float32", action="store_true", help="JAX in float32 (the GPU default)")
     args = parser.parse_args()
     main(args.batches, args.repeats, args.gpu, args.float32)

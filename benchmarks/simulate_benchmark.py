@@ -14,8 +14,6 @@ equal accuracy.
 
 from __future__ import annotations
 
-import argparse
-import platform
 import time
 
 import jax
@@ -24,7 +22,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 import jaxdrake as jd
-from _timing import best_time  # benchmarks/_timing.py
+from _common import argument_parser, best_time, machine_line  # benchmarks/_common.py
 from jaxdrake.models import Pendulum, VanDerPol
 
 jax.config.update("jax_enable_x64", True)
@@ -107,9 +105,7 @@ def scipy_runner(rhs):
 
 
 def run(batch, gpu, repeats):
-    device = jax.devices()[0]
-    print(f"machine: {platform.processor() or platform.machine()}, {device.platform} "
-          f"({device.device_kind}), jax {jax.__version__}, float64")
+    print(machine_line())
     print(f"{'problem':10s} {'contender':32s} {'time':>10s} {'vs jaxdrake':>12s} {'max error':>10s}")
     for name, problem in PROBLEMS.items():
         system = problem["system"]
@@ -175,9 +171,6 @@ def run(batch, gpu, repeats):
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--batch", type=int, default=1000)
-    parser.add_argument("--gpu", action="store_true", help="JAX rows only (for the accelerator)")
-    parser.add_argument("--repeats", type=int, default=5)
-    args = parser.parse_args()
+    args = argument_parser(__doc__, batch=1000, repeats=5,
+                           gpu_help="JAX rows only (for the accelerator)").parse_args()
     run(args.batch, args.gpu, args.repeats)
