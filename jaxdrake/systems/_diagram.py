@@ -88,19 +88,22 @@ class Diagram(System):
     def _offsets(self, sizes):
         return np.concatenate([[0], np.cumsum(sizes)]).astype(int).tolist()
 
+    def _state_slices(self, i: int):
+        """Where subsystem i's discrete and continuous states sit in the diagram's state."""
+        s = self.subsystems[i]
+        d = self._offsets([t.num_discrete_states for t in self.subsystems])[i]
+        c = self.num_discrete_states + self._offsets([t.num_continuous_states for t in self.subsystems])[i]
+        return slice(d, d + s.num_discrete_states), slice(c, c + s.num_continuous_states)
+
     def subsystem_state(self, i: int, x):
         """Subsystem i's own state [x_d; x_c] from the diagram's state."""
-        s = self.subsystems[i]
-        d = self._offsets([t.num_discrete_states for t in self.subsystems])[i]
-        c = self.num_discrete_states + self._offsets([t.num_continuous_states for t in self.subsystems])[i]
-        return jnp.concatenate([x[d: d + s.num_discrete_states], x[c: c + s.num_continuous_states]])
+        d, c = self._state_slices(i)
+        return jnp.concatenate([x[d], x[c]])
 
     def _with_subsystem_state(self, i: int, x, x_i):
-        s = self.subsystems[i]
-        d = self._offsets([t.num_discrete_states for t in self.subsystems])[i]
-        c = self.num_discrete_states + self._offsets([t.num_continuous_states for t in self.subsystems])[i]
-        x = x.at[d: d + s.num_discrete_states].set(x_i[: s.num_discrete_states])
-        return x.at[c: c + s.num_continuous_states].set(x_i[s.num_discrete_states:])
+        d, c = self._state_slices(i)
+        nd = self.subsystems[i].num_discrete_states
+        return x.at[d].set(x_i[:nd]).at[c].set(x_i[nd:])
 
     def _noise(self, i: int, u):
         start = self.num_inputs + self._offsets([s.num_noise_inputs for s in self.subsystems])[i]
