@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..systems import Frame, LinearSystem, System
+from ..systems import LinearSystem, System
 from ._riccati import solve_continuous_are, solve_discrete_are
 
 
@@ -97,10 +97,6 @@ def lqr(system: System, Q, R, x0=None, u0=None, *, N=None, check_equilibrium: bo
         K = jnp.linalg.solve(R, B.T @ S + (0.0 if N is None else N.T))
     controller = System.from_functions(
         output=_affine_gain, num_states=0, num_inputs=n, num_outputs=m, params=(K, x0, u0),
-        input_frame=system.state_frame, output_frame=_controller_output_frame(system))
+        input_frame=system.state_frame, output_frame=system.input_frame)
     return LQRResult(K, S, lin, controller)
 
-
-def _controller_output_frame(system):
-    frame = system.input_frame
-    return frame if not frame.generic else Frame(f"{system.name}LQRCommand", frame.coordinates, generic=True)
