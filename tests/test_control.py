@@ -1,9 +1,11 @@
-"""Linearization and LQR against SciPy's Riccati solvers, closed forms and finite differences."""
+"""Linearization and LQR against SciPy's and python-control's Riccati solvers, closed forms and finite differences."""
 
+import control as ct
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import scipy.integrate as si
 import scipy.linalg as sl
 
 import jaxdrake as jd
@@ -64,6 +66,8 @@ def test_lqr_of_the_notes_plants_matches_scipy_and_stabilises(name):
     S = sl.solve_continuous_are(A, B, Q, R)
     assert relative(result.S, S) < 1e-8
     assert relative(result.K, np.linalg.solve(R, B.T @ S)) < 1e-8
+    K_ct, S_ct, _ = ct.lqr(A, B, Q, R)
+    assert relative(result.S, S_ct) < 1e-8 and relative(result.K, K_ct) < 1e-8
     assert np.max(np.linalg.eigvals(A - B @ np.asarray(result.K)).real) < 0
     closed = jd.feedback(plant, result.controller)
     perturbation = 0.05 * np.random.default_rng(0).standard_normal(len(x0))
@@ -83,6 +87,8 @@ def test_discrete_lqr_matches_scipy_and_stabilises():
     S = sl.solve_discrete_are(A, B, Q, R, s=N)
     assert relative(result.S, S) < 1e-8
     assert relative(result.K, np.linalg.solve(R + B.T @ S @ B, B.T @ S @ A + N.T)) < 1e-8
+    K_ct, S_ct, _ = ct.dlqr(A, B, Q, R, N)
+    assert relative(result.S, S_ct) < 1e-8 and relative(result.K, K_ct) < 1e-8
     assert result.linearization.is_discrete
     traj = jd.simulate(jd.feedback(plant, result.controller), (0.0, 20.0), jnp.array([1.0, 0.0]))
     assert np.max(np.abs(traj.final_state)) < 1e-4
@@ -95,6 +101,8 @@ def test_continuous_lqr_with_a_cross_term_matches_scipy():
     S = sl.solve_continuous_are(np.asarray(plant.A), np.asarray(plant.B), Q, R, s=N)
     assert relative(result.S, S) < 1e-8
     assert relative(result.K, np.linalg.solve(R, np.asarray(plant.B).T @ S + N.T)) < 1e-8
+    K_ct, S_ct, _ = ct.lqr(np.asarray(plant.A), np.asarray(plant.B), Q, R, N)
+    assert relative(result.S, S_ct) < 1e-8 and relative(result.K, K_ct) < 1e-8
 
 
 def test_gradient_of_trace_S_wrt_a_link_mass_matches_finite_differences():
@@ -115,3 +123,98 @@ def test_linearize_checks_the_operating_point():
         jd.linearize(jd.models.BouncingBall(), jnp.array([2.0, 0.0]))
     with pytest.raises(ValueError, match=r"Q must be \(2, 2\)"):
         lqr(jd.models.DoubleIntegrator(), np.eye(3), np.eye(1))
+
+
+# ----- finite-horizon / time-varying LQR ------------------------------------------------------
+
+def test_time_varying_lqr_at_an_equilibrium_tends_to_the_infinite_horizon_solution():
+    plant, upright = jd.models.Pendulum(), jnp.array([np.pi, 0.0])
+    Q, R = np.diag([10.0, 1.0]), np.eye(1)
+    result = jd.control.finite_horizon_lqr(plant, Q, R, (0.0, 20.0), x_nominal=upright)
+    A, B = np.array([[0.0, 1.0], [9.81 / 0.5, -0.1 / 0.25]]), np.array([[0.0], [1 / 0.25]])
+    S = sl.solve_continuous_are(A, B, Q, R)
+    assert relative(result.S(0.0), S) < 1e-6
+    assert relative(result.K(0.0), np.linalg.solve(R, B.T @ S)) < 1e-6
+    np.testing.assert_allclose(result.S(20.0), np.zeros((2, 2)), atol=1e-12)  # S(tf) = Qf = 0
+
+
+def pendulum_riccati_by_scipy(x_start, u_nominal, Q, R, Qf, T, m=1.0, l=0.5, b=0.1, g=9.81):
+    """The nominal (forward) and the Riccati ODE (backward) with SciPy and the pendulum's
+    Jacobians written by hand."""
+    inertia = m * l * l
+    f = lambda t, x: [x[1], (u_nominal - b * x[1] - m * g * l * np.sin(x[0])) / inertia]
+    nominal = si.solve_ivp(f, (0.0, T), x_start, method="DOP853", rtol=1e-12, atol=1e-12, dense_output=True)
+    B = np.array([[0.0], [1 / inertia]])
+
+    def riccati(t, s):
+        theta = nominal.sol(t)[0]
+        A = np.array([[0.0, 1.0], [-g / l * np.cos(theta), -b / inertia]])
+        S = s.reshape(2, 2)
+        return -(Q + S @ A + A.T @ S - S @ B @ np.linalg.solve(R, B.T @ S)).reshape(-1)
+
+    backward = si.solve_ivp(riccati, (T, 0.0), Qf.reshape(-1), method="DOP853", rtol=1e-12,
+                            atol=1e-12, dense_output=True)
+    return nominal, backward, B
+
+
+def test_time_varying_lqr_along_a_swing_matches_scipy():
+    plant, T, u_nominal = jd.models.Pendulum(), 3.0, 0.4
+    x_start = np.array([2.0, 0.0])
+    Q, R, Qf = np.diag([5.0, 0.5]), np.array([[0.3]]), np.diag([20.0, 2.0])
+    nominal = jd.simulate(plant, (0.0, T), jnp.asarray(x_start), inputs=lambda t: jnp.array([u_nominal]),
+                          rtol=1e-11, atol=1e-12)
+    result = jd.control.finite_horizon_lqr(plant, Q, R, (0.0, T), Qf=Qf, x_nominal=nominal,
+                                           u_nominal=jnp.array([u_nominal]), rtol=1e-10, atol=1e-12)
+    _, oracle, B = pendulum_riccati_by_scipy(x_start, u_nominal, Q, R, Qf, T)
+    ts = np.linspace(0.0, T, 13)
+    S_ref = oracle.sol(ts).T.reshape(-1, 2, 2)
+    assert relative(result.S(jnp.asarray(ts)), S_ref) < 1e-7
+    K_ref = np.stack([np.linalg.solve(R, B.T @ S) for S in S_ref])
+    assert relative(result.K(jnp.asarray(ts)), K_ref) < 1e-7
+    # between the knots K is a quartic fit: still exact to the integration tolerance
+    t_mid = 0.5 * (np.asarray(result.K_trajectory.t_start[5:9]) + np.asarray(result.K_trajectory.t_end[5:9]))
+    K_mid = np.stack([np.linalg.solve(R, B.T @ S) for S in oracle.sol(t_mid).T.reshape(-1, 2, 2)])
+    assert relative(result.K(jnp.asarray(t_mid)), K_mid) < 1e-7
+
+
+def test_time_varying_lqr_controller_tracks_and_its_cost_is_the_cost_to_go():
+    """Closed around the plant from a small offset, the controller's realised cost
+    x(T)' Qf x(T) + integral(x' Q x + u' R u) equals x(0)' S(0) x(0) (to O(offset^3))."""
+    plant, T = jd.models.Pendulum(), 3.0
+    Q, R, Qf = np.diag([5.0, 0.5]), np.array([[0.3]]), np.diag([20.0, 2.0])
+    nominal = jd.simulate(plant, (0.0, T), jnp.array([2.0, 0.0]), rtol=1e-11, atol=1e-12)
+    result = jd.control.finite_horizon_lqr(plant, Q, R, (0.0, T), Qf=Qf, x_nominal=nominal, rtol=1e-10)
+    offset = jnp.array([1e-3, -2e-3])
+    closed = jd.feedback(plant, result.controller)
+    traj = jd.simulate(closed, (0.0, T), nominal.state(0.0) + offset, rtol=1e-11, atol=1e-14)
+    ts = np.linspace(0.0, T, 6001)
+    dx = np.asarray(traj.state(jnp.asarray(ts)) - nominal.state(jnp.asarray(ts)))
+    du = np.asarray(jax.vmap(lambda t, x: result.controller.output(t, jnp.zeros(0), x))(
+        jnp.asarray(ts), traj.state(jnp.asarray(ts))))
+    running = np.einsum("ti,ij,tj->t", dx, Q, dx) + np.einsum("ti,ij,tj->t", du, R, du)
+    realised = si.simpson(running, x=ts) + dx[-1] @ Qf @ dx[-1]
+    predicted = float(offset @ result.S(0.0) @ offset)
+    assert abs(realised - predicted) < 1e-3 * predicted
+    assert np.linalg.norm(dx[-1]) < 0.2 * np.linalg.norm(offset)
+
+
+def test_gradient_of_the_time_varying_cost_to_go_matches_finite_differences():
+    Q, R = np.diag([10.0, 1.0]), np.eye(1)
+    upright = jnp.array([np.pi, 0.0])
+    cost = lambda m: jnp.trace(jd.control.finite_horizon_lqr(jd.models.Pendulum(m=m), Q, R, (0.0, 2.0),
+                                                              x_nominal=upright, Qf=np.eye(2),
+                                                              rtol=1e-10).S(0.0))
+    g = jax.grad(cost)(1.0)
+    fd = (cost(1.0 + 1e-4) - cost(1.0 - 1e-4)) / 2e-4
+    np.testing.assert_allclose(g, fd, rtol=1e-6)
+
+
+def test_finite_horizon_lqr_rejects_bad_input():
+    plant = jd.models.Pendulum()
+    with pytest.raises(ValueError, match=r"Qf must be \(2, 2\)"):
+        jd.control.finite_horizon_lqr(plant, np.eye(2), np.eye(1), (0.0, 1.0), Qf=np.eye(3))
+    with pytest.raises(ValueError, match="nominal state trajectory has 1"):
+        jd.control.finite_horizon_lqr(plant, np.eye(2), np.eye(1), (0.0, 1.0),
+                                      x_nominal=jd.Trajectory.from_samples([0.0, 1.0], [0.0, 1.0]))
+    with pytest.raises(ValueError, match="continuous"):
+        jd.control.finite_horizon_lqr(jd.models.BouncingBall(), np.eye(2), np.eye(0), (0.0, 1.0))

@@ -96,6 +96,24 @@ class Trajectory(eqx.Module):
                    num_events=jnp.asarray(0), num_rejected_steps=jnp.asarray(0),
                    modes=jnp.zeros(n, jnp.int32), side=side)
 
+    @classmethod
+    def from_pieces(cls, t_start, t_end, coefficients, num_segments=None) -> "Trajectory":
+        """A trajectory from its pieces: piece i covers $(t^{start}_i, t^{end}_i]$ with
+        `coefficients[i]` (shape (5, n)) in the normalized time; only the first `num_segments`
+        are used (default all)."""
+        coefficients = jnp.asarray(coefficients)
+        if coefficients.ndim != 3 or coefficients.shape[1] != NUM_COEFFICIENTS:
+            raise ValueError(f"from_pieces needs coefficients of shape (pieces, {NUM_COEFFICIENTS}, n), "
+                             f"got {coefficients.shape}")
+        size = coefficients.shape[0]
+        used = jnp.asarray(size if num_segments is None else num_segments)
+        t_end = jnp.asarray(t_end, coefficients.dtype)
+        return cls(t_start=jnp.asarray(t_start, coefficients.dtype), t_end=t_end,
+                   coefficients=coefficients, num_segments=used, t_final=t_end[used - 1],
+                   status=jnp.asarray(0), event_times=jnp.zeros(0, t_end.dtype),
+                   event_indices=jnp.zeros(0, int), num_events=jnp.asarray(0),
+                   num_rejected_steps=jnp.asarray(0), modes=jnp.zeros(size, jnp.int32))
+
     def __getitem__(self, i) -> "Trajectory":
         """Member i of a batch of trajectories (the result of `jax.vmap(simulate...)`)."""
         if self.t_start.ndim < 2:
