@@ -209,8 +209,10 @@ class Trajectory(eqx.Module):
 
     @property
     def final_state(self):
-        """The state at the last time reached."""
-        return eval_polynomial(self.coefficients[self.num_segments - 1], 1.0)
+        """The state at the last time reached (for a batch, of every member): the last piece
+        at theta = 1, the sum of its coefficients."""
+        last = jnp.asarray(self.num_segments - 1)[..., None, None, None]
+        return jnp.take_along_axis(self.coefficients, last, axis=-3)[..., 0, :, :].sum(axis=-2)
 
     # ----- host-side views ------------------------------------------------------------------
 
