@@ -218,3 +218,93 @@ def test_finite_horizon_lqr_rejects_bad_input():
                                       x_nominal=jd.Trajectory.from_samples([0.0, 1.0], [0.0, 1.0]))
     with pytest.raises(ValueError, match="continuous"):
         jd.control.finite_horizon_lqr(jd.models.BouncingBall(), np.eye(2), np.eye(0), (0.0, 1.0))
+
+
+# ----- swing-up and the switch to LQR -------------------------------------------------------
+
+@pytest.mark.parametrize("model, x", [(jd.models.Acrobot, [0.3, -0.7, 1.2, -2.0]),
+                                      (jd.models.CartPole, [0.4, 2.0, -0.5, 1.5])])
+def test_collocated_pfl_gives_the_actuated_joint_the_desired_acceleration(model, x):
+    plant, x = model(), jnp.asarray(x)
+    u = jd.control.collocated_pfl(plant, x, 3.7)
+    qdd = plant.forward_dynamics(x[:2], x[2:], u)  # articulated-body algorithm, not the PFL's H
+    actuated = int(np.flatnonzero(np.asarray(plant.B)[:, 0])[0])
+    np.testing.assert_allclose(qdd[actuated], 3.7, rtol=1e-10)
+
+
+def upright_error(x, goal, angles):
+    err = np.asarray(x) - goal
+    err[..., angles] = (err[..., angles] + np.pi) % (2 * np.pi) - np.pi
+    return np.max(np.abs(err), axis=-1)
+
+
+def test_acrobot_swing_up_and_balance_torques_match_drakes_spong_controller():
+    """Drake's AcrobotSpongController: LQR (Q = diag(10, 10, 1, 1), R = 1) where
+    (x - x0)' S (x - x0) < 1e3, the swing-up elsewhere, saturated at +-20 N m."""
+    examples = pytest.importorskip("pydrake.examples")
+    drake = examples.AcrobotSpongController()
+    context = drake.CreateDefaultContext()
+    acrobot, goal = jd.models.Acrobot(), np.array([np.pi, 0.0, 0.0, 0.0])
+    balance = lqr(acrobot, np.diag([10.0, 10.0, 1.0, 1.0]), np.eye(1), x0=goal)
+    switch = jd.control.SwitchToLQR(jd.control.acrobot_spong_controller(acrobot), balance, angles=(0, 1),
+                                    output_limits=(-20.0, 20.0))
+    rng = np.random.default_rng(3)
+    far = rng.uniform([-np.pi, -2, -3, -3], [np.pi, 2, 3, 3], (40, 4))
+    near = goal + rng.uniform(-1, 1, (40, 4)) * [0.05, 0.1, 0.1, 0.1] + [2 * np.pi, 0, 0, 0] * rng.integers(-1, 2, (40, 1))
+    checked = {0: 0, 1: 0}
+    torque = jax.jit(lambda mode, x: switch.mode_output(mode, 0.0, jnp.zeros(0), x))
+    for x in np.concatenate([far, near]):
+        drake.get_input_port(0).FixValue(context, x)
+        expected = drake.get_output_port(0).Eval(context)
+        err = x - goal
+        err[:2] = (err[:2] + np.pi) % (2 * np.pi) - np.pi
+        mode = int(err @ np.asarray(balance.S) @ err < 1e3)
+        ours = torque(mode, jnp.asarray(x))
+        np.testing.assert_allclose(ours, expected, rtol=1e-9, atol=1e-9)
+        checked[mode] += 1
+    assert checked[0] > 30 and checked[1] > 30
+
+
+def test_acrobot_swing_up_switches_to_lqr_where_V_crosses_the_threshold_and_balances():
+    acrobot, goal = jd.models.Acrobot(), np.array([np.pi, 0.0, 0.0, 0.0])
+    balance = lqr(acrobot, np.diag([10.0, 10.0, 1.0, 1.0]), np.eye(1), x0=goal)
+    switch = jd.control.SwitchToLQR(jd.control.acrobot_spong_controller(acrobot), balance, angles=(0, 1),
+                                    enter=300.0, leave=3000.0, output_limits=(-20.0, 20.0))
+    traj = jd.simulate(jd.feedback(acrobot, switch), (0.0, 20.0), jnp.array([0.1, 0.0, 0.0, 0.0]),
+                       max_steps=8000)
+    events = traj.events
+    assert events["modes"][-1] == 1 and upright_error(traj.final_state, goal, [0, 1]) < 1e-3
+    for t, mode, x in zip(events["times"], events["modes"], events["states"]):
+        err = np.asarray(x) - goal
+        err[:2] = (err[:2] + np.pi) % (2 * np.pi) - np.pi
+        V = err @ np.asarray(balance.S) @ err
+        assert V == pytest.approx(300.0 if mode == 1 else 3000.0, rel=1e-6)
+    # the torque never exceeds the limit, in either mode
+    ts = jnp.linspace(0.0, 20.0, 2001)
+    torque = jax.vmap(lambda t: traj.system.mode_output(traj.mode(t), t, traj.state(t), jnp.zeros(1)))(ts)
+    assert np.max(np.abs(np.asarray(torque))) <= 20.0 + 1e-9
+
+
+def test_cart_pole_swing_up_balances_a_batch():
+    cart_pole, goal = jd.models.CartPole(), np.array([0.0, np.pi, 0.0, 0.0])
+    balance = lqr(cart_pole, np.diag([10.0, 10.0, 1.0, 1.0]), np.eye(1), x0=goal)
+    switch = jd.control.SwitchToLQR(jd.control.cart_pole_swing_up_controller(cart_pole), balance,
+                                    angles=(1,), enter=100.0, leave=1000.0)
+    closed = jd.feedback(cart_pole, switch)
+    starts = 0.1 * jax.random.normal(jax.random.key(0), (64, 4))
+    runs = jax.jit(jax.vmap(lambda x: jd.simulate(closed, (0.0, 10.0), x, max_steps=8000, dense=False)))(starts)
+    assert np.all(np.asarray(runs.num_events) == 1)  # one switch into LQR, none back
+    final = np.asarray(runs.final_state)
+    pole = np.mod(final[:, 1], 2 * np.pi) - np.pi  # theta - pi, wrapped to [-pi, pi)
+    assert np.all(np.abs(pole) < 1e-2) and np.all(np.abs(final[:, 3]) < 1e-2)  # the pole is balanced
+    assert np.all(np.abs(final[:, 0]) < 0.1)  # and the cart (the slowest closed-loop pole) comes back
+
+
+def test_switch_to_lqr_rejects_mismatched_controllers():
+    acrobot = jd.models.Acrobot()
+    balance = lqr(acrobot, np.eye(4), np.eye(1), x0=np.array([np.pi, 0.0, 0.0, 0.0]))
+    with pytest.raises(ValueError, match="swing-up controller maps 2 -> 1"):
+        jd.control.SwitchToLQR(jd.control.lqr(jd.models.Pendulum(), np.eye(2), np.eye(1),
+                                              x0=np.array([np.pi, 0.0])).controller, balance)
+    with pytest.raises(ValueError, match="one input driving one joint"):
+        jd.control.acrobot_spong_controller(jd.models.DoublePendulum())

@@ -70,6 +70,10 @@ def test_vmap_over_parameters_and_dense_output():
                                             rtol=1e-9, atol=1e-11))(mus)
     ts = jnp.linspace(0.0, 5.0, 11)
     batched = jax.vmap(lambda tr: tr.eval(ts))(trajs)
+    # a batch's final states, read outside vmap, are each member's
+    for i, mu in enumerate(mus):
+        np.testing.assert_array_equal(trajs.final_state[i], trajs[i].final_state)
+        np.testing.assert_allclose(trajs.final_state[i], trajs[i].state(5.0), rtol=1e-12)
     for mu, y in zip(mus, batched):
         single = jd.simulate(VanDerPol(float(mu)), (0.0, 5.0), jnp.array([1.0, 0.0]), rtol=1e-9, atol=1e-11)
         # XLA's vectorized pow differs from its scalar one in the last bit, which can flip an

@@ -66,7 +66,7 @@ def _acrobot_spong(t, _, x, params):
 
 def acrobot_spong_controller(acrobot: RigidBodySystem, k_e=5.0, k_p=50.0, k_d=5.0,
                              torque_limit=20.0) -> System:
-    """Spong's swing-up for `models.Acrobot` as in Drake's `AcrobotSpongController` (its gains
+    r"""Spong's swing-up for `models.Acrobot` as in Drake's `AcrobotSpongController` (its gains
     and its saturation at +-20 N m): a static system from the acrobot's state to the elbow
     torque $u = \mathrm{sat}(u_p - k_e\tilde E\dot q_2)$, $u_p$ the collocated PFL of
     $\ddot q_2 = -k_p q_2 - k_d\dot q_2$; then $\dot E = -k_e\tilde E\dot q_2^2 + \dots$."""
