@@ -42,7 +42,7 @@ def _check_single_actuated_joint(plant: RigidBodySystem):
 
 
 def collocated_pfl(plant: RigidBodySystem, x, qdd_actuated):
-    """The input that gives the actuated joint (B a unit column b) the acceleration
+    r"""The input that gives the actuated joint (B a unit column b) the acceleration
     `qdd_actuated`: solve $(P H + b b^T)\ddot q = b\,\ddot q_a^d - P\phi$ with
     $P = I - b b^T$ (passive rows of the dynamics, actuated acceleration fixed), then
     $u = b^T(H\ddot q + \phi)$."""
