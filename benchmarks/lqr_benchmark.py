@@ -55,7 +55,7 @@ def peers():
 
     return {"SciPy solve_continuous_are": scipy_lqr,
             "python-control lqr": lambda A, B, Q, R: control.lqr(A, B, Q, R)[0],
-            "Drake LinearQuadraticRegulator": lambda A, B, Q, R: LinearQuadraticRegulator(A, B, Q, R).K}
+            "Drake LinearQuadraticRegulator": lambda A, B, Q, R: LinearQuadraticRegulator(A, B, Q, R)[0]}
 
 
 def main():

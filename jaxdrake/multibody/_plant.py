@@ -93,9 +93,10 @@ class RigidBodySystem(System):
                   welded=(), loops=(), constraint_stiffness: float = 20.0) -> "RigidBodySystem":
         """Load a URDF (local files only: `package://` mesh paths are never resolved); joints
         named in `welded` are fixed at zero."""
-        tree, transmitted = tree_from_urdf(pathlib.Path(path), floating_base=floating_base,
-                                           gravity=(0.0, 0.0, -9.81) if gravity else (0.0, 0.0, 0.0),
-                                           welded=tuple(welded))
+        with jax.ensure_compile_time_eval():  # parsing is host work, also inside jit / vmap
+            tree, transmitted = tree_from_urdf(pathlib.Path(path), floating_base=floating_base,
+                                               gravity=(0.0, 0.0, -9.81) if gravity else (0.0, 0.0, 0.0),
+                                               welded=tuple(welded))
         if actuated is None and transmitted:
             actuated = list(transmitted)
         return cls(tree, actuated, loops=loops, constraint_stiffness=constraint_stiffness)
