@@ -112,6 +112,8 @@ def test_gradient_of_trace_S_wrt_a_link_mass_matches_finite_differences():
     g = jax.grad(cost)(1.0)
     fd = (cost(1.0 + 1e-5) - cost(1.0 - 1e-5)) / 2e-5
     np.testing.assert_allclose(g, fd, rtol=1e-6)
+    # the plant can be built inside jit (its URDF is parsed on the host even while tracing)
+    np.testing.assert_allclose(jax.jit(cost)(1.2), cost(1.2), rtol=1e-12)
 
 
 def test_linearize_checks_the_operating_point():
