@@ -46,14 +46,6 @@ def cart_pole_loop():
     return jd.feedback(cart_pole, switch), switch, goal
 
 
-def cost_to_go(switch, xs):
-    """V along a path, angles wrapped about the goal (as the switch computes it)."""
-    err = np.asarray(xs) - np.asarray(switch.goal)
-    wrapped = np.asarray(switch.wrapped)
-    err[:, wrapped] = np.mod(err[:, wrapped] + np.pi, 2 * np.pi) - np.pi
-    return np.einsum("ti,ij,tj->t", err, np.asarray(switch.S), err)
-
-
 def balanced(final, goal, wrapped, tol):
     err = np.asarray(final) - np.asarray(goal)
     err[:, wrapped] = np.mod(err[:, wrapped] + np.pi, 2 * np.pi) - np.pi
@@ -83,7 +75,7 @@ def plot_run(axes, closed, switch, T, x0, names, title):
             ax.axvline(t, color="k" if mode == 1 else "0.6", ls="--", lw=0.8)
     axes[0].set(title=title + " (dashed: switch into LQR)", ylabel="rad / m")
     axes[0].legend(loc="upper left", fontsize=8)
-    axes[1].semilogy(ts, cost_to_go(switch, xs), color="C3")
+    axes[1].semilogy(ts, jax.vmap(switch.cost_to_go)(jnp.asarray(xs)), color="C3")
     axes[1].axhline(float(switch.enter), color="k", lw=0.6)
     axes[1].axhline(float(switch.leave), color="0.6", lw=0.6)
     axes[1].set(ylabel="V = (x - x0)' S (x - x0)", xlabel="t (s)", ylim=(1e-6, None))

@@ -104,11 +104,6 @@ def _goal_error(x, goal, wrapped):
     return jnp.where(wrapped, _wrap(error), error)
 
 
-def _balance_cost(switch, x):
-    error = _goal_error(x, switch.goal, switch.wrapped)
-    return error @ switch.S @ error
-
-
 def _angles_near_goal(switch, t, _, x):
     """max |wrapped angle error| - angle_tolerance: keeps the switch away from the wrap at
     +-pi, where V jumps (and where a small V would be an artefact of the linearization)."""
@@ -117,11 +112,11 @@ def _angles_near_goal(switch, t, _, x):
 
 
 def _enters_basin(switch, t, _, x):
-    return _balance_cost(switch, x) - switch.enter
+    return switch.cost_to_go(x) - switch.enter
 
 
 def _leaves_basin(switch, t, _, x):
-    return switch.leave - _balance_cost(switch, x)
+    return switch.leave - switch.cost_to_go(x)
 
 
 def _keep(switch, t, state, x):
@@ -162,6 +157,11 @@ class SwitchToLQR(HybridSystem):
         super().__init__([swing_up, balance],
                          [Transition(0, and_guards(_enters_basin, _angles_near_goal), _keep, 1, "balance"),
                           Transition(1, _leaves_basin, _keep, 0, "swing up")])
+
+    def cost_to_go(self, x):
+        """$V(x) = \\tilde x^T S \\tilde x$, the angles of $\\tilde x = x - x_0$ wrapped to [-pi, pi)."""
+        error = _goal_error(x, self.goal, self.wrapped)
+        return error @ self.S @ error
 
 
 def _wrapped_gain(t, _, x, params):

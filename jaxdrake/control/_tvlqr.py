@@ -49,8 +49,7 @@ def _riccati_rhs(tau, s, u, params):
     """d vec(S) / d tau in the reversed time tau = t_f - t."""
     plant, x_nominal, u_nominal, Q, R, N, tf = params
     n = Q.shape[0]
-    S = s.reshape(n, n)
-    S = (S + S.T) / 2
+    S = s.reshape(n, n)  # symmetric: S(tf) is, and so is every derivative below
     A, B = _jacobians(plant, tf - tau, x_nominal, u_nominal)
     SBN = S @ B + N
     dS = Q + S @ A + A.T @ S - SBN @ jnp.linalg.solve(R, SBN.T)

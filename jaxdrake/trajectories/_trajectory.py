@@ -88,19 +88,14 @@ class Trajectory(eqx.Module):
         if interpolation == "zoh":  # the last sample holds from t_N on: a zero-length piece
             ts = jnp.concatenate([ts, ts[-1:]])
             c = [jnp.concatenate([ci, v[None]]) for ci, v in zip(c, [values[-1]] + [values[-1] * 0] * 4)]
-        coefficients = jnp.stack(c, axis=1)
-        n = coefficients.shape[0]
-        return cls(t_start=ts[:-1], t_end=ts[1:], coefficients=coefficients,
-                   num_segments=jnp.asarray(n), t_final=ts[-1], status=jnp.asarray(0),
-                   event_times=jnp.zeros(0, ts.dtype), event_indices=jnp.zeros(0, int),
-                   num_events=jnp.asarray(0), num_rejected_steps=jnp.asarray(0),
-                   modes=jnp.zeros(n, jnp.int32), side=side)
+        return cls.from_pieces(ts[:-1], ts[1:], jnp.stack(c, axis=1), side=side)
 
     @classmethod
-    def from_pieces(cls, t_start, t_end, coefficients, num_segments=None) -> "Trajectory":
+    def from_pieces(cls, t_start, t_end, coefficients, num_segments=None, *,
+                    side: str = "left") -> "Trajectory":
         """A trajectory from its pieces: piece i covers $(t^{start}_i, t^{end}_i]$ with
         `coefficients[i]` (shape (5, n)) in the normalized time; only the first `num_segments`
-        are used (default all)."""
+        are used (default all). `side`: the limit taken at a jump."""
         coefficients = jnp.asarray(coefficients)
         if coefficients.ndim != 3 or coefficients.shape[1] != NUM_COEFFICIENTS:
             raise ValueError(f"from_pieces needs coefficients of shape (pieces, {NUM_COEFFICIENTS}, n), "
@@ -112,7 +107,7 @@ class Trajectory(eqx.Module):
                    coefficients=coefficients, num_segments=used, t_final=t_end[used - 1],
                    status=jnp.asarray(0), event_times=jnp.zeros(0, t_end.dtype),
                    event_indices=jnp.zeros(0, int), num_events=jnp.asarray(0),
-                   num_rejected_steps=jnp.asarray(0), modes=jnp.zeros(size, jnp.int32))
+                   num_rejected_steps=jnp.asarray(0), modes=jnp.zeros(size, jnp.int32), side=side)
 
     def __getitem__(self, i) -> "Trajectory":
         """Member i of a batch of trajectories (the result of `jax.vmap(simulate...)`)."""
