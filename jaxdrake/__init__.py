@@ -4,7 +4,8 @@ from . import control, models, multibody, simulation, systems, trajectories
 from .control import linearize
 from .multibody import LoopConstraint, RigidBodySystem
 from .simulation import SimulationError, SimulationStatus, simulate
-from .systems import (Diagram, DiagramBuilder, Frame, HybridSystem, LinearSystem, StochasticSystem,
+from .systems import (Diagram, DiagramBuilder, Frame, HybridSystem, LinearSystem, Polynomial,
+                      PolynomialSystem, StochasticSystem,
                       System, Transition, add_frame_conversion, and_guards, cascade, feedback,
                       not_guard, parallel)
 from .trajectories import Trajectory
@@ -12,6 +13,15 @@ from .trajectories import Trajectory
 __version__ = "0.1.0"
 
 __all__ = ["Diagram", "DiagramBuilder", "Frame", "HybridSystem", "LinearSystem", "SimulationError",
-           "LoopConstraint", "RigidBodySystem", "SimulationStatus", "StochasticSystem", "System", "Trajectory", "Transition",
+           "LoopConstraint", "Polynomial", "PolynomialSystem", "RigidBodySystem", "SimulationStatus", "StochasticSystem", "System", "Trajectory", "Transition",
            "add_frame_conversion", "and_guards", "cascade", "control", "feedback", "linearize", "models", "multibody", "not_guard",
            "parallel", "simulate", "simulation", "systems", "trajectories"]
+
+
+def __getattr__(name):
+    # `jd.analysis` imports cvxpy (about 2 s), so it loads on first use, not with jaxdrake.
+    if name == "analysis":
+        import importlib
+
+        return importlib.import_module(".analysis", __name__)
+    raise AttributeError(f"module 'jaxdrake' has no attribute {name!r}")

@@ -134,3 +134,18 @@ def solve_discrete_are(A, B, Q, R, N=None):
     A, B, Q, R = (jnp.asarray(M, float) for M in (A, B, Q, R))
     A_bar, Q_bar = _without_cross_term(A, B, Q, R, None if N is None else jnp.asarray(N, float))
     return _dare(A_bar, B, Q_bar, R)
+
+
+def solve_continuous_lyapunov(A, Q):
+    r"""P with $A^T P + P A = -Q$ (Drake's `RealContinuousLyapunovEquation`); for Hurwitz A
+    and Q > 0, P > 0 and $V = x^T P x$ is a Lyapunov function of $\dot x = A x$.
+    Kronecker solve; differentiable."""
+    A, Q = jnp.asarray(A, float), jnp.asarray(Q, float)
+    return _symmetric(_kron_solve(_lyapunov_operator(A), -Q))
+
+
+def solve_discrete_lyapunov(A, Q):
+    r"""P with $A^T P A - P = -Q$ (for Schur-stable A, $V = x^T P x$ decreases along
+    $x[n+1] = A x[n]$). Kronecker solve; differentiable."""
+    A, Q = jnp.asarray(A, float), jnp.asarray(Q, float)
+    return _symmetric(_kron_solve(_stein_operator(A), -Q))

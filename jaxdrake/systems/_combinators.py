@@ -1,6 +1,7 @@
 r"""`cascade`, `feedback` and `parallel` (notes, D.3.4), preserving structure where the math
 allows: two LTI systems (both continuous, or discrete with one sample time) combine into a
-`LinearSystem` with the block formulas below; anything else becomes a `Diagram`, which is
+`LinearSystem` with the block formulas below; polynomial (or LTI) with polynomial into a
+`PolynomialSystem`; anything else becomes a `Diagram`, which is
 hybrid if a part is hybrid, stochastic if a part is stochastic, and keeps every sample time.
 (`docs/architecture.md` has the table.)
 """
@@ -12,6 +13,7 @@ import jax.numpy as jnp
 from ._diagram import DiagramBuilder
 from ._frame import Frame, frame_conversion
 from ._linear import LinearSystem
+from ._polynomial import PolynomialSystem, combine_polynomial_systems
 from ._system import System
 
 
@@ -24,6 +26,17 @@ def _check_systems(*systems):
 def _both_linear(a, b):
     return (isinstance(a, LinearSystem) and isinstance(b, LinearSystem)
             and a.sample_time == b.sample_time)
+
+
+def _both_polynomial(a, b):
+    """Polynomial (or LTI) with polynomial, at least one polynomial, one sample time: returns
+    both as `PolynomialSystem`s, else None."""
+    kinds = (PolynomialSystem, LinearSystem)
+    if not (isinstance(a, kinds) and isinstance(b, kinds) and a.sample_time == b.sample_time
+            and PolynomialSystem in (type(a), type(b))):
+        return None
+    as_poly = lambda s: s if isinstance(s, PolynomialSystem) else PolynomialSystem.from_linear(s)
+    return as_poly(a), as_poly(b)
 
 
 def _stacked_frame(name, a, b, role):
@@ -41,7 +54,8 @@ def _block(rows):
 def cascade(a: System, b: System) -> System:
     r"""a's output into b's input (the notes' figure D.2): u -> a -> b -> y.
 
-    LTI with LTI: $A = \begin{bmatrix} A_a & 0 \\ B_b C_a & A_b \end{bmatrix}$,
+    Polynomial (or LTI) with polynomial: a `PolynomialSystem` (b's inputs replaced by a's
+    output polynomial). LTI with LTI: $A = \begin{bmatrix} A_a & 0 \\ B_b C_a & A_b \end{bmatrix}$,
     $B = \begin{bmatrix} B_a \\ B_b D_a \end{bmatrix}$, $C = [D_b C_a \;\; C_b]$,
     $D = D_b D_a$, state $[x_a; x_b]$.
     """
@@ -53,6 +67,11 @@ def cascade(a: System, b: System) -> System:
             _block([[a.A, jnp.zeros((na, nb))], [b.B @ a.C, b.A]]),
             _block([[a.B], [b.B @ a.D]]), _block([[b.D @ a.C, b.C]]), b.D @ a.D,
             sample_time=a.sample_time, input_limits=a.input_limits, input_frame=a.input_frame,
+            state_frame=_stacked_frame("CascadeState", a, b, "state"), output_frame=b.output_frame)
+    polynomial = _both_polynomial(a, b)
+    if polynomial and conversion is None and b.input_limits is None:
+        return combine_polynomial_systems(
+            "cascade", *polynomial, input_limits=a.input_limits, input_frame=a.input_frame,
             state_frame=_stacked_frame("CascadeState", a, b, "state"), output_frame=b.output_frame)
     builder = DiagramBuilder()
     na, nb = builder.add(a), builder.add(b)
@@ -68,7 +87,7 @@ def feedback(a: System, b: System, sign: float = 1.0) -> System:
     controller's output is the command itself, e.g. $-Kx$); `sign=-1` is the classical
     negative feedback of control toolboxes.
 
-    LTI with LTI (no algebraic loop, so $D_a D_b = 0$ and $D_b D_a = 0$):
+    Polynomial (or LTI) with polynomial: a `PolynomialSystem`. LTI with LTI (no algebraic loop, so $D_a D_b = 0$ and $D_b D_a = 0$):
     $A = \begin{bmatrix} A_a + s B_a D_b C_a & s B_a C_b \\ B_b C_a & A_b + s B_b D_a C_b \end{bmatrix}$,
     $B = \begin{bmatrix} B_a \\ B_b D_a \end{bmatrix}$, $C = [C_a \;\; s D_a C_b]$, $D = D_a$.
     Both direct feedthrough is an algebraic loop: an error.
@@ -88,6 +107,11 @@ def feedback(a: System, b: System, sign: float = 1.0) -> System:
             _block([[a.B], [b.B @ a.D]]), _block([[a.C, s * a.D @ b.C]]), a.D,
             sample_time=a.sample_time, input_frame=a.input_frame,
             state_frame=_stacked_frame("FeedbackState", a, b, "state"), output_frame=a.output_frame)
+    polynomial = _both_polynomial(a, b)
+    if polynomial and forward is None and back is None and a.input_limits is None and b.input_limits is None:
+        return combine_polynomial_systems(
+            "feedback", *polynomial, sign=s, input_frame=a.input_frame,
+            state_frame=_stacked_frame("FeedbackState", a, b, "state"), output_frame=a.output_frame)
     builder = DiagramBuilder()
     na, nb = builder.add(a), builder.add(b)
     builder.connect(na, nb)
@@ -100,7 +124,8 @@ def feedback(a: System, b: System, sign: float = 1.0) -> System:
 def parallel(a: System, b: System) -> System:
     r"""a and b side by side: input $[u_a; u_b]$, state $[x_a; x_b]$, output $[y_a; y_b]$.
 
-    LTI with LTI: block-diagonal A, B, C, D.
+    LTI with LTI: block-diagonal A, B, C, D. Polynomial (or LTI) with polynomial: a
+    `PolynomialSystem`.
     """
     _check_systems(a, b)
     if _both_linear(a, b):
@@ -117,6 +142,12 @@ def parallel(a: System, b: System) -> System:
             _block([[a.D, zeros(a.num_outputs, b.num_inputs)], [zeros(b.num_outputs, a.num_inputs), b.D]]),
             sample_time=a.sample_time, input_limits=limits,
             input_frame=_stacked_frame("ParallelInput", a, b, "input"),
+            state_frame=_stacked_frame("ParallelState", a, b, "state"),
+            output_frame=_stacked_frame("ParallelOutput", a, b, "output"))
+    polynomial = _both_polynomial(a, b)
+    if polynomial and a.input_limits is None and b.input_limits is None:
+        return combine_polynomial_systems(
+            "parallel", *polynomial, input_frame=_stacked_frame("ParallelInput", a, b, "input"),
             state_frame=_stacked_frame("ParallelState", a, b, "state"),
             output_frame=_stacked_frame("ParallelOutput", a, b, "output"))
     builder = DiagramBuilder()

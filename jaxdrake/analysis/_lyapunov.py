@@ -1,0 +1,242 @@
+r"""Lyapunov analysis (notes, chapter "Lyapunov analysis"): common Lyapunov functions of
+linear systems, global stability certificates, and regions of attraction, by SOS programs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cvxpy as cp
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..control import solve_continuous_lyapunov
+from ..systems import Polynomial, PolynomialSystem, System, taylor_polynomial
+from ._sos import CertificateCheck, InfeasibleError, SolveError, SosProgram
+
+
+def common_lyapunov_function(As, epsilon: float = 1e-3, solver: str | None = None) -> np.ndarray:
+    r"""P with $P \succeq \epsilon I$ and $A_i^T P + P A_i \preceq -\epsilon I$ for every A_i
+    (an LMI feasibility problem): $V = x^T P x$ certifies stability of $\dot x = A_i x$ under
+    arbitrary switching among the family. Raises `InfeasibleError` when no such P exists.
+    """
+    As = [np.asarray(A, float) for A in As]
+    n = As[0].shape[0]
+    if any(A.shape != (n, n) for A in As):
+        raise ValueError(f"common_lyapunov_function: all A must be ({n}, {n}), got {[A.shape for A in As]}")
+    P = cp.Variable((n, n), symmetric=True)
+    eye = np.eye(n)
+    constraints = [P >> epsilon * eye, P << eye / epsilon]  # the upper bound fixes the scale
+    constraints += [A.T @ P + P @ A << -epsilon * eye for A in As]
+    problem = cp.Problem(cp.Minimize(0), constraints)
+    problem.solve(solver=solver or "CLARABEL")
+    if problem.status in (cp.INFEASIBLE, cp.INFEASIBLE_INACCURATE):
+        raise InfeasibleError(f"no common quadratic Lyapunov function ({problem.status})", problem.status)
+    if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+        raise SolveError(f"common_lyapunov_function: solver status {problem.status}", problem.status)
+    return np.asarray((P.value + P.value.T) / 2)
+
+
+def _check_autonomous(system: System, where: str):
+    if not isinstance(system, System):
+        raise TypeError(f"{where} takes a jaxdrake System, got {type(system).__name__}")
+    if system.num_discrete_states or not system.num_continuous_states:
+        raise ValueError(f"{where}: {system.name} must be continuous-time (it has "
+                         f"{system.num_discrete_states} discrete states)")
+    if system.is_hybrid or system.is_stochastic:
+        raise ValueError(f"{where}: {system.name} is hybrid or stochastic; analyse one mode's dynamics")
+
+
+def polynomial_dynamics(system: System, x0, u0=None, degree: int = 3) -> Polynomial:
+    r"""The closed-loop vector field in error coordinates, $\dot{\bar x} = f(x_0 + \bar x, u_0)$,
+    as a polynomial in $\bar x$: exact for a `PolynomialSystem` (e = I), otherwise the Taylor
+    polynomial of the given degree (by autodiff) -- then certificates hold for that
+    approximation, and `verify_region_of_attraction` checks them on the true dynamics.
+    """
+    _check_autonomous(system, "polynomial_dynamics")
+    n, m = system.num_states, system.num_inputs
+    x0 = jnp.asarray(x0, float).reshape(-1)
+    if x0.shape != (n,):
+        raise ValueError(f"x0 must have shape ({n},), got {x0.shape}")
+    u0 = jnp.zeros(m) if u0 is None else jnp.asarray(u0, float).reshape(-1)
+    if u0.shape != (m,):
+        raise ValueError(f"u0 must have shape ({m},), got {u0.shape}")
+    z = list(Polynomial.variables_of(n, [f"x{i}" for i in range(n)]))
+    if isinstance(system, PolynomialSystem) and system.e is None:
+        values = [zi + float(ci) for zi, ci in zip(z, x0)] + [Polynomial.constant(float(c), n, z[0].variables) for c in u0]
+        return system.f.substitute(values)
+    expansion = taylor_polynomial(lambda x: system.dynamics(0.0, x, u0), x0, degree)
+    return expansion.substitute([zi + float(ci) for zi, ci in zip(z, x0)])
+
+
+def _quadratic(S, names) -> Polynomial:
+    n = S.shape[0]
+    E = np.array([np.eye(n, dtype=int)[i] + np.eye(n, dtype=int)[j] for i in range(n) for j in range(n)])
+    return Polynomial(E, np.asarray(S, float).ravel(), names)
+
+
+def _equilibrium_check(f: Polynomial, x0):
+    residual = np.abs(np.asarray(f(np.zeros(f.num_variables)))).max()
+    if residual > 1e-8:
+        raise ValueError(f"x0 = {np.asarray(x0)} is not an equilibrium: |f(x0, u0)| = {residual:.3g}")
+
+
+@dataclasses.dataclass
+class RegionOfAttraction:
+    r"""A certified region of attraction $\{x : V(x) \le \rho\}$: V (a numeric Polynomial in
+    the state x), rho, the multiplier, the solve's result, and the sampled check."""
+
+    V: Polynomial
+    rho: float
+    multiplier: Polynomial
+    result: object
+    check: CertificateCheck
+
+
+def region_of_attraction(system: System, x0, S=None, *, u0=None, taylor_degree: int = 3,
+                         multiplier_degree: int | None = None, solver: str | None = None,
+                         num_check_samples: int = 100_000, return_certificate: bool = False):
+    r"""The largest level $\rho$ such that $\{x : V(x) \le \rho\}$, $V = (x - x_0)^T S (x - x_0)$,
+    is certified to lie in the region of attraction of the equilibrium $x_0$.
+
+    With $\bar x = x - x_0$ and $\dot V$ along the (polynomial or Taylor-expanded) dynamics,
+    one SDP, linear in $\rho$ (the notes' formulation, as Drake's `RegionOfAttraction`):
+
+    $$\max_{\rho, \lambda} \rho \quad\text{s.t.}\quad (V - \rho)\,(\bar x^T\bar x)^d
+      - \lambda(\bar x)\,\dot V(\bar x) \ \text{is SOS},$$
+
+    $\lambda$ a free polynomial of degree $\deg \dot V$ and $d = \lfloor(\deg\lambda + \deg\dot V
+    - \deg V)/2\rfloor$: wherever $\dot V = 0$ (other than at $x_0$), $V \ge \rho$. Needs
+    $\dot V$'s Hessian at $x_0$ negative definite. S defaults to the solution of
+    $A^T S + S A = -I$ for the linearization A. After solving, the SOS identity is sampled at
+    `num_check_samples` points (`SosResult.check`); a failure is an error.
+
+    **Returns:** rho (a float), or a `RegionOfAttraction` with `return_certificate=True`.
+    """
+    f = polynomial_dynamics(system, x0, u0, taylor_degree)
+    _equilibrium_check(f, x0)
+    n = f.num_variables
+    A = np.asarray(f.jacobian()(np.zeros(n)))
+    if S is None:
+        if np.linalg.eigvals(A).real.max() >= 0:
+            raise ValueError(f"x0 is not locally exponentially stable: the linearization has "
+                             f"eigenvalues {np.linalg.eigvals(A)}")
+        S = np.asarray(solve_continuous_lyapunov(A, np.eye(n)))
+    S = np.asarray(S, float)
+    if S.shape != (n, n):
+        raise ValueError(f"S must have shape ({n}, {n}), got {S.shape}")
+    if np.linalg.eigvalsh((S + S.T) / 2).min() <= 0:
+        raise ValueError("S must be positive definite (V = (x - x0)' S (x - x0) > 0)")
+    S = (S + S.T) / 2
+    V = _quadratic(S, f.variables)
+    Vdot = V.lie_derivative(f).pruned(1e-12)
+    hessian = A.T @ S + S @ A
+    if np.linalg.eigvalsh(hessian).max() >= 0:
+        raise ValueError("V is not a Lyapunov function of the linearization: A'S + SA has "
+                         f"eigenvalues {np.linalg.eigvalsh(hessian)} (must be negative definite)")
+    prog = SosProgram(n, f.variables)
+    lam_degree = Vdot.degree if multiplier_degree is None else multiplier_degree
+    lam = prog.new_free_polynomial(lam_degree)
+    rho = prog.new_variable()
+    d = (lam_degree + Vdot.degree - V.degree) // 2
+    radius = sum(zi * zi for zi in prog.z)
+    prog.add_sos_constraint((V - rho) * radius**d - lam * Vdot)
+    result = prog.solve(maximize=rho, solver=solver)
+    rho_value = float(rho.value)
+    if not rho_value > 0:
+        raise SolveError(f"no positive level certified (rho = {rho_value:.3g})", result.status, result.solver)
+    check = result.check(num_check_samples, scale=float(np.sqrt(rho_value / np.linalg.eigvalsh(S).min())))
+    if not check.ok:
+        raise SolveError(f"the certificate fails at {check.num_violations} of {check.num_samples} sampled "
+                         f"points (worst relative violation {check.worst_violation:.2e})",
+                         result.status, result.solver)
+    if not return_certificate:
+        return rho_value
+    x = Polynomial.variables_of(n, [f"x{i}" for i in range(n)])
+    V_x = V.substitute([xi - float(ci) for xi, ci in zip(x, np.asarray(x0, float).reshape(-1))])
+    return RegionOfAttraction(V_x, rho_value, result.value(lam), result, check)
+
+
+def sample_sublevel_set(x0, S, rho, num_samples: int, seed: int = 0) -> np.ndarray:
+    """Points uniformly distributed in the ellipsoid (x - x0)' S (x - x0) <= rho."""
+    rng = np.random.default_rng(seed)
+    n = S.shape[0]
+    directions = rng.normal(size=(num_samples, n))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    radii = rng.uniform(size=(num_samples, 1)) ** (1 / n)
+    L = np.linalg.cholesky(np.linalg.inv(S))
+    return np.asarray(x0, float) + np.sqrt(rho) * radii * directions @ L.T
+
+
+def verify_region_of_attraction(system: System, x0, S, rho, *, u0=None, num_samples: int = 100_000,
+                                seed: int = 0) -> CertificateCheck:
+    r"""Sample `num_samples` states uniformly in $\{V \le \rho\}$, $V = (x-x_0)^T S (x-x_0)$, and
+    count those where $\dot V = 2 (x - x_0)^T S f(x, u_0) \ge 0$ with the system's **true**
+    dynamics (x_0 itself excluded): a check of the claim independent of the SOS program and of
+    any Taylor approximation."""
+    _check_autonomous(system, "verify_region_of_attraction")
+    S = np.asarray(S, float)
+    x0 = np.asarray(x0, float).reshape(-1)
+    u0 = jnp.zeros(system.num_inputs) if u0 is None else jnp.asarray(u0, float)
+    x = sample_sublevel_set(x0, S, rho, num_samples, seed)
+    xdot = np.asarray(jax.jit(jax.vmap(lambda xi: system.dynamics(0.0, xi, u0)))(jnp.asarray(x)))
+    e = x - x0
+    Vdot = 2 * np.einsum("ki,ij,kj->k", e, S, xdot)
+    size = 2 * np.einsum("ki,ij,kj->k", np.abs(e), np.abs(S), np.abs(xdot)) + 1e-300
+    gap = Vdot / size
+    bad = gap >= 0
+    return CertificateCheck(num_samples, int(bad.sum()), float(gap.max()), 0.0)
+
+
+def global_lyapunov_function(system: System, x0, degree: int = 2, *, u0=None, epsilon: float = 1e-4,
+                             dissipation: Polynomial | None = None, multiplier_degree: int | None = None,
+                             normalization=None, solver: str | None = None, num_check_samples: int = 100_000):
+    r"""Search for a global Lyapunov function of the polynomial system's equilibrium $x_0$:
+    V of the given degree in x with
+
+    $$V(x_0) = 0,\quad V - \epsilon\,|x - x_0|^2 - \textstyle\sum_i \mu_i\phi_i \ \text{SOS},\quad
+      -\dot V - w(x) - \textstyle\sum_i \lambda_i \phi_i \ \text{SOS},$$
+
+    $\phi_i(x) = 0$ the system's announced state constraints (e.g. $s^2 + c^2 = 1$ after
+    `trig_polynomial_system`), $\mu_i, \lambda_i$ free polynomial multipliers, and the required
+    dissipation $w \ge 0$ (default $\epsilon |x - x_0|^2$, i.e. global asymptotic stability).
+    `normalization = (x, value)` fixes V at one more point (the notes' pendulum: V(pi) = mgl).
+
+    **Returns:** V as a numeric `Polynomial` in x. Raises `InfeasibleError` when no such V
+    exists at this degree (an undamped pendulum, for example).
+    """
+    _check_autonomous(system, "global_lyapunov_function")
+    if not isinstance(system, PolynomialSystem) or system.e is not None:
+        raise TypeError("global_lyapunov_function needs a PolynomialSystem with e = I (convert with "
+                        "taylor_polynomial_system or trig_polynomial_system); a Taylor polynomial "
+                        "says nothing global")
+    n, m = system.num_states, system.num_inputs
+    x0 = np.asarray(x0, float).reshape(-1)
+    u0 = np.zeros(m) if u0 is None else np.asarray(u0, float).reshape(-1)
+    names = system.f.variables[:n]
+    x = list(Polynomial.variables_of(n, names))
+    f = system.f.substitute(x + [Polynomial.constant(float(c), n, names) for c in u0])
+    prog = SosProgram(n, names)
+    V = prog.new_free_polynomial(degree)
+    prog.add_constraint(V(x0) == 0)
+    if normalization is not None:
+        point, value = normalization
+        prog.add_constraint(V(np.asarray(point, float)) == value)
+    distance = sum((xi - float(c)) ** 2 for xi, c in zip(x, x0))
+    w = epsilon * distance if dissipation is None else dissipation
+    positivity, decrease = V - epsilon * distance, -V.lie_derivative(f) - w
+    if system.constraints is not None:
+        phi = system.constraints.substitute(x + [Polynomial.constant(0.0, n, names)] * m)
+        k = multiplier_degree if multiplier_degree is not None else max(0, degree)
+        for i in range(phi.shape[0]):
+            positivity = positivity - prog.new_free_polynomial(k) * phi[i]
+            decrease = decrease - prog.new_free_polynomial(k) * phi[i]
+    prog.add_sos_constraint(positivity)
+    prog.add_sos_constraint(decrease)
+    result = prog.solve(solver=solver)
+    check = result.check(num_check_samples)
+    if not check.ok:
+        raise SolveError(f"the certificate fails at {check.num_violations} sampled points",
+                         result.status, result.solver)
+    return result.value(V).pruned(1e-9)

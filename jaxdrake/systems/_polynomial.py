@@ -1,0 +1,566 @@
+r"""Multivariate polynomials and polynomial systems (notes, D.3.1: "(rational) polynomial systems").
+
+A `Polynomial` is $p(z) = \sum_k c_k z^{\alpha_k}$ with exponent rows $\alpha_k$ (static) and
+coefficients $c_k$ that are either numbers -- a JAX array of shape (m, *value_shape), so a
+vector field or a matrix is one polynomial, and a polynomial is a differentiable pytree -- or
+the decision variables of a convex program (a `cvxpy` expression of shape (m,), scalar
+polynomials only), which is how sums-of-squares programs write their unknowns. Arithmetic is
+exact on the coefficients; products of two decision polynomials (bilinear) are refused.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from itertools import combinations_with_replacement
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._frame import Frame
+from ._system import System
+
+
+def is_decision(c) -> bool:
+    """Whether `c` is a cvxpy expression (decision variables), not a number."""
+    return type(c).__module__.startswith("cvxpy")
+
+
+def _xp(*arrays):
+    """numpy for concrete numbers (fast, no compilation), jax.numpy once a JAX array or tracer
+    is involved (under jit / grad, a polynomial's coefficients are traced)."""
+    return jnp if any(isinstance(a, jax.Array) for a in arrays) else np
+
+
+def _numeric(c):
+    """Coefficients as float arrays: JAX tracers stay traced, everything concrete becomes numpy."""
+    if isinstance(c, jax.core.Tracer):
+        return c.astype(float) if c.dtype != float else c
+    return np.asarray(c, dtype=float)
+
+
+def _sparse(rows, cols, weights, shape):
+    import scipy.sparse
+
+    return scipy.sparse.csr_matrix((np.asarray(weights, float), (rows, cols)), shape=shape)
+
+
+def _concrete(c, what):
+    try:
+        return np.asarray(c, dtype=float)
+    except jax.errors.TracerArrayConversionError:
+        raise TypeError(f"{what} needs numeric (not traced) coefficients when combined with "
+                        "decision variables") from None
+
+
+def monomial_basis(num_variables: int, degree: int, min_degree: int = 0) -> np.ndarray:
+    """All exponent rows $\\alpha$ with `min_degree` <= |alpha| <= `degree`, graded order."""
+    rows = []
+    for d in range(min_degree, degree + 1):
+        for combo in combinations_with_replacement(range(num_variables), d):
+            row = np.zeros(num_variables, int)
+            np.add.at(row, list(combo), 1)
+            rows.append(row)
+    return np.array(rows, int).reshape(-1, num_variables)
+
+
+class Polynomial(eqx.Module):
+    r"""$p(z) = \sum_k c_k z^{\alpha_k}$ in `num_variables` indeterminates.
+
+    Build from variables (`x, y = Polynomial.variables(2)`, then `x**2 + 3*x*y`), from exponent
+    rows and coefficients, or by `taylor_polynomial`. Supports `+ - * **`, evaluation
+    `p(z)` (z of shape (..., n); batched and differentiable), `derivative`, `jacobian`,
+    `lie_derivative`, `substitute` and value indexing `p[i]` for vector / matrix polynomials.
+
+    **Arguments:**
+
+    - `exponents`: (m, n) non-negative ints, one row per monomial (duplicates are merged).
+    - `coefficients`: (m, *value_shape) numbers, or a cvxpy expression of shape (m,).
+    - `variables`: names of the n indeterminates (for printing); default z0, z1, ...
+    """
+
+    coefficients: Any
+    exponents: tuple = eqx.field(static=True)
+    variables: tuple = eqx.field(static=True)
+
+    def __init__(self, exponents, coefficients, variables: Sequence[str] | None = None):
+        E = np.asarray(exponents, dtype=int)
+        if E.ndim != 2 or (E.size and E.min() < 0):
+            raise ValueError(f"Polynomial: exponents must be an (m, n) array of non-negative ints, "
+                             f"got shape {E.shape}")
+        n = E.shape[1]
+        variables = tuple(variables) if variables is not None else tuple(f"z{i}" for i in range(n))
+        if len(variables) != n:
+            raise ValueError(f"Polynomial: {len(variables)} variable names for {n} variables")
+        if not is_decision(coefficients):
+            coefficients = _numeric(coefficients)
+        if coefficients.shape[:1] != (E.shape[0],) or (is_decision(coefficients) and coefficients.ndim != 1):
+            raise ValueError(f"Polynomial: {E.shape[0]} monomials but coefficients of shape "
+                             f"{coefficients.shape} (decision coefficients must be a vector)")
+        unique, inverse = (np.unique(E, axis=0, return_inverse=True) if len(E)
+                           else (E, np.zeros(0, int)))
+        if len(unique) < len(E):  # merge repeated monomials
+            coefficients = _combine(coefficients, np.arange(len(E)), None, inverse.ravel(), len(unique))
+            E = unique
+        self.exponents = tuple(map(tuple, E.tolist()))
+        self.coefficients = coefficients
+        self.variables = variables
+
+    # ----- construction ---------------------------------------------------------------------
+
+    @classmethod
+    def variables_of(cls, n: int, names: Sequence[str] | None = None) -> tuple[Polynomial, ...]:
+        """The n indeterminates $z_0, \\dots, z_{n-1}$ as polynomials."""
+        return tuple(cls(np.eye(n, dtype=int)[i:i + 1], [1.0], names) for i in range(n))
+
+    @classmethod
+    def constant(cls, value, n: int, names: Sequence[str] | None = None) -> Polynomial:
+        value = value if is_decision(value) else _numeric(value)
+        if is_decision(value):
+            import cvxpy as cp
+
+            value = cp.reshape(value, (1,), order="C")
+            return cls(np.zeros((1, n), int), value, names)
+        return cls(np.zeros((1, n), int), value[None], names)
+
+    # ----- facts ----------------------------------------------------------------------------
+
+    @property
+    def exponent_array(self) -> np.ndarray:
+        return np.array(self.exponents, int).reshape(len(self.exponents), len(self.variables))
+
+    @property
+    def num_variables(self) -> int:
+        return len(self.variables)
+
+    @property
+    def num_monomials(self) -> int:
+        return len(self.exponents)
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return tuple(self.coefficients.shape[1:])
+
+    @property
+    def degree(self) -> int:
+        return int(self.exponent_array.sum(1).max()) if self.num_monomials else 0
+
+    @property
+    def is_decision(self) -> bool:
+        return is_decision(self.coefficients)
+
+    def pruned(self, tol: float = 0.0) -> Polynomial:
+        """Drop monomials whose coefficients are all within `tol` of zero (numeric only)."""
+        c = _concrete(self.coefficients, "pruned()")
+        keep = np.abs(c.reshape(len(c), -1)).max(1, initial=0.0) > tol
+        return Polynomial(self.exponent_array[keep], c[keep], self.variables)
+
+    # ----- evaluation -----------------------------------------------------------------------
+
+    def monomials(self, z):
+        """The monomial values $z^{\\alpha_k}$, shape (..., m), by products of powers."""
+        xp = _xp(z)
+        z = xp.asarray(z, dtype=float) if xp is np else z
+        E = self.exponent_array
+        if z.shape[-1:] != (self.num_variables,):
+            raise ValueError(f"Polynomial in {self.num_variables} variables evaluated at a point of "
+                             f"shape {z.shape}")
+        top = int(E.max(initial=0))
+        steps = xp.broadcast_to(z[..., None], z.shape + (top,))
+        powers = xp.cumprod(xp.concatenate([xp.ones_like(z)[..., None], steps], -1), -1)
+        picked = powers[..., np.arange(self.num_variables)[None, :], E]  # (..., m, n)
+        return xp.prod(picked, axis=-1)
+
+    def __call__(self, z):
+        if self.is_decision:
+            return self.monomials(np.asarray(z, float)) @ self.coefficients
+        xp = _xp(z, self.coefficients)
+        return xp.tensordot(self.monomials(z), self.coefficients, axes=1)
+
+    # ----- arithmetic -----------------------------------------------------------------------
+
+    def _lift(self, other) -> Polynomial:
+        if isinstance(other, Polynomial):
+            if other.num_variables != self.num_variables:
+                raise ValueError(f"polynomials in {self.num_variables} and {other.num_variables} "
+                                 "variables cannot be combined")
+            return other
+        return Polynomial.constant(other, self.num_variables, self.variables)
+
+    def __add__(self, other):
+        other = self._lift(other)
+        E = np.concatenate([self.exponent_array, other.exponent_array])
+        a, b = self.coefficients, other.coefficients
+        if not (is_decision(a) or is_decision(b)):
+            xp = _xp(a, b)
+            shape = np.broadcast_shapes(a.shape[1:], b.shape[1:])
+            a = xp.broadcast_to(a, a.shape[:1] + shape)
+            b = xp.broadcast_to(b, b.shape[:1] + shape)
+            return Polynomial(E, xp.concatenate([a, b]), self.variables)
+        return _from_parts(self, E, [(a, 0), (b, a.shape[0])])
+
+    __radd__ = __add__
+
+    def __neg__(self):
+        return Polynomial(self.exponent_array, -self.coefficients, self.variables)
+
+    def __sub__(self, other):
+        return self + (-self._lift(other))
+
+    def __rsub__(self, other):
+        return self._lift(other) - self
+
+    def __mul__(self, other):
+        other = self._lift(other)
+        Ea, Eb = self.exponent_array, other.exponent_array
+        i, j = np.meshgrid(np.arange(len(Ea)), np.arange(len(Eb)), indexing="ij")
+        i, j = i.ravel(), j.ravel()
+        E = Ea[i] + Eb[j]
+        a, b = self.coefficients, other.coefficients
+        if is_decision(a) and is_decision(b):
+            raise ValueError("product of two polynomials with decision-variable coefficients is "
+                             "bilinear; fix one of them (e.g. alternate) to keep the program convex")
+        if not (is_decision(a) or is_decision(b)):
+            nd = max(a.ndim, b.ndim)
+            a = a.reshape(a.shape[:1] + (1,) * (nd - a.ndim) + a.shape[1:])
+            b = b.reshape(b.shape[:1] + (1,) * (nd - b.ndim) + b.shape[1:])
+            return Polynomial(E, a[i] * b[j], self.variables)
+        if is_decision(b):  # make `a` the decision side
+            a, b, i, j = b, a, j, i
+        weights = _concrete(b, "a product")
+        if weights.ndim != 1:
+            raise ValueError("decision polynomials can only be multiplied by scalar polynomials")
+        unique, inverse = np.unique(E, axis=0, return_inverse=True)
+        coefficients = _combine(a, i, weights[j], inverse.ravel(), len(unique))
+        return Polynomial(unique, coefficients, self.variables)
+
+    __rmul__ = __mul__
+
+    def __truediv__(self, number):
+        return self * (1.0 / number)
+
+    def __pow__(self, k: int):
+        if not isinstance(k, (int, np.integer)) or k < 0:
+            raise ValueError(f"polynomial powers must be non-negative ints, got {k!r}")
+        result, base = Polynomial.constant(1.0, self.num_variables, self.variables), self
+        while k:
+            if k & 1:
+                result = result * base
+            base, k = base * base, k >> 1
+        return result
+
+    def __getitem__(self, index):
+        if self.is_decision:
+            raise TypeError("decision polynomials are scalar")
+        index = index if isinstance(index, tuple) else (index,)
+        return Polynomial(self.exponent_array, self.coefficients[(slice(None),) + index], self.variables)
+
+    def sum(self) -> Polynomial:
+        """The sum of a vector / matrix polynomial's entries."""
+        c = self.coefficients
+        return Polynomial(self.exponent_array, c.reshape(c.shape[0], -1).sum(1), self.variables)
+
+    # ----- calculus and composition ---------------------------------------------------------
+
+    def derivative(self, i: int) -> Polynomial:
+        r"""$\partial p / \partial z_i$."""
+        E = self.exponent_array
+        keep = np.flatnonzero(E[:, i] > 0)
+        if not len(keep):
+            return Polynomial(np.zeros((1, self.num_variables), int),
+                              _combine(self.coefficients, np.zeros(0, int), np.zeros(0), np.zeros(0, int), 1),
+                              self.variables)
+        D = E[keep].copy()
+        D[:, i] -= 1
+        return Polynomial(D, _combine(self.coefficients, keep, E[keep, i].astype(float),
+                                      np.arange(len(keep)), len(keep)), self.variables)
+
+    def jacobian(self) -> Polynomial:
+        r"""$\partial p / \partial z$: value shape (*shape, n) (numeric polynomials)."""
+        n = self.num_variables
+        total = None
+        for i in range(n):
+            d = self.derivative(i)
+            unit = np.eye(n)[i]
+            term = Polynomial(d.exponent_array, d.coefficients[..., None] * unit, self.variables)
+            total = term if total is None else total + term
+        return total
+
+    def lie_derivative(self, f: Polynomial) -> Polynomial:
+        r"""$\dot p = \sum_i \frac{\partial p}{\partial z_i} f_i(z)$ along the vector field f."""
+        if f.shape != (self.num_variables,):
+            raise ValueError(f"lie_derivative: the vector field must have shape ({self.num_variables},), "
+                             f"got {f.shape}")
+        total = Polynomial.constant(0.0, self.num_variables, self.variables)
+        for i in range(self.num_variables):
+            total = total + self.derivative(i) * f[i]
+        return total
+
+    def substitute(self, values: Sequence[Polynomial]) -> Polynomial:
+        r"""$p(q_0(w), \dots, q_{n-1}(w))$ for scalar polynomials $q_i$ in new variables w."""
+        values = list(values)
+        if len(values) != self.num_variables or not all(isinstance(q, Polynomial) for q in values):
+            raise ValueError(f"substitute needs {self.num_variables} Polynomials, got {len(values)}")
+        w = values[0]
+        columns = []
+        for row in self.exponent_array:
+            term = Polynomial.constant(1.0, w.num_variables, w.variables)
+            for q, k in zip(values, row):
+                if k:
+                    term = term * q**int(k)
+            columns.append(term)
+        E = np.concatenate([t.exponent_array for t in columns])
+        unique, inverse = np.unique(E, axis=0, return_inverse=True)
+        inverse, offsets = inverse.ravel(), np.cumsum([0] + [t.num_monomials for t in columns])
+        if self.is_decision:
+            weights = np.concatenate([_concrete(t.coefficients, "substitute") for t in columns])
+            cols = np.repeat(np.arange(len(columns)), np.diff(offsets))
+            M = _sparse(inverse, cols, weights, (len(unique), len(columns)))
+            return Polynomial(unique, M @ self.coefficients, w.variables)
+        weights = [t.coefficients for t in columns]
+        xp = _xp(self.coefficients, *weights)
+        cols = np.repeat(np.arange(len(columns)), np.diff(offsets))
+        if xp is np:
+            M = _sparse(inverse, cols, np.concatenate(weights), (len(unique), len(columns)))
+            c = self.coefficients
+            return Polynomial(unique, (M @ c.reshape(len(c), -1)).reshape((len(unique),) + c.shape[1:]),
+                              w.variables)
+        M = jnp.zeros((len(unique), len(columns))).at[inverse, cols].add(jnp.concatenate(weights))
+        return Polynomial(unique, jnp.tensordot(M, self.coefficients, axes=1), w.variables)
+
+    # ----- display ---------------------------------------------------------------------------
+
+    def __repr__(self):
+        if self.is_decision or self.shape or isinstance(self.coefficients, jax.core.Tracer):
+            return (f"Polynomial({self.num_monomials} monomials in {', '.join(self.variables)}, "
+                    f"degree {self.degree}, value shape {self.shape}"
+                    f"{', decision coefficients' if self.is_decision else ''})")
+        terms = []
+        for row, c in zip(self.exponent_array, np.asarray(self.coefficients)):
+            mono = "*".join(v if k == 1 else f"{v}^{k}" for v, k in zip(self.variables, row) if k)
+            terms.append(f"{c:.6g}" + (f"*{mono}" if mono else ""))
+        return " + ".join(terms).replace("+ -", "- ") or "0"
+
+
+def _combine(c, src, weights, dest, num):
+    r"""new[k] = sum over rows r with dest[r] = k of weights[r] * c[src[r]] (weights None = 1)."""
+    if is_decision(c):
+        w = np.ones(len(src)) if weights is None else weights
+        return _sparse(dest, src, w, (num, c.shape[0])) @ c
+    rows = c[src]
+    if weights is not None:
+        rows = rows * np.asarray(weights).reshape((-1,) + (1,) * (c.ndim - 1))
+    if _xp(c) is jnp:
+        return jax.ops.segment_sum(rows, jnp.asarray(dest, int), num_segments=num)
+    out = np.zeros((num,) + c.shape[1:])
+    np.add.at(out, np.asarray(dest, int), rows)
+    return out
+
+
+def _from_parts(p, E, parts):
+    """The polynomial with monomials E whose coefficients stack `parts` (decision or numeric)."""
+    unique, inverse = np.unique(E, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    total = 0
+    for c, start in parts:
+        m = c.shape[0]
+        M = _sparse(inverse[start:start + m], np.arange(m), np.ones(m), (len(unique), m))
+        total = total + (M @ c if is_decision(c) else M @ _concrete(c, "a sum"))
+    return Polynomial(unique, total, p.variables)
+
+
+def taylor_polynomial(fn, x0, degree: int, variables: Sequence[str] | None = None) -> Polynomial:
+    r"""The Taylor polynomial of `fn` about `x0`, in the original variables x:
+
+    $$p(x) = \sum_{|\alpha| \le d} \frac{D^\alpha fn(x_0)}{\alpha!}\,(x - x_0)^\alpha,$$
+
+    the derivatives taken by nested forward-mode autodiff (no symbolic package). `fn` maps
+    an (n,) vector to an array of any shape, which becomes the polynomial's value shape.
+    """
+    x0 = jnp.asarray(x0, dtype=float)
+    n = x0.shape[0]
+
+    def derivatives(x):
+        g, tensors = fn, []
+        for _ in range(degree + 1):
+            tensors.append(jnp.asarray(g(x)))
+            g = jax.jacfwd(g)
+        return tensors
+
+    tensors = jax.jit(derivatives)(x0)  # one compilation, not one per primitive
+    E = monomial_basis(n, degree)
+    coefficients = []
+    for alpha in E:
+        index = tuple(np.repeat(np.arange(n), alpha))
+        scale = float(np.prod([math.factorial(int(a)) for a in alpha]))
+        coefficients.append(tensors[len(index)][(Ellipsis,) + index] / scale)
+    centered = Polynomial(E, _xp(*coefficients).stack(coefficients), variables)
+    shift = [v - c for v, c in zip(Polynomial.variables_of(n, centered.variables), x0)]
+    return centered.substitute(shift)
+
+
+class PolynomialSystem(System):
+    r"""A (rational) polynomial system (notes, D.3.1):
+
+    $$e(x)\,\dot x = f(x, u) \quad (\text{or } x[n+1] = f(x, u)), \qquad y = g(x, u),
+      \qquad \phi(x) = 0,$$
+
+    with $e$, $f$, $g$, $\phi$ polynomials in the variables $(x, u)$ (x first). $e$ defaults
+    to the identity (a plain polynomial system), g to y = x; the announced constraints
+    $\phi$ (for example $s^2 + c^2 - 1$ after a trigonometric substitution) are carried for
+    analysis, which reasons modulo them. Feedback, cascade and parallel combinations of
+    polynomial (or linear) systems are polynomial systems.
+
+    **Arguments:**
+
+    - `f`: a `Polynomial` of value shape (n,) in n + m variables (states, then inputs).
+    - `g`: output polynomial of value shape (p,), or None for y = x.
+    - `e`: the (n, n) mass-like polynomial matrix, or None for the identity.
+    - `state_constraints`: a polynomial of value shape (k,) (inputs must not appear), or None.
+    - `sample_time`: None for continuous time; else f is the discrete update.
+    - frames and `input_limits` as for `System`.
+    """
+
+    f: Polynomial
+    g: Polynomial | None
+    e: Polynomial | None
+    constraints: Polynomial | None
+
+    def __init__(self, f: Polynomial, g: Polynomial | None = None, e: Polynomial | None = None,
+                 state_constraints: Polynomial | None = None, *, sample_time: float | None = None,
+                 input_limits=None, input_frame: Frame | None = None, state_frame: Frame | None = None,
+                 output_frame: Frame | None = None):
+        if not isinstance(f, Polynomial) or f.is_decision or len(f.shape) != 1:
+            raise TypeError("PolynomialSystem: f must be a numeric Polynomial with value shape (n,)")
+        n = f.shape[0]
+        m = f.num_variables - n
+        if m < 0:
+            raise ValueError(f"PolynomialSystem: f has {n} components but only {f.num_variables} variables")
+        for label, poly, shape in (("g", g, None), ("e", e, (n, n)), ("state_constraints", state_constraints, None)):
+            if poly is None:
+                continue
+            if not isinstance(poly, Polynomial) or poly.num_variables != n + m or len(poly.shape) != (1 if shape is None else 2):
+                raise ValueError(f"PolynomialSystem: {label} must be a Polynomial in the {n + m} variables "
+                                 f"(x, u) with value shape {shape or '(k,)'}, got {poly!r}")
+            if shape is not None and poly.shape != shape:
+                raise ValueError(f"PolynomialSystem: e must have value shape {shape}, got {poly.shape}")
+        if state_constraints is not None and _uses_inputs(state_constraints, n):
+            raise ValueError("PolynomialSystem: state_constraints must not depend on the inputs")
+        if e is not None and sample_time is not None:
+            raise ValueError("PolynomialSystem: a mass-like e(x) needs continuous time")
+        self.f, self.g, self.e, self.constraints = f, g, e, state_constraints
+        discrete = sample_time is not None
+        super().__init__(num_continuous_states=0 if discrete else n, num_discrete_states=n if discrete else 0,
+                         num_inputs=m, num_outputs=n if g is None else g.shape[0], sample_time=sample_time,
+                         direct_feedthrough=g is not None and _uses_inputs(g, n), time_invariant=True,
+                         num_state_constraints=0 if state_constraints is None else state_constraints.shape[0],
+                         input_limits=input_limits, input_frame=input_frame, state_frame=state_frame,
+                         output_frame=output_frame)
+
+    @classmethod
+    def from_linear(cls, system) -> PolynomialSystem:
+        """A `LinearSystem` written as a polynomial system (degree 1)."""
+        n, m = system.num_states, system.num_inputs
+        E = np.eye(n + m, dtype=int)
+        f = Polynomial(E, jnp.concatenate([system.A, system.B], axis=1).T)
+        g = Polynomial(E, jnp.concatenate([system.C, system.D], axis=1).T)
+        return cls(f, g, sample_time=system.sample_time, input_limits=system.input_limits,
+                   input_frame=system.input_frame, state_frame=system.state_frame,
+                   output_frame=system.output_frame)
+
+    @property
+    def is_rational(self) -> bool:
+        return self.e is not None
+
+    def _xu(self, x, u):
+        return jnp.concatenate([jnp.asarray(x, float).reshape(-1), jnp.asarray(u, float).reshape(-1)])
+
+    def dynamics(self, t, x, u):
+        rhs = self.f(self._xu(x, u))
+        return rhs if self.e is None else jnp.linalg.solve(self.e(self._xu(x, u)), rhs)
+
+    def update(self, t, x, u):
+        return self.f(self._xu(x, u))
+
+    def output(self, t, x, u):
+        return x if self.g is None else self.g(self._xu(x, u))
+
+    def state_constraints(self, x):
+        if self.constraints is None:
+            return super().state_constraints(x)
+        return self.constraints(self._xu(x, jnp.zeros(self.num_inputs)))
+
+    def output_polynomial(self) -> Polynomial:
+        """g as a polynomial (the state itself when g is None)."""
+        if self.g is not None:
+            return self.g
+        n = self.num_states
+        return Polynomial(np.eye(n + self.num_inputs, dtype=int)[:n], np.eye(n), self.f.variables)
+
+
+def _uses_inputs(poly: Polynomial, n: int) -> bool:
+    return bool(poly.num_monomials and poly.exponent_array[:, n:].any())
+
+
+def _stack(parts: Sequence[Polynomial]) -> Polynomial:
+    """Vector polynomials (same variables) stacked into one of value shape (sum of sizes,)."""
+    sizes = [p.shape[0] for p in parts]
+    total, start = None, 0
+    for p, k in zip(parts, sizes):
+        c = _xp(p.coefficients).pad(p.coefficients, ((0, 0), (start, sum(sizes) - start - k)))
+        term = Polynomial(p.exponent_array, c, p.variables)
+        total, start = (term if total is None else total + term), start + k
+    return total
+
+
+def _block_diagonal(a: Polynomial, b: Polynomial) -> Polynomial:
+    na, nb = a.shape[0], b.shape[0]
+    pa = Polynomial(a.exponent_array, _xp(a.coefficients).pad(a.coefficients, ((0, 0), (0, nb), (0, nb))), a.variables)
+    pb = Polynomial(b.exponent_array, _xp(b.coefficients).pad(b.coefficients, ((0, 0), (na, 0), (na, 0))), b.variables)
+    return pa + pb
+
+
+def _entries(p: Polynomial) -> list[Polynomial]:
+    return [p[i] for i in range(p.shape[0])]
+
+
+def combine_polynomial_systems(kind: str, a: PolynomialSystem, b: PolynomialSystem, sign: float = 1.0,
+                               **frames) -> PolynomialSystem:
+    r"""`cascade` / `feedback` / `parallel` of two polynomial systems, by substituting one's
+    output polynomial into the other's inputs: a polynomial system in $(x_a, x_b, u)$, with
+    $e = \mathrm{blockdiag}(e_a, e_b)$ and the constraints of both."""
+    na, nb, ma, mb = a.num_states, b.num_states, a.num_inputs, b.num_inputs
+    m = ma + mb if kind == "parallel" else ma
+    z = Polynomial.variables_of(na + nb + m)
+    xa, xb, u = list(z[:na]), list(z[na:na + nb]), list(z[na + nb:])
+    zero = [Polynomial.constant(0.0, len(z))] * mb
+    if kind == "parallel":
+        ua, ub = u[:ma], u[ma:]
+        y = _stack([a.output_polynomial().substitute(xa + ua), b.output_polynomial().substitute(xb + ub)])
+    elif kind == "cascade":
+        ua = u
+        ub = _entries(a.output_polynomial().substitute(xa + ua))
+        y = b.output_polynomial().substitute(xb + ub)
+    elif not b.direct_feedthrough:  # feedback: b's output first, then a's
+        yb = _entries(b.output_polynomial().substitute(xb + zero))
+        ua = [ui + sign * yi for ui, yi in zip(u, yb)]
+        y = a.output_polynomial().substitute(xa + ua)
+        ub = _entries(y)
+    else:  # a has no feedthrough: a's output first
+        y = a.output_polynomial().substitute(xa + [Polynomial.constant(0.0, len(z))] * ma)
+        ub = _entries(y)
+        yb = _entries(b.output_polynomial().substitute(xb + ub))
+        ua = [ui + sign * yi for ui, yi in zip(u, yb)]
+    f = _stack([a.f.substitute(xa + ua), b.f.substitute(xb + ub)])
+    e = None
+    if a.e is not None or b.e is not None:
+        eye = lambda n: Polynomial(np.zeros((1, len(z)), int), np.eye(n)[None])
+        e = _block_diagonal(eye(na) if a.e is None else a.e.substitute(xa + ua),
+                            eye(nb) if b.e is None else b.e.substitute(xb + ub))
+    constraints = [s.constraints.substitute(xs + [Polynomial.constant(0.0, len(z))] * s.num_inputs)
+                   for s, xs in ((a, xa), (b, xb)) if s.constraints is not None]
+    return PolynomialSystem(f, y, e, _stack(constraints) if constraints else None,
+                            sample_time=a.sample_time, **frames)
