@@ -16,25 +16,26 @@ from ..systems import Polynomial, PolynomialSystem, System, taylor_polynomial
 from ._sos import CertificateCheck, InfeasibleError, SolveError, SosProgram
 
 
-def common_lyapunov_function(As, epsilon: float = 1e-3, solver: str | None = None) -> np.ndarray:
-    r"""P with $P \succeq \epsilon I$ and $A_i^T P + P A_i \preceq -\epsilon I$ for every A_i
-    (an LMI feasibility problem): $V = x^T P x$ certifies stability of $\dot x = A_i x$ under
-    arbitrary switching among the family. Raises `InfeasibleError` when no such P exists.
+def common_lyapunov_function(As, epsilon: float = 1e-6, solver: str | None = None) -> np.ndarray:
+    r"""P with $\epsilon I \preceq P \preceq I$ and $A_i^T P + P A_i \preceq -t I$ for every A_i,
+    maximising the margin t (an LMI): $V = x^T P x$ certifies stability of $\dot x = A_i x$
+    under arbitrary switching among the family. Raises `InfeasibleError` when the best margin
+    is below `epsilon` (no common quadratic Lyapunov function).
     """
     As = [np.asarray(A, float) for A in As]
     n = As[0].shape[0]
     if any(A.shape != (n, n) for A in As):
         raise ValueError(f"common_lyapunov_function: all A must be ({n}, {n}), got {[A.shape for A in As]}")
-    P = cp.Variable((n, n), symmetric=True)
+    P, t = cp.Variable((n, n), symmetric=True), cp.Variable()
     eye = np.eye(n)
-    constraints = [P >> epsilon * eye, P << eye / epsilon]  # the upper bound fixes the scale
-    constraints += [A.T @ P + P @ A << -epsilon * eye for A in As]
-    problem = cp.Problem(cp.Minimize(0), constraints)
+    constraints = [P >> epsilon * eye, P << eye] + [A.T @ P + P @ A << -t * eye for A in As]
+    problem = cp.Problem(cp.Maximize(t), constraints)
     problem.solve(solver=solver or "CLARABEL")
-    if problem.status in (cp.INFEASIBLE, cp.INFEASIBLE_INACCURATE):
-        raise InfeasibleError(f"no common quadratic Lyapunov function ({problem.status})", problem.status)
     if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
         raise SolveError(f"common_lyapunov_function: solver status {problem.status}", problem.status)
+    if t.value < epsilon:
+        raise InfeasibleError(f"no common quadratic Lyapunov function: the best margin is "
+                              f"t* = {float(t.value):.2e} < {epsilon:g}", "infeasible")
     return np.asarray((P.value + P.value.T) / 2)
 
 
@@ -155,7 +156,7 @@ def region_of_attraction(system: System, x0, S=None, *, u0=None, taylor_degree: 
         return rho_value
     x = Polynomial.variables_of(n, [f"x{i}" for i in range(n)])
     V_x = V.substitute([xi - float(ci) for xi, ci in zip(x, np.asarray(x0, float).reshape(-1))])
-    return RegionOfAttraction(V_x, rho_value, result.value(lam), result, check)
+    return RegionOfAttraction(V_x.pruned(), rho_value, result.value(lam), result, check)
 
 
 def sample_sublevel_set(x0, S, rho, num_samples: int, seed: int = 0) -> np.ndarray:
@@ -193,18 +194,21 @@ def global_lyapunov_function(system: System, x0, degree: int = 2, *, u0=None, ep
                              dissipation: Polynomial | None = None, multiplier_degree: int | None = None,
                              normalization=None, solver: str | None = None, num_check_samples: int = 100_000):
     r"""Search for a global Lyapunov function of the polynomial system's equilibrium $x_0$:
-    V of the given degree in x with
+    V of the given degree in x with the largest dissipation margin $t \le 1$ such that
 
     $$V(x_0) = 0,\quad V - \epsilon\,|x - x_0|^2 - \textstyle\sum_i \mu_i\phi_i \ \text{SOS},\quad
-      -\dot V - w(x) - \textstyle\sum_i \lambda_i \phi_i \ \text{SOS},$$
+      -\dot V - t\,w(x) - \textstyle\sum_i \lambda_i \phi_i \ \text{SOS},$$
 
     $\phi_i(x) = 0$ the system's announced state constraints (e.g. $s^2 + c^2 = 1$ after
-    `trig_polynomial_system`), $\mu_i, \lambda_i$ free polynomial multipliers, and the required
-    dissipation $w \ge 0$ (default $\epsilon |x - x_0|^2$, i.e. global asymptotic stability).
+    `trig_polynomial_system`), $\mu_i, \lambda_i$ free polynomial multipliers and $w \ge 0$
+    the shape of the required dissipation (default $|x - x_0|^2$: global asymptotic
+    stability). A certificate needs $t \ge \epsilon$. Maximising the margin, rather than
+    asking a solver to detect infeasibility, keeps the SDP well posed on both sides: an
+    undamped pendulum gives $t^* = 0$, which is reported as infeasible.
     `normalization = (x, value)` fixes V at one more point (the notes' pendulum: V(pi) = mgl).
 
     **Returns:** V as a numeric `Polynomial` in x. Raises `InfeasibleError` when no such V
-    exists at this degree (an undamped pendulum, for example).
+    exists at this degree.
     """
     _check_autonomous(system, "global_lyapunov_function")
     if not isinstance(system, PolynomialSystem) or system.e is not None:
@@ -217,15 +221,18 @@ def global_lyapunov_function(system: System, x0, degree: int = 2, *, u0=None, ep
     names = system.f.variables[:n]
     x = list(Polynomial.variables_of(n, names))
     f = system.f.substitute(x + [Polynomial.constant(float(c), n, names) for c in u0])
+    _equilibrium_check(f.substitute([xi + float(c) for xi, c in zip(x, x0)]), x0)
     prog = SosProgram(n, names)
     V = prog.new_free_polynomial(degree)
+    margin = prog.new_variable()
     prog.add_constraint(V(x0) == 0)
+    prog.add_constraint(margin <= 1)
     if normalization is not None:
         point, value = normalization
         prog.add_constraint(V(np.asarray(point, float)) == value)
     distance = sum((xi - float(c)) ** 2 for xi, c in zip(x, x0))
-    w = epsilon * distance if dissipation is None else dissipation
-    positivity, decrease = V - epsilon * distance, -V.lie_derivative(f) - w
+    w = distance if dissipation is None else dissipation
+    positivity, decrease = V - epsilon * distance, -V.lie_derivative(f) - w * margin
     if system.constraints is not None:
         phi = system.constraints.substitute(x + [Polynomial.constant(0.0, n, names)] * m)
         k = multiplier_degree if multiplier_degree is not None else max(0, degree)
@@ -234,9 +241,105 @@ def global_lyapunov_function(system: System, x0, degree: int = 2, *, u0=None, ep
             decrease = decrease - prog.new_free_polynomial(k) * phi[i]
     prog.add_sos_constraint(positivity)
     prog.add_sos_constraint(decrease)
-    result = prog.solve(solver=solver)
+    result = prog.solve(maximize=margin, solver=solver)
+    if float(margin.value) < epsilon:
+        raise InfeasibleError(f"no Lyapunov function of degree {degree} with the required dissipation: "
+                              f"the largest margin is t* = {float(margin.value):.2e} < epsilon = {epsilon:g}",
+                              "infeasible", result.solver)
     check = result.check(num_check_samples)
     if not check.ok:
         raise SolveError(f"the certificate fails at {check.num_violations} sampled points",
                          result.status, result.solver)
     return result.value(V).pruned(1e-9)
+
+
+@dataclasses.dataclass
+class RegionOfAttractionSearch:
+    r"""The result of `search_region_of_attraction`: the certified region $\{x : V(x) \le 1\}$
+    (V a numeric Polynomial in x), the inscribed level $\beta$ of the shape
+    $p = (x - x_0)^T S (x - x_0)$ (so $\{p \le \beta\} \subseteq \{V \le 1\}$) and $\beta$
+    after each iteration."""
+
+    V: Polynomial
+    beta: float
+    history: list
+
+
+def search_region_of_attraction(system: System, x0, degree: int = 4, *, S=None, u0=None,
+                                taylor_degree: int = 3, iterations: int = 10, tolerance: float = 1e-3,
+                                solver: str | None = None) -> RegionOfAttractionSearch:
+    r"""Search over V and the multipliers to enlarge a certified region of attraction (the
+    notes' "searching for the region of attraction"; the expanding-interior alternation of
+    Jarvis-Wloszek et al. 2003). With $p = \bar x^T S \bar x$ (S from the linearization's
+    Lyapunov equation by default), maximise $\beta$ such that $\{p \le \beta\} \subseteq
+    \{V \le 1\} \subseteq$ region of attraction:
+
+    $$(V - 1)(\bar x^T\bar x)^d - \lambda \dot V \ \text{SOS},\qquad
+      (p - \beta)(\bar x^T\bar x)^k - s\,(V - 1) \ \text{SOS},\qquad s \ \text{SOS},\qquad
+      V - \epsilon|\bar x|^2 \ \text{SOS}.$$
+
+    Bilinear, so alternate convex steps: (1) V fixed: $\lambda$ (and V rescaled to 99% of
+    its largest certified level, as in `region_of_attraction`); (2) V fixed: s and $\beta$;
+    (3) $\lambda$ and s fixed: V and $\beta$. Each step keeps the previous solution feasible,
+    so $\beta$ never decreases; stop when it grows by less than `tolerance` (relative).
+    """
+    f = polynomial_dynamics(system, x0, u0, taylor_degree)
+    _equilibrium_check(f, x0)
+    n = f.num_variables
+    if S is None:
+        A = np.asarray(f.jacobian()(np.zeros(n)))
+        S = np.asarray(solve_continuous_lyapunov(A, np.eye(n)))
+    S = (np.asarray(S, float) + np.asarray(S, float).T) / 2
+    names = f.variables
+    z = Polynomial.variables_of(n, names)
+    radius = sum(zi * zi for zi in z)
+    shape = _quadratic(S, names)
+    V = shape
+    history = []
+    for _ in range(iterations):
+        # (1) V fixed: multiplier and largest level; normalise V to level 1.
+        Vdot = V.lie_derivative(f).pruned(1e-12)
+        prog = SosProgram(n, names)
+        lam = prog.new_free_polynomial(Vdot.degree)
+        rho = prog.new_variable()
+        d = (2 * Vdot.degree - V.degree) // 2
+        prog.add_sos_constraint((V - rho) * radius**d - lam * Vdot)
+        result = prog.solve(maximize=rho, solver=solver)
+        # level 1 at 99% of the certified rho: (V/c - 1)(x'x)^d - lam Vdot/c is then the SOS
+        # polynomial plus 0.01 rho (x'x)^d over c, strictly inside, which step (3) needs.
+        V = V / (0.99 * float(rho.value))
+        lam = result.value(lam)
+        # (2) V fixed: the largest shape level inside {V <= 1}.
+        prog = SosProgram(n, names)
+        s = prog.new_sos_polynomial(2)
+        beta = prog.new_variable()
+        k = (2 + V.degree - shape.degree) // 2
+        prog.add_sos_constraint((shape - beta) * radius**k - s * (V - 1.0))
+        result = prog.solve(maximize=beta, solver=solver)
+        s = result.value(s)
+        # (3) multipliers fixed: V and beta.
+        prog = SosProgram(n, names)
+        V_new = prog.new_free_polynomial(degree, min_degree=2)
+        beta = prog.new_variable()
+        prog.add_sos_constraint((V_new - 1.0) * radius**d - lam * V_new.lie_derivative(f))
+        prog.add_sos_constraint((shape - beta) * radius**k - s * V_new + s)
+        prog.add_sos_constraint(V_new - 1e-6 * radius)
+        result = prog.solve(maximize=beta, solver=solver)
+        V = result.value(V_new).pruned(1e-12)
+        history.append(float(beta.value))
+        if len(history) > 1 and history[-1] - history[-2] <= tolerance * abs(history[-2]):
+            break
+    # certify the final V on its own (fresh multiplier), as `region_of_attraction` does
+    Vdot = V.lie_derivative(f).pruned(1e-12)
+    prog = SosProgram(n, names)
+    lam = prog.new_free_polynomial(Vdot.degree)
+    rho = prog.new_variable()
+    prog.add_sos_constraint((V - rho) * radius**((2 * Vdot.degree - V.degree) // 2) - lam * Vdot)
+    result = prog.solve(maximize=rho, solver=solver)
+    check = result.check(100_000, scale=float(np.sqrt(max(history[-1], 1e-9) / np.linalg.eigvalsh(S).min())))
+    if float(rho.value) < 1 - 1e-6 or not check.ok:
+        raise SolveError(f"the final V is not certified at level 1 (rho = {float(rho.value):.6g}, "
+                         f"{check.num_violations} sampled violations)", result.status, result.solver)
+    x = Polynomial.variables_of(n, [f"x{i}" for i in range(n)])
+    V_x = V.substitute([xi - float(ci) for xi, ci in zip(x, np.asarray(x0, float).reshape(-1))])
+    return RegionOfAttractionSearch(V_x.pruned(), history[-1], history)

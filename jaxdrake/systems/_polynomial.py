@@ -340,6 +340,8 @@ class Polynomial(eqx.Module):
                     f"{', decision coefficients' if self.is_decision else ''})")
         terms = []
         for row, c in zip(self.exponent_array, np.asarray(self.coefficients)):
+            if c == 0:
+                continue
             mono = "*".join(v if k == 1 else f"{v}^{k}" for v, k in zip(self.variables, row) if k)
             terms.append(f"{c:.6g}" + (f"*{mono}" if mono else ""))
         return " + ".join(terms).replace("+ -", "- ") or "0"
@@ -502,7 +504,13 @@ class PolynomialSystem(System):
 
 
 def _uses_inputs(poly: Polynomial, n: int) -> bool:
-    return bool(poly.num_monomials and poly.exponent_array[:, n:].any())
+    """Whether a monomial with an input in it has a coefficient that is not exactly zero
+    (traced coefficients count as non-zero)."""
+    rows = poly.exponent_array[:, n:].any(1)
+    if not isinstance(poly.coefficients, jax.core.Tracer):
+        c = np.asarray(poly.coefficients)
+        rows &= np.abs(c.reshape(len(c), -1)).max(1, initial=0.0) != 0
+    return bool(rows.any())
 
 
 def _stack(parts: Sequence[Polynomial]) -> Polynomial:
