@@ -35,11 +35,21 @@ def taylor_polynomial_system(system: System, x0, u0=None, degree: int = 3) -> Po
         raise ValueError(f"x0 must have shape ({n},) and u0 ({m},); got {x0.shape} and {u0.shape}")
     names = _names(system, n, m)
     point = jnp.concatenate([x0, u0])
-    step = system.update if system.num_discrete_states else system.dynamics
-    f = taylor_polynomial(lambda z: step(0.0, z[:n], z[n:]), point, degree, names)
-    g = taylor_polynomial(lambda z: system.output(0.0, z[:n], z[n:]), point, degree, names)
+    f = taylor_polynomial(_step_at, point, degree, names, args=(system,))
+    g = taylor_polynomial(_output_at, point, degree, names, args=(system,))
     return PolynomialSystem(f, g, sample_time=system.sample_time, input_frame=system.input_frame,
                             state_frame=system.state_frame, output_frame=system.output_frame)
+
+
+def _step_at(z, system):
+    n = system.num_states
+    step = system.update if system.num_discrete_states else system.dynamics
+    return step(0.0, z[:n], z[n:])
+
+
+def _output_at(z, system):
+    n = system.num_states
+    return system.output(0.0, z[:n], z[n:])
 
 
 def _names(system, n, m):

@@ -67,8 +67,12 @@ def polynomial_dynamics(system: System, x0, u0=None, degree: int = 3) -> Polynom
     if isinstance(system, PolynomialSystem) and system.e is None:
         values = [zi + float(ci) for zi, ci in zip(z, x0)] + [Polynomial.constant(float(c), n, z[0].variables) for c in u0]
         return system.f.substitute(values)
-    expansion = taylor_polynomial(lambda x: system.dynamics(0.0, x, u0), x0, degree)
+    expansion = taylor_polynomial(_dynamics_at, x0, degree, args=(system, u0))
     return expansion.substitute([zi + float(ci) for zi, ci in zip(z, x0)])
+
+
+def _dynamics_at(x, system, u):
+    return system.dynamics(0.0, x, u)
 
 
 def _quadratic(S, names) -> Polynomial:

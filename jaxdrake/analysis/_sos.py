@@ -262,6 +262,8 @@ class SosResult:
         """Evaluate every certified polynomial at `num_samples` Gaussian points (standard
         deviation `scale`) and count where p < 0 (SOS constraints) or p != 0 (equalities)
         beyond `tolerance` times the sum of |terms| at that point."""
+        if num_samples <= 0:
+            return CertificateCheck(0, 0, 0.0, tolerance)
         rng = np.random.default_rng(seed)
         z = rng.normal(scale=scale, size=(num_samples, self.program.num_variables))
         worst, violations = 0.0, 0

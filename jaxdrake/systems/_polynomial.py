@@ -10,6 +10,7 @@ exact on the coefficients; products of two decision polynomials (bilinear) are r
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from itertools import combinations_with_replacement
@@ -374,25 +375,19 @@ def _from_parts(p, E, parts):
     return Polynomial(unique, total, p.variables)
 
 
-def taylor_polynomial(fn, x0, degree: int, variables: Sequence[str] | None = None) -> Polynomial:
-    r"""The Taylor polynomial of `fn` about `x0`, in the original variables x:
+def taylor_polynomial(fn, x0, degree: int, variables: Sequence[str] | None = None, args=()) -> Polynomial:
+    r"""The Taylor polynomial of `fn(x, *args)` about `x0`, in the original variables x:
 
     $$p(x) = \sum_{|\alpha| \le d} \frac{D^\alpha fn(x_0)}{\alpha!}\,(x - x_0)^\alpha,$$
 
-    the derivatives taken by nested forward-mode autodiff (no symbolic package). `fn` maps
-    an (n,) vector to an array of any shape, which becomes the polynomial's value shape.
+    the derivatives taken by nested forward-mode autodiff (no symbolic package), in one
+    compiled program per (fn, degree, argument structure): pass a module-level `fn` and the
+    varying data as the pytree `args` (a system, an input) to reuse the compilation. `fn`
+    maps an (n,) vector to an array of any shape, which becomes the polynomial's value shape.
     """
     x0 = jnp.asarray(x0, dtype=float)
     n = x0.shape[0]
-
-    def derivatives(x):
-        g, tensors = fn, []
-        for _ in range(degree + 1):
-            tensors.append(jnp.asarray(g(x)))
-            g = jax.jacfwd(g)
-        return tensors
-
-    tensors = jax.jit(derivatives)(x0)  # one compilation, not one per primitive
+    tensors = _derivative_tensors(fn, degree, x0, args)
     E = monomial_basis(n, degree)
     coefficients = []
     for alpha in E:
@@ -402,6 +397,16 @@ def taylor_polynomial(fn, x0, degree: int, variables: Sequence[str] | None = Non
     centered = Polynomial(E, _xp(*coefficients).stack(coefficients), variables)
     shift = [v - c for v, c in zip(Polynomial.variables_of(n, centered.variables), x0)]
     return centered.substitute(shift)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _derivative_tensors(fn, degree, x0, args):
+    """[fn(x0), D fn(x0), ..., D^degree fn(x0)] by nested jacfwd."""
+    g, tensors = (lambda x: fn(x, *args)), []
+    for _ in range(degree + 1):
+        tensors.append(jnp.asarray(g(x0)))
+        g = jax.jacfwd(g)
+    return tensors
 
 
 class PolynomialSystem(System):
