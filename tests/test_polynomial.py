@@ -138,3 +138,14 @@ def test_trig_substitution_reproduces_the_dynamics(name):
 def test_non_trigonometric_dynamics_are_refused():
     with pytest.raises(ValueError, match="not a polynomial of degree"):
         trig_polynomial_system(jd.models.VanDerPol(), [0])
+
+
+def test_float32_polynomial_system_and_conversion_run():
+    with jax.enable_x64(False):
+        f = Polynomial(np.array([[1], [3]]), np.array([[-1.0], [1.0]]))
+        traj = jd.simulate(PolynomialSystem(f), (0.0, 5.0), jnp.array([0.9], jnp.float32), dense=False)
+        assert traj.final_state.dtype == jnp.float32 and bool(traj.success)
+        poly = trig_polynomial_system(jd.models.Pendulum(), [0])  # fitted in float64 internally
+        xdot = poly.dynamics(0.0, jnp.array([0.1, 0.995, 0.3], jnp.float32), jnp.zeros(1, jnp.float32))
+        assert xdot.dtype == jnp.float32
+        np.testing.assert_allclose(xdot[2], -19.62 * 0.1 - 0.4 * 0.3, rtol=1e-5)

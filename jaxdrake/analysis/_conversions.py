@@ -35,8 +35,9 @@ def taylor_polynomial_system(system: System, x0, u0=None, degree: int = 3) -> Po
         raise ValueError(f"x0 must have shape ({n},) and u0 ({m},); got {x0.shape} and {u0.shape}")
     names = _names(system, n, m)
     point = jnp.concatenate([x0, u0])
-    f = taylor_polynomial(_step_at, point, degree, names, args=(system,))
-    g = taylor_polynomial(_output_at, point, degree, names, args=(system,))
+    with jax.enable_x64(True):  # coefficients in float64 whatever the user's default
+        f = taylor_polynomial(_step_at, point.astype(jnp.float64), degree, names, args=(system,))
+        g = taylor_polynomial(_output_at, point.astype(jnp.float64), degree, names, args=(system,))
     return PolynomialSystem(f, g, sample_time=system.sample_time, input_frame=system.input_frame,
                             state_frame=system.state_frame, output_frame=system.output_frame)
 
@@ -81,17 +82,22 @@ def _fit(fn, angles, n, m, degree, rng, what):
         x[:, list(angles)] = rng.uniform(-np.pi, np.pi, size=(count, k))
         return x, rng.normal(size=(count, m))
 
+    # in float64 even when the user runs float32: this is host-side analysis
     def features(x, u):
-        return Polynomial(basis, np.zeros(len(basis))).monomials(
-            np.concatenate([np.asarray(to_trig_coordinates(x, angles)), u], axis=1))
+        with jax.enable_x64(True):
+            z = np.asarray(to_trig_coordinates(x, angles))
+        return Polynomial(basis, np.zeros(len(basis))).monomials(np.concatenate([z, u], axis=1))
 
-    values = jax.jit(jax.vmap(fn))
+    def values(x, u):
+        with jax.enable_x64(True):
+            return np.asarray(jax.jit(jax.vmap(fn))(jnp.asarray(x), jnp.asarray(u)))
+
     x, u = sample(4 * len(basis) + 20)
-    target = np.asarray(values(jnp.asarray(x), jnp.asarray(u)))
+    target = values(x, u)
     shape = target.shape[1:]
     coefficients, *_ = np.linalg.lstsq(features(x, u), target.reshape(len(x), -1), rcond=None)
     x, u = sample(200)
-    check = np.asarray(values(jnp.asarray(x), jnp.asarray(u))).reshape(len(x), -1)
+    check = values(x, u).reshape(len(x), -1)
     error = np.abs(features(x, u) @ coefficients - check).max() / max(1.0, np.abs(check).max())
     if error > 1e-8:
         raise ValueError(f"trig_polynomial_system: {what} is not a polynomial of degree <= {degree} in "

@@ -67,7 +67,9 @@ def polynomial_dynamics(system: System, x0, u0=None, degree: int = 3) -> Polynom
     if isinstance(system, PolynomialSystem) and system.e is None:
         values = [zi + float(ci) for zi, ci in zip(z, x0)] + [Polynomial.constant(float(c), n, z[0].variables) for c in u0]
         return system.f.substitute(values)
-    expansion = taylor_polynomial(_dynamics_at, x0, degree, args=(system, u0))
+    with jax.enable_x64(True):  # analysis runs in float64 whatever the user's default
+        expansion = taylor_polynomial(_dynamics_at, x0.astype(jnp.float64), degree,
+                                      args=(system, u0.astype(jnp.float64)))
     return expansion.substitute([zi + float(ci) for zi, ci in zip(z, x0)])
 
 
