@@ -89,6 +89,28 @@ def _equilibrium_check(f: Polynomial, x0):
         raise ValueError(f"x0 = {np.asarray(x0)} is not an equilibrium: |f(x0, u0)| = {residual:.3g}")
 
 
+def _largest_level(V: Polynomial, f: Polynomial, solver, multiplier_degree=None):
+    r"""The fixed-V SDP: max rho s.t. $(V - \rho)(\bar x^T\bar x)^d - \lambda\dot V$ SOS, with
+    $\lambda$ free of degree deg Vdot (by default). Returns (rho, lambda, result)."""
+    Vdot = V.lie_derivative(f).pruned(1e-12)
+    prog = SosProgram(f.num_variables, f.variables)
+    lam_degree = Vdot.degree if multiplier_degree is None else multiplier_degree
+    lam = prog.new_free_polynomial(lam_degree)
+    rho = prog.new_variable()
+    d = (lam_degree + Vdot.degree - V.degree) // 2
+    radius = sum(zi * zi for zi in prog.z)
+    prog.add_sos_constraint((V - rho) * radius**d - lam * Vdot)
+    result = prog.solve(maximize=rho, solver=solver)
+    return float(rho.value), result.value(lam), result
+
+
+def _in_state_coordinates(V: Polynomial, x0) -> Polynomial:
+    """V(x - x0) as a polynomial in the state x (variables x0, x1, ...)."""
+    x0 = np.asarray(x0, float).reshape(-1)
+    x = Polynomial.variables_of(len(x0), [f"x{i}" for i in range(len(x0))])
+    return V.substitute([xi - float(ci) for xi, ci in zip(x, x0)]).pruned()
+
+
 @dataclasses.dataclass
 class RegionOfAttraction:
     r"""A certified region of attraction $\{x : V(x) \le \rho\}$: V (a numeric Polynomial in
@@ -137,20 +159,11 @@ def region_of_attraction(system: System, x0, S=None, *, u0=None, taylor_degree: 
         raise ValueError("S must be positive definite (V = (x - x0)' S (x - x0) > 0)")
     S = (S + S.T) / 2
     V = _quadratic(S, f.variables)
-    Vdot = V.lie_derivative(f).pruned(1e-12)
     hessian = A.T @ S + S @ A
     if np.linalg.eigvalsh(hessian).max() >= 0:
         raise ValueError("V is not a Lyapunov function of the linearization: A'S + SA has "
                          f"eigenvalues {np.linalg.eigvalsh(hessian)} (must be negative definite)")
-    prog = SosProgram(n, f.variables)
-    lam_degree = Vdot.degree if multiplier_degree is None else multiplier_degree
-    lam = prog.new_free_polynomial(lam_degree)
-    rho = prog.new_variable()
-    d = (lam_degree + Vdot.degree - V.degree) // 2
-    radius = sum(zi * zi for zi in prog.z)
-    prog.add_sos_constraint((V - rho) * radius**d - lam * Vdot)
-    result = prog.solve(maximize=rho, solver=solver)
-    rho_value = float(rho.value)
+    rho_value, lam, result = _largest_level(V, f, solver, multiplier_degree)
     if not rho_value > 0:
         raise SolveError(f"no positive level certified (rho = {rho_value:.3g})", result.status, result.solver)
     check = result.check(num_check_samples, scale=float(np.sqrt(rho_value / np.linalg.eigvalsh(S).min())))
@@ -160,9 +173,7 @@ def region_of_attraction(system: System, x0, S=None, *, u0=None, taylor_degree: 
                          result.status, result.solver)
     if not return_certificate:
         return rho_value
-    x = Polynomial.variables_of(n, [f"x{i}" for i in range(n)])
-    V_x = V.substitute([xi - float(ci) for xi, ci in zip(x, np.asarray(x0, float).reshape(-1))])
-    return RegionOfAttraction(V_x.pruned(), rho_value, result.value(lam), result, check)
+    return RegionOfAttraction(_in_state_coordinates(V, x0), rho_value, lam, result, check)
 
 
 def sample_sublevel_set(x0, S, rho, num_samples: int, seed: int = 0) -> np.ndarray:
@@ -304,17 +315,11 @@ def search_region_of_attraction(system: System, x0, degree: int = 4, *, S=None, 
     history = []
     for _ in range(iterations):
         # (1) V fixed: multiplier and largest level; normalise V to level 1.
-        Vdot = V.lie_derivative(f).pruned(1e-12)
-        prog = SosProgram(n, names)
-        lam = prog.new_free_polynomial(Vdot.degree)
-        rho = prog.new_variable()
-        d = (2 * Vdot.degree - V.degree) // 2
-        prog.add_sos_constraint((V - rho) * radius**d - lam * Vdot)
-        result = prog.solve(maximize=rho, solver=solver)
+        rho, lam, _ = _largest_level(V, f, solver)
+        d = (2 * lam.degree - V.degree) // 2  # lam has the degree of Vdot
         # level 1 at 99% of the certified rho: (V/c - 1)(x'x)^d - lam Vdot/c is then the SOS
         # polynomial plus 0.01 rho (x'x)^d over c, strictly inside, which step (3) needs.
-        V = V / (0.99 * float(rho.value))
-        lam = result.value(lam)
+        V = V / (0.99 * rho)
         # (2) V fixed: the largest shape level inside {V <= 1}.
         prog = SosProgram(n, names)
         s = prog.new_sos_polynomial(2)
@@ -336,16 +341,9 @@ def search_region_of_attraction(system: System, x0, degree: int = 4, *, S=None, 
         if len(history) > 1 and history[-1] - history[-2] <= tolerance * abs(history[-2]):
             break
     # certify the final V on its own (fresh multiplier), as `region_of_attraction` does
-    Vdot = V.lie_derivative(f).pruned(1e-12)
-    prog = SosProgram(n, names)
-    lam = prog.new_free_polynomial(Vdot.degree)
-    rho = prog.new_variable()
-    prog.add_sos_constraint((V - rho) * radius**((2 * Vdot.degree - V.degree) // 2) - lam * Vdot)
-    result = prog.solve(maximize=rho, solver=solver)
+    rho, _, result = _largest_level(V, f, solver)
     check = result.check(100_000, scale=float(np.sqrt(max(history[-1], 1e-9) / np.linalg.eigvalsh(S).min())))
-    if float(rho.value) < 1 - 1e-6 or not check.ok:
-        raise SolveError(f"the final V is not certified at level 1 (rho = {float(rho.value):.6g}, "
+    if rho < 1 - 1e-6 or not check.ok:
+        raise SolveError(f"the final V is not certified at level 1 (rho = {rho:.6g}, "
                          f"{check.num_violations} sampled violations)", result.status, result.solver)
-    x = Polynomial.variables_of(n, [f"x{i}" for i in range(n)])
-    V_x = V.substitute([xi - float(ci) for xi, ci in zip(x, np.asarray(x0, float).reshape(-1))])
-    return RegionOfAttractionSearch(V_x.pruned(), history[-1], history)
+    return RegionOfAttractionSearch(_in_state_coordinates(V, x0), history[-1], history)
