@@ -1,0 +1,10 @@
+"""Trajectory optimization: direct transcription, direct collocation and multiple shooting as
+sparse nonlinear programs (IPOPT or SciPy), and a batched, `vmap`-able iLQR for many small
+problems at once."""
+
+from ._nlp import NonlinearProgram, SolverResult, Term
+from ._program import (DirectCollocation, DirectTranscription, MultipleShooting,
+                       TrajectoryOptimizationResult)
+
+__all__ = ["DirectCollocation", "DirectTranscription", "MultipleShooting", "NonlinearProgram",
+           "SolverResult", "Term", "TrajectoryOptimizationResult"]

@@ -1,0 +1,377 @@
+r"""A sparse nonlinear program assembled from small local terms, and the solvers behind it.
+
+$$\min_z \sum_j f_j(z) \quad\text{s.t.}\quad g^{lo} \le g(z) \le g^{up},\qquad z^{lo} \le z \le z^{up}$$
+
+Every cost and constraint is a *term*: one small function `fn(v, k)` applied to `K` instances,
+instance `k` reading the decision variables `z[idx[k]]` (a knot's state and input, a
+segment's two knots, the duration, the parameters). Derivatives are dense only inside a term —
+`vmap(jacfwd(fn))` gives each instance's block, `vmap(hessian(λ·fn))` its Hessian block — and
+the sparsity pattern of the whole program is the union of those blocks, known before any
+evaluation. This is the "structure per knot" of Betts (2010, ch. 4) that Drake's
+`MultipleShooting` exploits too; no finite differences, no coloring needed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class Term:
+    """`fn(v, k) -> (r,)` on `idx.shape[0]` instances; instance k reads `z[idx[k]]`. A cost
+    term's values are summed; a constraint term's are bounded by `lower`/`upper` (each
+    (K, r))."""
+
+    name: str
+    fn: Callable
+    idx: np.ndarray
+    lower: np.ndarray | None = None
+    upper: np.ndarray | None = None
+
+
+def _triplets(rows, cols):
+    """Unique (row, col) pairs of the raw triplets and, for each raw one, its unique slot."""
+    keys = rows.astype(np.int64) * (int(cols.max(initial=0)) + 1) + cols
+    unique, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    return rows[first], cols[first], inverse, len(unique)
+
+
+class NonlinearProgram:
+    """The program of a list of cost and constraint `Term`s over `num_variables` with variable
+    bounds; every function compiled once (float64, whatever JAX's default)."""
+
+    def __init__(self, num_variables: int, costs: list[Term], constraints: list[Term],
+                 lower: np.ndarray, upper: np.ndarray):
+        self.num_variables = int(num_variables)
+        self.costs, self.constraints = list(costs), list(constraints)
+        self.lower, self.upper = np.asarray(lower, float), np.asarray(upper, float)
+        with jax.enable_x64(True):
+            sizes = [self._output_size(term) for term in self.constraints]
+        self._sizes = sizes
+        self.num_constraints = int(sum(term.idx.shape[0] * r for term, r in zip(self.constraints, sizes)))
+        self.constraint_lower = np.concatenate([np.broadcast_to(t.lower, (t.idx.shape[0], r)).ravel()
+                                                for t, r in zip(self.constraints, sizes)] or [np.zeros(0)])
+        self.constraint_upper = np.concatenate([np.broadcast_to(t.upper, (t.idx.shape[0], r)).ravel()
+                                                for t, r in zip(self.constraints, sizes)] or [np.zeros(0)])
+        self._jacobian_structure()
+        self._hessian_structure()
+        self._compile()
+
+    # ----- structure ------------------------------------------------------------------------
+
+    @staticmethod
+    def _output_size(term: Term) -> int:
+        v = jax.ShapeDtypeStruct((term.idx.shape[1],), jnp.float64)
+        out = jax.eval_shape(term.fn, v, jax.ShapeDtypeStruct((), jnp.int32))
+        if out.ndim != 1:
+            raise ValueError(f"term {term.name!r} must return a vector, got shape {out.shape}")
+        return out.shape[0]
+
+    def _jacobian_structure(self):
+        rows, cols, offset = [], [], 0
+        for term, r in zip(self.constraints, self._sizes):
+            K, L = term.idx.shape
+            row = offset + np.arange(K)[:, None, None] * r + np.arange(r)[None, :, None]
+            rows.append(np.broadcast_to(row, (K, r, L)).ravel())
+            cols.append(np.broadcast_to(term.idx[:, None, :], (K, r, L)).ravel())
+            offset += K * r
+        rows = np.concatenate(rows or [np.zeros(0, int)])
+        cols = np.concatenate(cols or [np.zeros(0, int)])
+        self.jacobian_rows, self.jacobian_cols, self._jac_slot, self._jac_nnz = _triplets(rows, cols)
+
+    def _hessian_structure(self):
+        rows, cols = [], []
+        for term in self.costs + self.constraints:
+            K, L = term.idx.shape
+            rows.append(np.broadcast_to(term.idx[:, :, None], (K, L, L)).ravel())
+            cols.append(np.broadcast_to(term.idx[:, None, :], (K, L, L)).ravel())
+        rows, cols = np.concatenate(rows), np.concatenate(cols)
+        self._hess_lower = np.flatnonzero(rows >= cols)  # IPOPT takes the lower triangle
+        (self.hessian_rows, self.hessian_cols, self._hess_slot,
+         self._hess_nnz) = _triplets(rows[self._hess_lower], cols[self._hess_lower])
+
+    def sparsity(self) -> dict:
+        """Non-zeros of the constraint Jacobian and of the Lagrangian Hessian (lower triangle)
+        against their dense sizes."""
+        m, n = self.num_constraints, self.num_variables
+        return {"variables": n, "constraints": m,
+                "jacobian_nonzeros": self._jac_nnz, "jacobian_dense": m * n,
+                "jacobian_density": self._jac_nnz / max(m * n, 1),
+                "hessian_nonzeros": self._hess_nnz, "hessian_dense": n * (n + 1) // 2}
+
+    # ----- compiled evaluation --------------------------------------------------------------
+
+    def _compile(self):
+        costs, constraints = self.costs, self.constraints
+        jac_slot, jac_nnz = jnp.asarray(self._jac_slot), self._jac_nnz
+        hess_lower, hess_slot, hess_nnz = (jnp.asarray(self._hess_lower), jnp.asarray(self._hess_slot),
+                                           self._hess_nnz)
+        sizes = self._sizes
+
+        def apply(term, fn, z, *extra):
+            ks = jnp.arange(term.idx.shape[0])
+            return jax.vmap(fn)(z[term.idx], ks, *extra)
+
+        def objective(z):
+            return sum(jnp.sum(apply(t, t.fn, z)) for t in costs)
+
+        def constraint_values(z):
+            return jnp.concatenate([apply(t, t.fn, z).ravel() for t in constraints] or [jnp.zeros(0)])
+
+        def jacobian_values(z):
+            raw = jnp.concatenate([apply(t, jax.jacfwd(t.fn), z).ravel() for t in constraints]
+                                  or [jnp.zeros(0)])
+            return jax.ops.segment_sum(raw, jac_slot, jac_nnz)
+
+        def hessian_values(z, multipliers, sigma):
+            blocks, offset = [], 0
+            for t in costs:
+                blocks.append(sigma * apply(t, jax.hessian(lambda v, k, fn=t.fn: jnp.sum(fn(v, k))), z).ravel())
+            for t, r in zip(constraints, sizes):
+                K = t.idx.shape[0]
+                lam = multipliers[offset: offset + K * r].reshape(K, r)
+                offset += K * r
+                blocks.append(apply(t, jax.hessian(lambda v, k, l, fn=t.fn: l @ fn(v, k)), z, lam).ravel())
+            return jax.ops.segment_sum(jnp.concatenate(blocks)[hess_lower], hess_slot, hess_nnz)
+
+        with jax.enable_x64(True):
+            self._objective = jax.jit(objective)
+            self._gradient = jax.jit(jax.grad(objective))
+            self._constraints = jax.jit(constraint_values)
+            self._jacobian = jax.jit(jacobian_values)
+            self._hessian = jax.jit(hessian_values)
+
+    def _call(self, fn, *args):
+        with jax.enable_x64(True):
+            return np.asarray(fn(*(jnp.asarray(a, jnp.float64) for a in args)), float)
+
+    def objective(self, z) -> float:
+        return float(self._call(self._objective, z))
+
+    def gradient(self, z) -> np.ndarray:
+        return self._call(self._gradient, z)
+
+    def constraint_values(self, z) -> np.ndarray:
+        return self._call(self._constraints, z)
+
+    def jacobian_values(self, z) -> np.ndarray:
+        """The Jacobian's non-zeros, in the order of (`jacobian_rows`, `jacobian_cols`)."""
+        return self._call(self._jacobian, z)
+
+    def hessian_values(self, z, multipliers, sigma=1.0) -> np.ndarray:
+        """Non-zeros of sigma ∇²f + Σ λ_i ∇²g_i (lower triangle, (`hessian_rows`, `hessian_cols`))."""
+        return self._call(self._hessian, z, multipliers, sigma)
+
+    def jacobian(self, z):
+        """The constraint Jacobian as a `scipy.sparse` CSR matrix."""
+        import scipy.sparse as sp
+
+        return sp.csr_matrix((self.jacobian_values(z), (self.jacobian_rows, self.jacobian_cols)),
+                             shape=(self.num_constraints, self.num_variables))
+
+    def hessian(self, z, multipliers, sigma=1.0):
+        """The full symmetric Lagrangian Hessian as a `scipy.sparse` CSR matrix."""
+        import scipy.sparse as sp
+
+        lower = sp.coo_matrix((self.hessian_values(z, multipliers, sigma), (self.hessian_rows, self.hessian_cols)),
+                              shape=(self.num_variables,) * 2)
+        return (lower + sp.triu(lower.T, k=1)).tocsr()
+
+    def check_derivatives(self, z, step: float = 1e-6) -> dict:
+        """Central finite differences of the constraints and of the objective gradient against
+        the autodiff Jacobian and Hessian at `z` (dense: for checking, not for solving). Returns
+        the largest absolute errors and the largest entries, and whether any non-zero of the
+        finite-difference Jacobian falls outside the declared sparsity pattern."""
+        z = np.asarray(z, float)
+        n = self.num_variables
+        jac_fd = np.zeros((self.num_constraints, n))
+        hess_fd = np.zeros((n, n))
+        multipliers = np.random.default_rng(0).standard_normal(self.num_constraints)
+
+        def lagrangian_gradient(w):
+            return self.gradient(w) + self.jacobian(w).T @ multipliers
+
+        for j in range(n):
+            e = np.zeros(n)
+            e[j] = step
+            jac_fd[:, j] = (self.constraint_values(z + e) - self.constraint_values(z - e)) / (2 * step)
+            hess_fd[:, j] = (lagrangian_gradient(z + e) - lagrangian_gradient(z - e)) / (2 * step)
+        jac = self.jacobian(z).toarray()
+        pattern = np.zeros_like(jac, bool)
+        pattern[self.jacobian_rows, self.jacobian_cols] = True
+        hess = self.hessian(z, multipliers).toarray()
+        return {"jacobian_error": float(np.max(np.abs(jac - jac_fd), initial=0.0)),
+                "jacobian_scale": float(np.max(np.abs(jac_fd), initial=0.0)),
+                "outside_pattern": float(np.max(np.abs(jac_fd[~pattern]), initial=0.0)),
+                "hessian_error": float(np.max(np.abs(hess - hess_fd), initial=0.0)),
+                "hessian_scale": float(np.max(np.abs(hess_fd), initial=0.0))}
+
+
+# ----- solvers ------------------------------------------------------------------------------
+
+@dataclasses.dataclass
+class SolverResult:
+    """What a solver returned: the point `z`, `success`, the solver's own `status` code and
+    `message`, the final `cost` and `constraint_violation` (largest bound or constraint
+    violation), `iterations`, `solve_time` (s) and the per-iteration `log` (dicts)."""
+
+    z: np.ndarray
+    success: bool
+    status: int
+    message: str
+    cost: float
+    constraint_violation: float
+    iterations: int
+    solve_time: float
+    solver: str
+    log: list
+
+
+def constraint_violation(nlp: NonlinearProgram, z) -> float:
+    g = nlp.constraint_values(z)
+    parts = [nlp.lower - z, z - nlp.upper, nlp.constraint_lower - g, g - nlp.constraint_upper]
+    worst = max(float(np.max(p, initial=0.0)) for p in parts)
+    return worst if np.all(np.isfinite(g)) else float("nan")
+
+
+class _Progress:
+    """Per-iteration log, and a line at most every `period` seconds when `progress` is on."""
+
+    def __init__(self, progress: bool, period: float = 1.0):
+        self.progress, self.period = progress, period
+        self.log, self._last = [], -np.inf
+
+    def __call__(self, iteration, cost, violation, optimality):
+        self.log.append({"iteration": int(iteration), "cost": float(cost),
+                         "constraint_violation": float(violation), "optimality": float(optimality)})
+        now = time.perf_counter()
+        if self.progress and now - self._last >= self.period:
+            self._last = now
+            print(f"  iter {iteration:4d}  cost {cost: .6e}  violation {violation:.2e}  "
+                  f"optimality {optimality:.2e}", flush=True)
+
+
+IPOPT_STATUS = {0: "solved", 1: "solved to acceptable level", 2: "infeasible problem detected",
+                3: "search direction becomes too small", 4: "diverging iterates",
+                5: "user requested stop", 6: "feasible point found", -1: "maximum iterations exceeded",
+                -2: "restoration failed", -3: "error in step computation", -4: "maximum CPU time exceeded",
+                -5: "maximum wall time exceeded", -10: "not enough degrees of freedom",
+                -11: "invalid problem definition", -12: "invalid option",
+                -13: "invalid number detected (NaN or inf in a function or derivative)"}
+
+
+def solve_ipopt(nlp: NonlinearProgram, z0, *, tol=1e-8, max_iterations=3000, hessian="exact",
+                options=None, progress=False, verbose=False) -> SolverResult:
+    """IPOPT (interior point; Wächter & Biegler 2006) through `cyipopt`, fed the sparse
+    Jacobian and the exact sparse Lagrangian Hessian (`hessian="limited-memory"` for L-BFGS)."""
+    import cyipopt
+
+    monitor = _Progress(progress)
+
+    class Callbacks:
+        def objective(self, z):
+            return nlp.objective(z)
+
+        def gradient(self, z):
+            return nlp.gradient(z)
+
+        def constraints(self, z):
+            return nlp.constraint_values(z)
+
+        def jacobian(self, z):
+            return nlp.jacobian_values(z)
+
+        def jacobianstructure(self):
+            return nlp.jacobian_rows, nlp.jacobian_cols
+
+        def hessian(self, z, multipliers, sigma):
+            return nlp.hessian_values(z, multipliers, sigma)
+
+        def hessianstructure(self):
+            return nlp.hessian_rows, nlp.hessian_cols
+
+        def intermediate(self, alg_mod, iter_count, obj_value, inf_pr, inf_du, mu, d_norm,
+                         regularization_size, alpha_du, alpha_pr, ls_trials):
+            monitor(iter_count, obj_value, inf_pr, inf_du)
+
+    problem = cyipopt.Problem(n=nlp.num_variables, m=nlp.num_constraints, problem_obj=Callbacks(),
+                              lb=nlp.lower, ub=nlp.upper, cl=nlp.constraint_lower, cu=nlp.constraint_upper)
+    settings = {"tol": tol, "max_iter": max_iterations, "print_level": 5 if verbose else 0,
+                "sb": "yes", "hessian_approximation": hessian}
+    settings.update(options or {})
+    for key, value in settings.items():
+        problem.add_option(key, value)
+    start = time.perf_counter()
+    z, info = problem.solve(np.asarray(z0, float))
+    elapsed = time.perf_counter() - start
+    status = int(info["status"])
+    message = IPOPT_STATUS.get(status, info["status_msg"].decode() if isinstance(info["status_msg"], bytes)
+                               else str(info["status_msg"]))
+    return SolverResult(z=np.asarray(z), success=status in (0, 1), status=status, message=message,
+                        cost=float(info["obj_val"]), constraint_violation=constraint_violation(nlp, z),
+                        iterations=len(monitor.log) - 1 if monitor.log else 0, solve_time=elapsed,
+                        solver="ipopt", log=monitor.log)
+
+
+def solve_scipy(nlp: NonlinearProgram, z0, *, tol=1e-8, max_iterations=3000, options=None,
+                progress=False, verbose=False) -> SolverResult:
+    """SciPy's `trust-constr` (an interior-point / SQP trust-region method, Byrd, Hribar &
+    Nocedal 1999) with the same sparse Jacobian and exact Hessians: always available, slower."""
+    import scipy.optimize as so
+
+    monitor = _Progress(progress)
+    constraints = []
+    if nlp.num_constraints:
+        constraints.append(so.NonlinearConstraint(
+            nlp.constraint_values, nlp.constraint_lower, nlp.constraint_upper, jac=nlp.jacobian,
+            hess=lambda z, v: nlp.hessian(z, v, 0.0)))
+    zero = np.zeros(nlp.num_constraints)
+
+    def callback(z, state):
+        monitor(state.nit, state.fun, state.constr_violation, state.optimality)
+        return False
+
+    free = ~(nlp.lower == nlp.upper)
+    bounds = so.Bounds(np.where(free, nlp.lower, -np.inf), np.where(free, nlp.upper, np.inf))
+    if np.any(~free):  # fixed variables as equality constraints (trust-constr needs lb < ub)
+        import scipy.sparse as sp
+
+        fixed = np.flatnonzero(~free)
+        pick = sp.csr_matrix((np.ones(len(fixed)), (np.arange(len(fixed)), fixed)),
+                             shape=(len(fixed), nlp.num_variables))
+        constraints.append(so.LinearConstraint(pick, nlp.lower[fixed], nlp.upper[fixed]))
+    settings = {"gtol": tol, "xtol": tol * 1e-4, "maxiter": max_iterations, "verbose": 2 if verbose else 0}
+    settings.update(options or {})
+    start = time.perf_counter()
+    out = so.minimize(nlp.objective, np.asarray(z0, float), jac=nlp.gradient,
+                      hess=lambda z: nlp.hessian(z, zero, 1.0), method="trust-constr",
+                      bounds=bounds, constraints=constraints, callback=callback, options=settings)
+    elapsed = time.perf_counter() - start
+    violation = constraint_violation(nlp, out.x)
+    ok = bool(out.status in (1, 2)) and np.isfinite(out.fun) and violation <= max(1e-6, 10 * tol)
+    message = out.message if np.isfinite(out.fun) else "non-finite objective: " + str(out.message)
+    return SolverResult(z=np.asarray(out.x), success=ok, status=int(out.status), message=str(message),
+                        cost=float(out.fun), constraint_violation=violation, iterations=int(out.nit),
+                        solve_time=elapsed, solver="scipy", log=monitor.log)
+
+
+SOLVERS = {"ipopt": solve_ipopt, "scipy": solve_scipy}
+
+
+def solve(nlp: NonlinearProgram, z0, solver: str = "auto", **kwargs) -> SolverResult:
+    """Solve with `solver`: "ipopt", "scipy", or "auto" (IPOPT when `cyipopt` imports)."""
+    if solver == "auto":
+        try:
+            import cyipopt  # noqa: F401
+            solver = "ipopt"
+        except ImportError:
+            solver = "scipy"
+    if solver not in SOLVERS:
+        raise ValueError(f"unknown solver {solver!r}; use 'ipopt', 'scipy' or 'auto'")
+    return SOLVERS[solver](nlp, z0, **kwargs)

@@ -1,0 +1,563 @@
+r"""Trajectory optimization programs: direct transcription, direct collocation and shooting.
+
+All three put the state $x_k$ and input $u_k$ at knots $t_k = k\,T/(N-1)$, $k = 0..N-1$, among
+the decision variables, with the duration $T$ (optionally free) and system parameters $p$
+(optionally free); they differ in the constraint tying $x_{k+1}$ to $x_k$:
+
+- transcription: $x_{k+1} = \Phi_h(t_k, x_k, u_k)$ — one step of an explicit rule (Euler,
+  midpoint, RK4) with $u$ held, or the discrete update of a discrete system;
+- Hermite-Simpson collocation (Drake's `DirectCollocation`): cubic states through
+  $(x_k, f_k)$, $(x_{k+1}, f_{k+1})$ and first-order-hold inputs, with
+  $x_{k+1} - x_k = \tfrac h6 (f_k + 4 f_c + f_{k+1})$,
+  $x_c = \tfrac12(x_k + x_{k+1}) + \tfrac h8 (f_k - f_{k+1})$, $u_c = \tfrac12 (u_k + u_{k+1})$;
+- multiple shooting: $x_{k+1} = $ `simulate`$(x_k, u_k \to u_{k+1})$ at the simulator's
+  tolerance, derivatives by forward-mode through the simulation.
+
+Every cost and constraint is local to a knot, a segment or the two ends (see `_nlp.py`), so
+the constraint Jacobian and the Lagrangian Hessian are sparse and assembled from small
+autodiff blocks.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..simulation import simulate
+from ..systems import System
+from ..trajectories import Trajectory
+from ._nlp import NonlinearProgram, SolverResult, Term, solve
+
+
+@dataclasses.dataclass
+class TrajectoryOptimizationResult:
+    """A solved trajectory program: `states` and `inputs` as `Trajectory` objects (cubic /
+    first-order hold for collocation, the rule's own hold for transcription), the knot values,
+    the `duration` and `parameters`, the largest dynamic `max_defect`, and the solver's report
+    (`success`, `status`, `message`, `cost`, `iterations`, `solve_time`, `log`)."""
+
+    states: Trajectory
+    inputs: Trajectory
+    times: np.ndarray
+    knot_states: np.ndarray
+    knot_inputs: np.ndarray
+    duration: float
+    parameters: np.ndarray | None
+    max_defect: float
+    solver: SolverResult
+
+    def __getattr__(self, name):  # success, status, message, cost, iterations, solve_time, log
+        if name in ("success", "status", "message", "cost", "iterations", "solve_time", "log",
+                    "constraint_violation", "z"):
+            return getattr(self.solver, name)
+        raise AttributeError(name)
+
+    def __repr__(self):
+        return (f"TrajectoryOptimizationResult(success={self.success}, message={self.message!r}, "
+                f"cost={self.cost:.6g}, duration={self.duration:.6g}, iterations={self.iterations}, "
+                f"max_defect={self.max_defect:.2e}, solve_time={self.solve_time:.3f} s)")
+
+
+def _split(v, sizes):
+    out, start = [], 0
+    for size in sizes:
+        out.append(v[start: start + size])
+        start += size
+    return out
+
+
+def _vector(value, size, label):
+    value = np.asarray(value, float)
+    if value.ndim == 0:
+        value = np.full(size, float(value))
+    if value.shape != (size,):
+        raise ValueError(f"{label} must have shape ({size},), got {value.shape}")
+    return value
+
+
+class _TrajectoryProgram:
+    """What transcription, collocation and shooting share: the decision layout, bounds, costs,
+    constraints, the initial guess and the solve."""
+
+    method = ""
+
+    def __init__(self, system, num_time_samples: int, *, duration=None, parameters=None,
+                 parameter_bounds=None):
+        if parameters is not None:
+            if not callable(system) or isinstance(system, System):
+                raise TypeError("with `parameters`, pass `system` as a function p -> System")
+            self._p0 = np.atleast_1d(np.asarray(parameters, float))
+            self._make_system = system
+            with jax.enable_x64(True):
+                system = system(jnp.asarray(self._p0))
+        else:
+            self._p0 = np.zeros(0)
+            self._make_system = None
+        if not isinstance(system, System):
+            raise TypeError(f"{type(self).__name__} needs a jaxdrake.System, got {type(system).__name__}")
+        if system.is_hybrid or system.is_stochastic:
+            raise ValueError(f"{type(self).__name__}: {system.name} is hybrid or stochastic; optimize a "
+                             "deterministic system (one mode of a hybrid one)")
+        if system.has_discrete_state and system.has_continuous_state:
+            raise ValueError(f"{type(self).__name__}: {system.name} mixes continuous and discrete states")
+        if not isinstance(num_time_samples, (int, np.integer)) or num_time_samples < 2:
+            raise ValueError(f"num_time_samples must be an int >= 2, got {num_time_samples!r}")
+        self.system = system
+        self.num_time_samples = N = int(num_time_samples)
+        self.num_states, self.num_inputs = n, m = system.num_states, system.num_inputs
+        self.num_parameters = len(self._p0)
+        self._duration_bounds = self._check_duration(duration)
+        self.free_duration = self._duration_bounds[0] != self._duration_bounds[1]
+        self.num_globals = int(self.free_duration) + self.num_parameters
+        self.num_variables = N * (n + m) + self.num_globals
+        self._lower = np.full(self.num_variables, -np.inf)
+        self._upper = np.full(self.num_variables, np.inf)
+        if self.free_duration:
+            self._lower[self._globals[0]], self._upper[self._globals[0]] = self._duration_bounds
+        if self.num_parameters:
+            lo, hi = parameter_bounds if parameter_bounds is not None else (-np.inf, np.inf)
+            self._lower[self._globals[int(self.free_duration):]] = _vector(lo, self.num_parameters, "parameter lower bound")
+            self._upper[self._globals[int(self.free_duration):]] = _vector(hi, self.num_parameters, "parameter upper bound")
+        if system.input_limits is not None:
+            self.add_input_bounds(*system.input_limits)
+        self._costs, self._constraints = [], []
+        self._add_dynamics()
+        self._nlp = None
+
+    # ----- layout ---------------------------------------------------------------------------
+
+    def _check_duration(self, duration):
+        if self.system.has_discrete_state:
+            fixed = (self.num_time_samples - 1) * self.system.sample_time
+            if duration is not None and not np.isclose(np.asarray(duration, float), fixed).all():
+                raise ValueError(f"{self.system.name} is discrete (period {self.system.sample_time}): "
+                                 f"the duration is (N - 1) * period = {fixed}, not {duration}")
+            return fixed, fixed
+        if duration is None:
+            raise ValueError("give the duration T (a number) or its bounds (T_min, T_max) to make it free")
+        lo, hi = (duration, duration) if np.ndim(duration) == 0 else tuple(duration)
+        lo, hi = float(lo), float(hi)
+        if not (0 < lo <= hi < np.inf):
+            raise ValueError(f"duration bounds must satisfy 0 < T_min <= T_max < inf, got ({lo}, {hi})")
+        return lo, hi
+
+    @property
+    def _globals(self):
+        return np.arange(self.num_variables - self.num_globals, self.num_variables)
+
+    def _state_index(self, k):
+        return np.arange(k * self.num_states, (k + 1) * self.num_states)
+
+    def _input_index(self, k):
+        start = self.num_time_samples * self.num_states + k * self.num_inputs
+        return np.arange(start, start + self.num_inputs)
+
+    def _knot_index(self, k):
+        return np.concatenate([self._state_index(k), self._input_index(k)])
+
+    def _unpack_globals(self, g):
+        """(T, h, system) from the global decision variables."""
+        T = g[0] if self.free_duration else self._duration_bounds[0]
+        p = g[int(self.free_duration):]
+        system = self._make_system(p) if self._make_system is not None else self.system
+        return T, T / (self.num_time_samples - 1), system
+
+    def _knot_term(self, name, fn, knots, lower=None, upper=None):
+        """fn(t, x, u, h, system) at each knot in `knots`."""
+        n, m = self.num_states, self.num_inputs
+        knots = np.asarray(knots)
+        idx = np.stack([np.concatenate([self._knot_index(k), self._globals]) for k in knots])
+
+        def term(v, i):
+            x, u, g = _split(v, (n, m, self.num_globals))
+            T, h, system = self._unpack_globals(g)
+            return jnp.atleast_1d(fn(jnp.asarray(knots)[i] * h, x, u, h, system))
+
+        return Term(name, term, idx, lower, upper)
+
+    def _segment_term(self, name, fn, lower=None, upper=None):
+        """fn(t_k, x_k, u_k, x_{k+1}, u_{k+1}, h, system) on every segment."""
+        n, m = self.num_states, self.num_inputs
+        idx = np.stack([np.concatenate([self._knot_index(k), self._knot_index(k + 1), self._globals])
+                        for k in range(self.num_time_samples - 1)])
+
+        def term(v, k):
+            x0, u0, x1, u1, g = _split(v, (n, m, n, m, self.num_globals))
+            T, h, system = self._unpack_globals(g)
+            return jnp.atleast_1d(fn(k * h, x0, u0, x1, u1, h, system))
+
+        return Term(name, term, idx, lower, upper)
+
+    def _ends_term(self, name, fn, lower=None, upper=None):
+        """fn(x_0, x_N, T, p) once."""
+        n, m = self.num_states, self.num_inputs
+        idx = np.concatenate([self._state_index(0), self._state_index(self.num_time_samples - 1),
+                              self._globals])[None]
+
+        def term(v, k):
+            x0, xf, g = _split(v, (n, n, self.num_globals))
+            T, _, _ = self._unpack_globals(g)
+            return jnp.atleast_1d(fn(x0, xf, T, g[int(self.free_duration):]))
+
+        return Term(name, term, idx, lower, upper)
+
+    def _add(self, term, kind):
+        (self._costs if kind == "cost" else self._constraints).append(term)
+        self._nlp = None
+
+    # ----- the user's costs and constraints -------------------------------------------------
+
+    def add_running_cost(self, fn: Callable):
+        r"""Add $\int_0^T \ell(t, x, u)\,dt$ with `fn(t, x, u) -> scalar`, by the method's
+        quadrature (Simpson on the collocation's cubic, the rule's rectangle for
+        transcription, the simulation itself for shooting)."""
+        self._add(self._running_cost_term(fn), "cost")
+        return self
+
+    def add_final_cost(self, fn: Callable):
+        """Add `fn(T, x_final) -> scalar`."""
+        self._add(self._ends_term("final cost", lambda x0, xf, T, p: fn(T, xf)), "cost")
+        return self
+
+    def add_duration_cost(self, weight: float = 1.0):
+        """Add `weight * T` (minimum time; needs a free duration)."""
+        if not self.free_duration:
+            raise ValueError("add_duration_cost needs a free duration: pass duration=(T_min, T_max)")
+        self._add(self._ends_term("duration cost", lambda x0, xf, T, p: weight * T), "cost")
+        return self
+
+    def add_parameter_cost(self, fn: Callable):
+        """Add `fn(p) -> scalar` on the free parameters."""
+        if not self.num_parameters:
+            raise ValueError("add_parameter_cost needs parameters=... at construction")
+        self._add(self._ends_term("parameter cost", lambda x0, xf, T, p: fn(p)), "cost")
+        return self
+
+    def _set_knot_bounds(self, index, lower, upper, label):
+        lower, upper = _vector(lower, len(index), label + " lower"), _vector(upper, len(index), label + " upper")
+        bad = np.flatnonzero(lower > upper)
+        if len(bad):
+            raise ValueError(f"{label}: lower bound {lower[bad[0]]} > upper bound {upper[bad[0]]} "
+                             f"at coordinate {bad[0]}")
+        self._lower[index] = np.maximum(self._lower[index], lower)
+        self._upper[index] = np.minimum(self._upper[index], upper)
+        clash = np.flatnonzero(self._lower[index] > self._upper[index])
+        if len(clash):
+            raise ValueError(f"{label} contradict earlier bounds at coordinate {clash[0]}: "
+                             f"[{self._lower[index][clash[0]]}, {self._upper[index][clash[0]]}] is empty")
+        self._nlp = None
+
+    def _fix(self, k, value, label):
+        value = _vector(value, self.num_states, label)
+        free = np.isnan(value)
+        index = self._state_index(k)[~free]
+        self._set_knot_bounds(index, value[~free], value[~free], label)
+
+    def set_initial_state(self, x0):
+        """Fix x(0) (NaN entries stay free)."""
+        self._fix(0, x0, "initial state")
+        return self
+
+    def set_final_state(self, xf):
+        """Fix x(T) (NaN entries stay free)."""
+        self._fix(self.num_time_samples - 1, xf, "final state")
+        return self
+
+    def add_state_bounds(self, lower, upper, knots=None):
+        """lower <= x_k <= upper at `knots` (default all)."""
+        knots = range(self.num_time_samples) if knots is None else knots
+        for k in knots:
+            self._set_knot_bounds(self._state_index(k), lower, upper, f"state bounds at knot {k}")
+        return self
+
+    def add_input_bounds(self, lower, upper):
+        """lower <= u_k <= upper at every knot (the system's input limits are added already)."""
+        for k in range(self.num_time_samples):
+            self._set_knot_bounds(self._input_index(k), lower, upper, f"input bounds at knot {k}")
+        return self
+
+    def add_path_constraint(self, fn: Callable, lower, upper):
+        """lower <= fn(t, x, u) <= upper at every knot."""
+        lower, upper = np.atleast_1d(np.asarray(lower, float)), np.atleast_1d(np.asarray(upper, float))
+        if np.any(lower > upper):
+            raise ValueError(f"path constraint: lower {lower} > upper {upper}")
+        term = self._knot_term("path constraint", lambda t, x, u, h, s: fn(t, x, u),
+                               range(self.num_time_samples), lower, upper)
+        self._add(term, "constraint")
+        return self
+
+    def add_boundary_constraint(self, fn: Callable, lower, upper):
+        """lower <= fn(x_0, x_final) <= upper."""
+        lower, upper = np.atleast_1d(np.asarray(lower, float)), np.atleast_1d(np.asarray(upper, float))
+        if np.any(lower > upper):
+            raise ValueError(f"boundary constraint: lower {lower} > upper {upper}")
+        self._add(self._ends_term("boundary constraint", lambda x0, xf, T, p: fn(x0, xf), lower, upper),
+                  "constraint")
+        return self
+
+    def add_periodicity(self, indices=None, offset=0.0):
+        """x_final[i] = x_0[i] + offset[i] for i in `indices` (default all states)."""
+        indices = np.arange(self.num_states) if indices is None else np.atleast_1d(indices)
+        offset = np.broadcast_to(np.asarray(offset, float), indices.shape)
+        return self.add_boundary_constraint(lambda x0, xf: xf[indices] - x0[indices] - offset,
+                                            np.zeros(len(indices)), np.zeros(len(indices)))
+
+    # ----- the program and its solution -----------------------------------------------------
+
+    @property
+    def nlp(self) -> NonlinearProgram:
+        """The sparse nonlinear program (compiled on first use, again after a change)."""
+        if self._nlp is None:
+            if not self._costs:
+                raise ValueError("the program has no cost: add a running, final or duration cost")
+            self._nlp = NonlinearProgram(self.num_variables, self._costs, self._constraints,
+                                         self._lower, self._upper)
+        return self._nlp
+
+    def initial_guess(self, states=None, inputs=None, duration=None, parameters=None) -> np.ndarray:
+        """The decision vector for a guess: `states` / `inputs` each a `Trajectory`, a function
+        of time, an array of knot values ((N, n) / (N, m)) or None (states: the straight line
+        between the fixed initial and final states; inputs: zero, clipped into bounds)."""
+        N, n, m = self.num_time_samples, self.num_states, self.num_inputs
+        T = float(duration) if duration is not None else (
+            self._duration_bounds[0] if not self.free_duration else float(np.mean(self._duration_bounds)))
+        times = np.linspace(0.0, T, N)
+        x0 = np.where(self._lower[self._state_index(0)] == self._upper[self._state_index(0)],
+                      self._lower[self._state_index(0)], 0.0)
+        xf_index = self._state_index(N - 1)
+        xf = np.where(self._lower[xf_index] == self._upper[xf_index], self._lower[xf_index], x0)
+        line = x0 + np.linspace(0, 1, N)[:, None] * (xf - x0)
+        X = self._guess_values(states, times, (N, n), line, "states")
+        U = self._guess_values(inputs, times, (N, m), np.zeros((N, m)), "inputs")
+        z = np.concatenate([X.ravel(), U.ravel()])
+        if self.free_duration:
+            z = np.append(z, T)
+        if self.num_parameters:
+            z = np.append(z, self._p0 if parameters is None else _vector(parameters, self.num_parameters, "parameters"))
+        z = np.clip(z, self._lower, self._upper)
+        if not np.all(np.isfinite(z)):
+            raise ValueError("the initial guess has non-finite values")
+        return z
+
+    @staticmethod
+    def _guess_values(spec, times, shape, default, label):
+        if spec is None:
+            return default
+        if isinstance(spec, Trajectory):
+            values = np.asarray(spec.state(jnp.asarray(times)))
+        elif callable(spec):
+            values = np.stack([np.asarray(spec(t), float).reshape(shape[1]) for t in times])
+        else:
+            values = np.asarray(spec, float)
+        if values.shape != shape:
+            raise ValueError(f"initial guess for the {label} must give shape {shape}, got {values.shape}")
+        return values
+
+    def solve(self, states=None, inputs=None, duration=None, parameters=None, *, solver="auto",
+              tol=1e-8, max_iterations=3000, progress=False, verbose=False, options=None,
+              initial_guess=None) -> TrajectoryOptimizationResult:
+        """Solve from a guess (see `initial_guess`, or pass a decision vector as
+        `initial_guess`) with `solver` ("auto": IPOPT if available, else SciPy's trust-constr;
+        "ipopt"; "scipy"). `progress` prints a line per second; `verbose` the solver's own log.
+        Never raises on a failed solve: check `result.success` and `result.message`."""
+        z0 = (self.initial_guess(states, inputs, duration, parameters) if initial_guess is None
+              else np.asarray(initial_guess, float))
+        if z0.shape != (self.num_variables,):
+            raise ValueError(f"initial_guess must have shape ({self.num_variables},), got {z0.shape}")
+        kwargs = dict(tol=tol, max_iterations=max_iterations, progress=progress, verbose=verbose,
+                      options=options)
+        if self._hessian_approximation != "exact" and solver in ("auto", "ipopt"):
+            kwargs["hessian"] = self._hessian_approximation
+        result = solve(self.nlp, z0, solver, **kwargs)
+        return self._result(result)
+
+    _hessian_approximation = "exact"
+
+    def _result(self, result: SolverResult) -> TrajectoryOptimizationResult:
+        N, n, m = self.num_time_samples, self.num_states, self.num_inputs
+        z = result.z
+        X, U = z[: N * n].reshape(N, n), z[N * n: N * (n + m)].reshape(N, m)
+        g = z[N * (n + m):]
+        T = float(g[0]) if self.free_duration else self._duration_bounds[0]
+        p = g[int(self.free_duration):] if self.num_parameters else None
+        times = np.linspace(0.0, T, N)
+        with jax.enable_x64(True):
+            defects = np.asarray(jax.vmap(self._dynamics_term.fn)(
+                jnp.asarray(z[self._dynamics_term.idx]), jnp.arange(N - 1)))
+            states, inputs = self._reconstruct(times, jnp.asarray(X), jnp.asarray(U), jnp.asarray(g))
+        return TrajectoryOptimizationResult(
+            states=states, inputs=inputs, times=times, knot_states=X, knot_inputs=U, duration=T,
+            parameters=p, max_defect=float(np.max(np.abs(defects))), solver=result)
+
+    def _add_dynamics(self):
+        self._dynamics_term = self._segment_term(f"{self.method} defects", self._defect,
+                                                 np.zeros(self.num_states), np.zeros(self.num_states))
+        self._constraints.append(self._dynamics_term)
+
+
+def _hermite_midpoint(x0, u0, x1, u1, t, h, system):
+    f0 = system.dynamics(t, x0, u0)
+    f1 = system.dynamics(t + h, x1, u1)
+    xc = (x0 + x1) / 2 + h / 8 * (f0 - f1)
+    uc = (u0 + u1) / 2
+    return f0, f1, xc, uc
+
+
+class DirectCollocation(_TrajectoryProgram):
+    r"""Direct collocation with Hermite-Simpson's rule (Drake's `DirectCollocation`): cubic
+    state segments matching $f$ at the knots, first-order-hold inputs, the dynamics enforced
+    at each segment's midpoint. Running costs use Simpson's rule on the same cubic, so a
+    quadratic-in-u cost of a linear optimal input is integrated exactly.
+
+    ```python
+    prog = DirectCollocation(DoubleIntegrator(), 21, duration=2.0)
+    prog.set_initial_state([1, 0]).set_final_state([0, 0]).add_running_cost(lambda t, x, u: u @ u)
+    result = prog.solve()          # result.states, result.inputs are Trajectory objects
+    ```
+    """
+
+    method = "Hermite-Simpson"
+
+    def __init__(self, system, num_time_samples, *, duration=None, parameters=None,
+                 parameter_bounds=None):
+        if isinstance(system, System) and system.has_discrete_state:
+            raise ValueError(f"DirectCollocation needs a continuous system; {system.name} is discrete "
+                             "(use DirectTranscription)")
+        super().__init__(system, num_time_samples, duration=duration, parameters=parameters,
+                         parameter_bounds=parameter_bounds)
+
+    @staticmethod
+    def _defect(t, x0, u0, x1, u1, h, system):
+        f0, f1, xc, uc = _hermite_midpoint(x0, u0, x1, u1, t, h, system)
+        return x1 - x0 - h / 6 * (f0 + 4 * system.dynamics(t + h / 2, xc, uc) + f1)
+
+    def _running_cost_term(self, fn):
+        def simpson(t, x0, u0, x1, u1, h, system):
+            _, _, xc, uc = _hermite_midpoint(x0, u0, x1, u1, t, h, system)
+            return h / 6 * (fn(t, x0, u0) + 4 * fn(t + h / 2, xc, uc) + fn(t + h, x1, u1))
+
+        return self._segment_term("running cost", simpson)
+
+    def _reconstruct(self, times, X, U, g):
+        T, h, system = self._unpack_globals(g)
+        F = jax.vmap(lambda t, x, u: system.dynamics(t, x, u))(jnp.asarray(times), X, U)
+        x0, x1, f0, f1 = X[:-1], X[1:], h * F[:-1], h * F[1:]
+        zero = jnp.zeros_like(x0)
+        cubic = jnp.stack([x0, f0, 3 * (x1 - x0) - 2 * f0 - f1, 2 * (x0 - x1) + f0 + f1, zero], axis=1)
+        states = Trajectory.from_pieces(times[:-1], times[1:], cubic)
+        return states, Trajectory.from_samples(times, U, "linear")
+
+
+_RULES = ("euler", "midpoint", "rk4")
+
+
+def _explicit_step(rule, system, t, x, u, h):
+    f = lambda t, x: system.dynamics(t, x, u)  # noqa: E731 (u held over the step)
+    if rule == "euler":
+        return x + h * f(t, x)
+    if rule == "midpoint":
+        return x + h * f(t + h / 2, x + h / 2 * f(t, x))
+    k1 = f(t, x)
+    k2 = f(t + h / 2, x + h / 2 * k1)
+    k3 = f(t + h / 2, x + h / 2 * k2)
+    k4 = f(t + h, x + h * k3)
+    return x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+
+class DirectTranscription(_TrajectoryProgram):
+    r"""Direct transcription (Drake's `DirectTranscription`): $x_{k+1} = x_k + \dots$ one step of
+    an explicit `rule` ("euler", "midpoint", "rk4") with the input held (zero-order hold) for a
+    continuous system, or $x_{k+1} = f_d(t_k, x_k, u_k)$ for a discrete one (then the time step
+    is its period). Running cost $\sum_{k<N-1} h\,\ell(t_k, x_k, u_k)$."""
+
+    method = "transcription"
+
+    def __init__(self, system, num_time_samples, *, duration=None, rule: str = "euler",
+                 parameters=None, parameter_bounds=None):
+        if rule not in _RULES:
+            raise ValueError(f"unknown rule {rule!r}; use one of {_RULES}")
+        self.rule = rule
+        super().__init__(system, num_time_samples, duration=duration, parameters=parameters,
+                         parameter_bounds=parameter_bounds)
+
+    def _defect(self, t, x0, u0, x1, u1, h, system):
+        if system.has_discrete_state:
+            return x1 - system.update(t, x0, u0)
+        return x1 - _explicit_step(self.rule, system, t, x0, u0, h)
+
+    def _running_cost_term(self, fn):
+        return self._knot_term("running cost", lambda t, x, u, h, s: h * fn(t, x, u),
+                               range(self.num_time_samples - 1))
+
+    def _reconstruct(self, times, X, U, g):
+        hold = "zoh" if self.system.has_discrete_state else "linear"
+        return Trajectory.from_samples(times, X, hold), Trajectory.from_samples(times, U, "zoh")
+
+
+class MultipleShooting(_TrajectoryProgram):
+    r"""Multiple shooting through `simulate`: $x_{k+1} = \phi(t_{k+1}; t_k, x_k, u)$ with the
+    input a first-order hold between $u_k$ and $u_{k+1}$, integrated by the adaptive simulator
+    at `rtol`/`atol` and differentiated in forward mode through it. The running cost is
+    integrated along the same simulation (an extra quadrature state). Each segment is a short
+    simulation, so unstable systems stay tractable (Bock & Plitt 1984); with
+    `num_time_samples=2` it is single shooting of one FOH segment. The Lagrangian Hessian is
+    approximated by L-BFGS (second derivatives through a simulation are not worth their cost)."""
+
+    method = "multiple shooting"
+    _hessian_approximation = "limited-memory"
+
+    def __init__(self, system, num_time_samples, *, duration=None, rtol=1e-8, atol=1e-10,
+                 max_steps=256, parameters=None, parameter_bounds=None):
+        if isinstance(system, System) and system.has_discrete_state:
+            raise ValueError(f"MultipleShooting needs a continuous system; {system.name} is discrete "
+                             "(use DirectTranscription)")
+        self.rtol, self.atol, self.max_steps = rtol, atol, max_steps
+        super().__init__(system, num_time_samples, duration=duration, parameters=parameters,
+                         parameter_bounds=parameter_bounds)
+
+    def _simulate_segment(self, t, x0, u0, u1, h, system, cost=None):
+        """The state (and, with `cost`, the integrated cost) at t + h."""
+        n = self.num_states
+
+        def rhs(s, z, _):
+            u = u0 + (s - t) / h * (u1 - u0)
+            xdot = system.dynamics(s, z[:n], u)
+            return xdot if cost is None else jnp.append(xdot, cost(s, z[:n], u))
+
+        start = x0 if cost is None else jnp.append(x0, 0.0)
+        segment = System.from_functions(rhs, num_states=start.shape[0])
+        return simulate(segment, (t, t + h), start, rtol=self.rtol, atol=self.atol, dense=False,
+                        autodiff="forward", max_steps=self.max_steps, throw=False).final_state
+
+    def _defect(self, t, x0, u0, x1, u1, h, system):
+        return x1 - self._simulate_segment(t, x0, u0, u1, h, system)
+
+    def _running_cost_term(self, fn):
+        n = self.num_states
+        return self._segment_term(
+            "running cost", lambda t, x0, u0, x1, u1, h, system:
+            self._simulate_segment(t, x0, u0, u1, h, system, cost=fn)[n])
+
+    def _reconstruct(self, times, X, U, g):
+        T, h, system = self._unpack_globals(g)
+        inputs = Trajectory.from_samples(times, U, "linear")
+        # each segment's own simulation, sampled densely, so an unstable plant is not re-integrated
+        fine = np.linspace(0.0, 1.0, 9)[:-1]
+        samples = times[:-1, None] + fine[None] * h
+
+        def segment_samples(t, x, u0, u1, s):
+            segment = System.from_functions(
+                lambda r, z, _: system.dynamics(r, z, u0 + (r - t) / h * (u1 - u0)), num_states=self.num_states)
+            return simulate(segment, (t, t + h), x, rtol=self.rtol, atol=self.atol,
+                            max_steps=self.max_steps, throw=False).state(s)
+
+        values = jax.vmap(segment_samples)(jnp.asarray(times[:-1]), X[:-1], U[:-1], U[1:],
+                                           jnp.asarray(samples)).reshape(-1, self.num_states)
+        ts = samples.ravel()
+        states = Trajectory.from_samples(np.append(ts, times[-1]), jnp.concatenate([values, X[-1:]]), "linear")
+        return states, inputs
+
