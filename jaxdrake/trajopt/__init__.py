@@ -2,9 +2,10 @@
 sparse nonlinear programs (IPOPT or SciPy), and a batched, `vmap`-able iLQR for many small
 problems at once."""
 
+from ._ilqr import ILQRResult, ilqr
 from ._nlp import NonlinearProgram, SolverResult, Term
 from ._program import (DirectCollocation, DirectTranscription, MultipleShooting,
                        TrajectoryOptimizationResult)
 
-__all__ = ["DirectCollocation", "DirectTranscription", "MultipleShooting", "NonlinearProgram",
-           "SolverResult", "Term", "TrajectoryOptimizationResult"]
+__all__ = ["DirectCollocation", "DirectTranscription", "ILQRResult", "MultipleShooting", "NonlinearProgram",
+           "SolverResult", "Term", "TrajectoryOptimizationResult", "ilqr"]

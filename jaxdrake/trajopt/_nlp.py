@@ -121,6 +121,13 @@ class NonlinearProgram:
         def objective(z):
             return sum(jnp.sum(apply(t, t.fn, z)) for t in costs)
 
+        def gradient(z):  # forward mode per block: works through forward-mode simulations too
+            out = jnp.zeros_like(z)
+            for t in costs:
+                blocks = apply(t, jax.jacfwd(lambda v, k, fn=t.fn: jnp.sum(fn(v, k))), z)
+                out = out.at[t.idx].add(blocks)
+            return out
+
         def constraint_values(z):
             return jnp.concatenate([apply(t, t.fn, z).ravel() for t in constraints] or [jnp.zeros(0)])
 
@@ -142,7 +149,7 @@ class NonlinearProgram:
 
         with jax.enable_x64(True):
             self._objective = jax.jit(objective)
-            self._gradient = jax.jit(jax.grad(objective))
+            self._gradient = jax.jit(gradient)
             self._constraints = jax.jit(constraint_values)
             self._jacobian = jax.jit(jacobian_values)
             self._hessian = jax.jit(hessian_values)

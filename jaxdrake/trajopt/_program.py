@@ -358,11 +358,14 @@ class _TrajectoryProgram:
         return values
 
     def solve(self, states=None, inputs=None, duration=None, parameters=None, *, solver="auto",
-              tol=1e-8, max_iterations=3000, progress=False, verbose=False, options=None,
-              initial_guess=None) -> TrajectoryOptimizationResult:
+              tol=1e-8, max_iterations=3000, hessian=None, progress=False, verbose=False,
+              options=None, initial_guess=None) -> TrajectoryOptimizationResult:
         """Solve from a guess (see `initial_guess`, or pass a decision vector as
         `initial_guess`) with `solver` ("auto": IPOPT if available, else SciPy's trust-constr;
-        "ipopt"; "scipy"). `progress` prints a line per second; `verbose` the solver's own log.
+        "ipopt"; "scipy"). `hessian`: "exact" (the sparse autodiff Lagrangian Hessian; default
+        for transcription and collocation) or "limited-memory" (IPOPT's L-BFGS, as Drake runs
+        IPOPT; compiles faster, more iterations). `progress` prints a line per second;
+        `verbose` the solver's own log.
         Never raises on a failed solve: check `result.success` and `result.message`."""
         z0 = (self.initial_guess(states, inputs, duration, parameters) if initial_guess is None
               else np.asarray(initial_guess, float))
@@ -370,8 +373,13 @@ class _TrajectoryProgram:
             raise ValueError(f"initial_guess must have shape ({self.num_variables},), got {z0.shape}")
         kwargs = dict(tol=tol, max_iterations=max_iterations, progress=progress, verbose=verbose,
                       options=options)
-        if self._hessian_approximation != "exact" and solver in ("auto", "ipopt"):
-            kwargs["hessian"] = self._hessian_approximation
+        hessian = self._hessian_approximation if hessian is None else hessian
+        if hessian not in ("exact", "limited-memory"):
+            raise ValueError(f"hessian must be 'exact' or 'limited-memory', got {hessian!r}")
+        if hessian != "exact":
+            if solver == "scipy":
+                raise ValueError("the SciPy solver needs hessian='exact'")
+            kwargs["hessian"] = hessian
         result = solve(self.nlp, z0, solver, **kwargs)
         return self._result(result)
 
@@ -385,9 +393,8 @@ class _TrajectoryProgram:
         T = float(g[0]) if self.free_duration else self._duration_bounds[0]
         p = g[int(self.free_duration):] if self.num_parameters else None
         times = np.linspace(0.0, T, N)
+        defects = self.nlp.constraint_values(z)[: (N - 1) * n]  # the dynamics term comes first
         with jax.enable_x64(True):
-            defects = np.asarray(jax.vmap(self._dynamics_term.fn)(
-                jnp.asarray(z[self._dynamics_term.idx]), jnp.arange(N - 1)))
             states, inputs = self._reconstruct(times, jnp.asarray(X), jnp.asarray(U), jnp.asarray(g))
         return TrajectoryOptimizationResult(
             states=states, inputs=inputs, times=times, knot_states=X, knot_inputs=U, duration=T,
@@ -443,8 +450,9 @@ class DirectCollocation(_TrajectoryProgram):
         return self._segment_term("running cost", simpson)
 
     def _reconstruct(self, times, X, U, g):
-        T, h, system = self._unpack_globals(g)
-        F = jax.vmap(lambda t, x, u: system.dynamics(t, x, u))(jnp.asarray(times), X, U)
+        F = jax.jit(lambda g, t, x, u: jax.vmap(self._unpack_globals(g)[2].dynamics)(t, x, u))(
+            g, jnp.asarray(times), X, U)
+        h = times[1] - times[0]
         x0, x1, f0, f1 = X[:-1], X[1:], h * F[:-1], h * F[1:]
         zero = jnp.zeros_like(x0)
         cubic = jnp.stack([x0, f0, 3 * (x1 - x0) - 2 * f0 - f1, 2 * (x0 - x1) + f0 + f1, zero], axis=1)
@@ -543,20 +551,21 @@ class MultipleShooting(_TrajectoryProgram):
             self._simulate_segment(t, x0, u0, u1, h, system, cost=fn)[n])
 
     def _reconstruct(self, times, X, U, g):
-        T, h, system = self._unpack_globals(g)
+        h = times[1] - times[0]
         inputs = Trajectory.from_samples(times, U, "linear")
         # each segment's own simulation, sampled densely, so an unstable plant is not re-integrated
         fine = np.linspace(0.0, 1.0, 9)[:-1]
         samples = times[:-1, None] + fine[None] * h
 
-        def segment_samples(t, x, u0, u1, s):
+        def segment_samples(g, t, x, u0, u1, s):
+            system = self._unpack_globals(g)[2]
             segment = System.from_functions(
                 lambda r, z, _: system.dynamics(r, z, u0 + (r - t) / h * (u1 - u0)), num_states=self.num_states)
             return simulate(segment, (t, t + h), x, rtol=self.rtol, atol=self.atol,
                             max_steps=self.max_steps, throw=False).state(s)
 
-        values = jax.vmap(segment_samples)(jnp.asarray(times[:-1]), X[:-1], U[:-1], U[1:],
-                                           jnp.asarray(samples)).reshape(-1, self.num_states)
+        values = jax.jit(jax.vmap(segment_samples, (None, 0, 0, 0, 0, 0)))(
+            g, jnp.asarray(times[:-1]), X[:-1], U[:-1], U[1:], jnp.asarray(samples)).reshape(-1, self.num_states)
         ts = samples.ravel()
         states = Trajectory.from_samples(np.append(ts, times[-1]), jnp.concatenate([values, X[-1:]]), "linear")
         return states, inputs

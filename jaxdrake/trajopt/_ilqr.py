@@ -1,0 +1,217 @@
+r"""A batched, JAX-native trajectory optimizer: augmented-Lagrangian iLQR.
+
+For the discretized dynamics $x_{k+1} = \Phi(t_k, x_k, u_k)$ (an RK4 step with the input held,
+or a discrete system's update) it minimizes
+$$J = \sum_{k=0}^{N-1} h\,\ell(t_k, x_k, u_k) + \ell_f(x_N)$$
+subject to $u_{min} \le u_k \le u_{max}$ and optionally $x_N = x_{goal}$, by the method of
+ALTRO (Howell, Jackson & Manchester 2019): constraints enter an augmented Lagrangian
+(Powell-Hestenes-Rockafellar form for the inequalities), whose unconstrained problem is solved
+by iLQR (Li & Todorov 2004) with Levenberg-Marquardt regularization of the value Hessian and a
+backtracking line search (Tassa, Erez & Todorov 2012); multipliers and the penalty are updated
+between inner solves. Every loop is a `lax.while_loop` and every derivative comes from JAX,
+so `jax.vmap` over initial states, goals or parameters solves many problems at once (all
+members run until the last has finished). It returns a status, never raises inside `jit`.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..systems import System
+from ..trajectories import Trajectory
+from ._program import _explicit_step
+
+_ALPHAS = 0.5 ** np.arange(10)
+
+
+class ILQRResult(eqx.Module):
+    """The knot states (N+1, n) and inputs (N, m) of the solution, the cost J (without the
+    constraint terms), the largest constraint violation, the number of inner (iLQR) iterations,
+    and `converged` (cost change below `tol`, constraints below `constraint_tol`)."""
+
+    knot_states: jax.Array
+    knot_inputs: jax.Array
+    time_step: jax.Array
+    cost: jax.Array
+    constraint_violation: jax.Array
+    iterations: jax.Array
+    converged: jax.Array
+
+    @property
+    def times(self):
+        return jnp.arange(self.knot_states.shape[-2]) * self.time_step[..., None]
+
+    @property
+    def states(self) -> Trajectory:
+        """The states as a first-order-hold `Trajectory` (one problem, not a batch)."""
+        return Trajectory.from_samples(self.times, self.knot_states, "linear")
+
+    @property
+    def inputs(self) -> Trajectory:
+        """The inputs as the zero-order-hold tape the optimizer assumed (one problem)."""
+        return Trajectory.from_samples(self.times, jnp.concatenate([self.knot_inputs, self.knot_inputs[-1:]]), "zoh")
+
+
+def _check(system, x0, inputs):
+    if not isinstance(system, System):
+        raise TypeError(f"ilqr needs a jaxdrake.System, got {type(system).__name__}")
+    if system.is_hybrid or system.is_stochastic or (system.has_discrete_state and system.has_continuous_state):
+        raise ValueError(f"ilqr: {system.name} must be purely continuous or purely discrete and deterministic")
+    if x0.shape != (system.num_states,):
+        raise ValueError(f"ilqr: x0 must have shape ({system.num_states},), got {x0.shape}")
+    if inputs.ndim != 2 or inputs.shape[1] != system.num_inputs:
+        raise ValueError(f"ilqr: the input guess must have shape (N, {system.num_inputs}), got {inputs.shape}")
+
+
+def ilqr(system: System, x0, inputs, time_step, running_cost, final_cost=None, *, final_state=None,
+         input_bounds=None, max_iterations: int = 300, max_outer: int = 12, tol: float = 1e-8,
+         constraint_tol: float = 1e-6, penalty: float = 10.0, penalty_growth: float = 10.0) -> ILQRResult:
+    r"""Minimize $\sum_k h\,\ell(t_k, x_k, u_k) + \ell_f(x_N)$ from `x0` over N = len(inputs)
+    steps of `time_step` h (ignored for a discrete system: its period), starting from the
+    input guess `inputs` (N, m).
+
+    - `running_cost(t, x, u)`, `final_cost(x)`: scalars (the final cost defaults to zero).
+    - `final_state`: x_N = final_state, enforced by the augmented Lagrangian (NaN entries free).
+    - `input_bounds`: (u_min, u_max); the system's input limits by default.
+    - `max_iterations`: the total budget of iLQR iterations, shared by `max_outer`
+      multiplier updates; `tol`: relative cost change that ends an inner solve;
+      `constraint_tol`: the violation accepted at the end.
+
+    Returns an `ILQRResult` (pure arrays: `jax.vmap` gives batches)."""
+    x0 = jnp.asarray(x0)
+    inputs = jnp.asarray(inputs, x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else float)
+    x0 = x0.astype(inputs.dtype)
+    _check(system, x0, inputs)
+    N, m = inputs.shape
+    n = system.num_states
+    dtype = inputs.dtype
+    h = jnp.asarray(system.sample_time if system.has_discrete_state else time_step, dtype)
+    final_cost = (lambda x: jnp.zeros((), dtype)) if final_cost is None else final_cost
+    if input_bounds is None:
+        input_bounds = system.input_limits if system.input_limits is not None else (-jnp.inf, jnp.inf)
+    u_lo = jnp.broadcast_to(jnp.asarray(input_bounds[0], dtype), (m,))
+    u_hi = jnp.broadcast_to(jnp.asarray(input_bounds[1], dtype), (m,))
+    has_goal = final_state is not None
+    goal = jnp.broadcast_to(jnp.asarray(final_state if has_goal else 0.0, dtype), (n,))
+    goal_mask = ~jnp.isnan(goal)
+    goal = jnp.where(goal_mask, goal, 0.0)
+    bounded = jnp.concatenate([jnp.isfinite(u_hi), jnp.isfinite(u_lo)])
+    times = jnp.arange(N, dtype=dtype) * h
+
+    def step(t, x, u):
+        if system.has_discrete_state:
+            return system.update(t, x, u)
+        return _explicit_step("rk4", system, t, x, u, h)
+
+    def input_constraints(u):  # c(u) <= 0, zero where unbounded
+        return jnp.where(bounded, jnp.concatenate([u - jnp.where(jnp.isfinite(u_hi), u_hi, 0.0),
+                                                   jnp.where(jnp.isfinite(u_lo), u_lo, 0.0) - u]), 0.0)
+
+    def goal_constraint(x):
+        return jnp.where(goal_mask, x - goal, 0.0) if has_goal else jnp.zeros(n, dtype)
+
+    def stage(t, x, u, lam, mu):
+        c = input_constraints(u)
+        return h * running_cost(t, x, u) + jnp.sum(jnp.maximum(0.0, lam + mu * c) ** 2 - lam ** 2) / (2 * mu)
+
+    def terminal(x, lam, mu):
+        c = goal_constraint(x)
+        return final_cost(x) + lam @ c + mu / 2 * c @ c
+
+    def rollout(U):
+        def body(x, tu):
+            t, u = tu
+            return step(t, x, u), x
+        xN, X = jax.lax.scan(body, x0, (times, U))
+        return jnp.concatenate([X, xN[None]])
+
+    def total(X, U, lam_u, lam_f, mu):
+        return (jnp.sum(jax.vmap(stage, (0, 0, 0, 0, None))(times, X[:-1], U, lam_u, mu))
+                + terminal(X[-1], lam_f, mu))
+
+    def backward(X, U, lam_u, lam_f, mu, reg):
+        fx, fu = jax.vmap(jax.jacfwd(step, (1, 2)))(times, X[:-1], U)
+        grads = jax.vmap(jax.grad(stage, (1, 2)), (0, 0, 0, 0, None))(times, X[:-1], U, lam_u, mu)
+        hess = jax.vmap(jax.hessian(stage, (1, 2)), (0, 0, 0, 0, None))(times, X[:-1], U, lam_u, mu)
+        Vx = jax.grad(terminal)(X[-1], lam_f, mu)
+        Vxx = jax.hessian(terminal)(X[-1], lam_f, mu)
+
+        def body(carry, per_step):
+            Vx, Vxx, ok, dv = carry
+            A, B, lx, lu, lxx, lux, luu = per_step
+            Vreg = Vxx + reg * jnp.eye(n, dtype=dtype)
+            Qx, Qu = lx + A.T @ Vx, lu + B.T @ Vx
+            Qxx = lxx + A.T @ Vxx @ A
+            Quu = luu + B.T @ Vreg @ B
+            Qux = lux + B.T @ Vreg @ A
+            chol = jnp.linalg.cholesky((Quu + Quu.T) / 2)
+            ok = ok & jnp.all(jnp.isfinite(chol))
+            solve = lambda r: jax.scipy.linalg.cho_solve((chol, True), r)  # noqa: E731
+            kff, K = -solve(Qu), -solve(Qux)
+            Vx = Qx + K.T @ Quu @ kff + K.T @ Qu + Qux.T @ kff
+            Vxx = Qxx + K.T @ Quu @ K + K.T @ Qux + Qux.T @ K
+            dv = dv + jnp.stack([kff @ Qu, kff @ Quu @ kff / 2])
+            return (Vx, (Vxx + Vxx.T) / 2, ok, dv), (kff, K)
+
+        (lxx, _), (lux, luu) = hess
+        (_, _, ok, dv), (kff, K) = jax.lax.scan(body, (Vx, Vxx, jnp.asarray(True), jnp.zeros(2, dtype)),
+                                                (fx, fu, *grads, lxx, lux, luu), reverse=True)
+        return kff, K, ok, dv
+
+    def forward(X, U, kff, K, alpha):
+        def body(x, inputs):
+            t, xb, ub, k, Kk = inputs
+            u = ub + alpha * k + Kk @ (x - xb)
+            return step(t, x, u), (x, u)
+        xN, (X_new, U_new) = jax.lax.scan(body, x0, (times, X[:-1], U, kff, K))
+        return jnp.concatenate([X_new, xN[None]]), U_new
+
+    def inner_iteration(state):
+        X, U, J, reg, lam_u, lam_f, mu, it, done, inner_tol = state
+        kff, K, ok, dv = backward(X, U, lam_u, lam_f, mu, reg)
+        trials = jax.vmap(lambda a: forward(X, U, kff, K, a))(jnp.asarray(_ALPHAS, dtype))
+        costs = jax.vmap(lambda Xa, Ua: total(Xa, Ua, lam_u, lam_f, mu))(*trials)
+        expected = -(jnp.asarray(_ALPHAS, dtype) * dv[0] + jnp.asarray(_ALPHAS, dtype) ** 2 * dv[1])
+        accept = ok & jnp.isfinite(costs) & ((J - costs) > 1e-4 * jnp.maximum(expected, 0.0)) & (costs < J)
+        best = jnp.argmax(accept)  # the largest accepted step
+        improved = jnp.any(accept)
+        X_new = jnp.where(improved, trials[0][best], X)
+        U_new = jnp.where(improved, trials[1][best], U)
+        J_new = jnp.where(improved, costs[best], J)
+        reg = jnp.where(improved, jnp.maximum(reg / 10, 1e-9), jnp.minimum(reg * 10, 1e10))
+        small = improved & (J - J_new <= inner_tol * (1 + jnp.abs(J_new)))
+        done = small | (~improved & (reg >= 1e10))
+        return X_new, U_new, J_new, reg, lam_u, lam_f, mu, it + 1, done, inner_tol
+
+    def violation(X, U):
+        return jnp.maximum(jnp.max(jnp.maximum(jax.vmap(input_constraints)(U), 0.0), initial=0.0),
+                           jnp.max(jnp.abs(goal_constraint(X[-1])), initial=0.0))
+
+    def outer_iteration(state):
+        X, U, reg, lam_u, lam_f, mu, it, outer = state
+        J = total(X, U, lam_u, lam_f, mu)
+        inner_tol = jnp.maximum(tol, 1e-3 * 0.1 ** outer.astype(dtype))  # loose first (as ALTRO)
+        inner = jax.lax.while_loop(lambda s: (~s[-2]) & (s[-3] < max_iterations), inner_iteration,
+                                   (X, U, J, reg, lam_u, lam_f, mu, it, jnp.asarray(False), inner_tol))
+        X, U, _, reg, _, _, _, it, _, _ = inner
+        lam_u = jnp.maximum(0.0, lam_u + mu * jax.vmap(input_constraints)(U))
+        lam_f = lam_f + mu * goal_constraint(X[-1])
+        return X, U, reg, lam_u, lam_f, mu * penalty_growth, it, outer + 1
+
+    def keep_going(state):
+        X, U, reg, lam_u, lam_f, mu, it, outer = state
+        return (outer < max_outer) & (it < max_iterations) & ((outer == 0) | (violation(X, U) > constraint_tol))
+
+    U0 = jnp.clip(inputs, u_lo, u_hi)
+    X0 = rollout(U0)
+    state = (X0, U0, jnp.asarray(1e-6, dtype), jnp.zeros((N, 2 * m), dtype), jnp.zeros(n, dtype),
+             jnp.asarray(penalty, dtype), jnp.asarray(0), jnp.asarray(0))
+    X, U, reg, lam_u, lam_f, mu, it, outer = jax.lax.while_loop(keep_going, outer_iteration, state)
+    cost = jnp.sum(jax.vmap(lambda t, x, u: h * running_cost(t, x, u))(times, X[:-1], U)) + final_cost(X[-1])
+    viol = violation(X, U)
+    converged = jnp.isfinite(cost) & (viol <= constraint_tol) & (it < max_iterations)
+    return ILQRResult(knot_states=X, knot_inputs=U, time_step=h, cost=cost, constraint_violation=viol,
+                      iterations=it, converged=converged)
