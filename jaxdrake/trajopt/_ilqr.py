@@ -67,8 +67,8 @@ def _check(system, x0, inputs):
 
 
 def ilqr(system: System, x0, inputs, time_step, running_cost, final_cost=None, *, final_state=None,
-         input_bounds=None, max_iterations: int = 300, max_outer: int = 12, tol: float = 1e-8,
-         constraint_tol: float = 1e-6, penalty: float = 10.0, penalty_growth: float = 10.0) -> ILQRResult:
+         input_bounds=None, max_iterations: int = 500, max_outer: int = 30, tol: float = 1e-8,
+         constraint_tol: float = 1e-6, penalty: float = 1.0, penalty_growth: float = 10.0) -> ILQRResult:
     r"""Minimize $\sum_k h\,\ell(t_k, x_k, u_k) + \ell_f(x_N)$ from `x0` over N = len(inputs)
     steps of `time_step` h (ignored for a discrete system: its period), starting from the
     input guess `inputs` (N, m).
@@ -77,7 +77,7 @@ def ilqr(system: System, x0, inputs, time_step, running_cost, final_cost=None, *
     - `final_state`: x_N = final_state, enforced by the augmented Lagrangian (NaN entries free).
     - `input_bounds`: (u_min, u_max); the system's input limits by default.
     - `max_iterations`: the total budget of iLQR iterations, shared by `max_outer`
-      multiplier updates; `tol`: relative cost change that ends an inner solve;
+      multiplier updates; `penalty` (the first) grows by `penalty_growth` per update, to 1e8; `tol`: relative cost change that ends an inner solve;
       `constraint_tol`: the violation accepted at the end.
 
     Returns an `ILQRResult` (pure arrays: `jax.vmap` gives batches)."""
@@ -194,16 +194,19 @@ def ilqr(system: System, x0, inputs, time_step, running_cost, final_cost=None, *
         X, U, reg, lam_u, lam_f, mu, it, outer = state
         J = total(X, U, lam_u, lam_f, mu)
         inner_tol = jnp.maximum(tol, 1e-3 * 0.1 ** outer.astype(dtype))  # loose first (as ALTRO)
+        reg = jnp.asarray(1e-6, dtype)  # a failed inner solve must not stall the next one
         inner = jax.lax.while_loop(lambda s: (~s[-2]) & (s[-3] < max_iterations), inner_iteration,
                                    (X, U, J, reg, lam_u, lam_f, mu, it, jnp.asarray(False), inner_tol))
         X, U, _, reg, _, _, _, it, _, _ = inner
         lam_u = jnp.maximum(0.0, lam_u + mu * jax.vmap(input_constraints)(U))
         lam_f = lam_f + mu * goal_constraint(X[-1])
-        return X, U, reg, lam_u, lam_f, mu * penalty_growth, it, outer + 1
+        return X, U, reg, lam_u, lam_f, jnp.minimum(mu * penalty_growth, 1e8), it, outer + 1
 
     def keep_going(state):
         X, U, reg, lam_u, lam_f, mu, it, outer = state
-        return (outer < max_outer) & (it < max_iterations) & ((outer == 0) | (violation(X, U) > constraint_tol))
+        last_inner_tol = 1e-3 * 0.1 ** (outer - 1).astype(dtype)  # the last inner solve's tolerance
+        unfinished = (outer == 0) | (violation(X, U) > constraint_tol) | (last_inner_tol > tol)
+        return (outer < max_outer) & (it < max_iterations) & unfinished
 
     U0 = jnp.clip(inputs, u_lo, u_hi)
     X0 = rollout(U0)

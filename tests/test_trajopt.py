@@ -1,0 +1,249 @@
+"""Trajectory optimization against closed forms (the notes' chapter-12 double integrator),
+finite differences, and the failure modes a user must see."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxdrake as jd
+from jaxdrake import trajopt
+
+
+def min_effort(program_type, N, T=2.0, **kwargs):
+    prog = program_type(jd.models.DoubleIntegrator(), N, duration=T, **kwargs)
+    prog.set_initial_state([1.0, 0.0]).set_final_state([0.0, 0.0])
+    return prog.add_running_cost(lambda t, x, u: u @ u)
+
+
+def min_time(program_type, N, **kwargs):
+    plant = jd.models.DoubleIntegrator().with_input_limits(-1.0, 1.0)
+    prog = program_type(plant, N, duration=(0.5, 6.0), **kwargs)
+    prog.set_initial_state([-2.0, 0.0]).set_final_state([0.0, 0.0])
+    return prog.add_duration_cost()
+
+
+def zoh_min_effort_cost(N, T):
+    """min sum h u_k^2 s.t. the exact zero-order-hold double integrator reaches the origin from
+    (1, 0) in N steps: the least-norm solution of a linear system (numpy)."""
+    h = T / N
+    A, B = np.array([[1.0, h], [0.0, 1.0]]), np.array([[h * h / 2], [h]])
+    G = np.hstack([np.linalg.matrix_power(A, N - 1 - k) @ B for k in range(N)])
+    u = np.linalg.lstsq(G, -np.linalg.matrix_power(A, N) @ np.array([1.0, 0.0]), rcond=None)[0]
+    return h * u @ u
+
+
+def test_collocation_minimum_effort_matches_closed_form():
+    T = 2.0
+    result = min_effort(trajopt.DirectCollocation, 11, T).solve()
+    assert result.success and result.message == "solved"
+    assert abs(result.cost - 12 / T**3) < 1e-4
+    assert abs(result.cost - 12 / T**3) < 1e-10  # Simpson on a linear input is exact
+    t = result.times
+    u_exact = -6 / T**2 + 12 * t / T**3  # x(t) = 1 - 3 (t/T)^2 + 2 (t/T)^3
+    np.testing.assert_allclose(result.knot_inputs[:, 0], u_exact, atol=1e-8)
+    s = np.linspace(0, T, 37)
+    np.testing.assert_allclose(np.asarray(result.states.state(jnp.asarray(s)))[:, 0],
+                               1 - 3 * (s / T) ** 2 + 2 * (s / T) ** 3, atol=1e-8)
+    assert result.max_defect < 1e-8
+
+
+@pytest.mark.parametrize("rule", ["rk4", "euler"])
+def test_transcription_minimum_effort_matches_discrete_optimum(rule):
+    N, T = 40, 2.0
+    result = min_effort(trajopt.DirectTranscription, N + 1, T, rule=rule).solve()
+    assert result.success
+    assert abs(result.cost - zoh_min_effort_cost(N, T)) < 1e-10
+    assert abs(result.cost - 12 / T**3) < 2e-3  # O(h^2) from the continuous optimum
+
+
+def test_shooting_minimum_effort_through_simulate():
+    T = 2.0
+    result = min_effort(trajopt.MultipleShooting, 6, T).solve()
+    assert result.success
+    assert abs(result.cost - 12 / T**3) < 1e-6
+    s = np.array([0.3, 1.0, 1.7])
+    np.testing.assert_allclose(np.asarray(result.states.state(jnp.asarray(s)))[:, 0],
+                               1 - 3 * (s / T) ** 2 + 2 * (s / T) ** 3, atol=1e-6)
+
+
+def test_minimum_time_bang_bang():
+    result = min_time(trajopt.DirectCollocation, 101).solve()
+    assert result.success
+    assert abs(result.duration - 2 * np.sqrt(2)) < 1e-3
+    u, t = result.knot_inputs[:, 0], result.times
+    away = np.abs(t - result.duration / 2) > 2 * (t[1] - t[0])
+    np.testing.assert_allclose(u[away], np.where(t[away] < result.duration / 2, 1.0, -1.0), atol=1e-6)
+    # with the input held over each step (exact for q'' = u under RK4) the switch sits on a knot
+    exact = min_time(trajopt.DirectTranscription, 41, rule="rk4").solve()
+    assert abs(exact.duration - 2 * np.sqrt(2)) < 1e-6
+    np.testing.assert_allclose(np.abs(exact.knot_inputs[:-1, 0]), 1.0, atol=1e-5)
+
+
+def test_jacobian_sparse_and_matches_finite_differences():
+    """A pendulum with free duration and a free mass: every block, including the global
+    columns, against central differences; the pattern covers every non-zero."""
+    make = lambda p: jd.models.Pendulum(m=p[0])  # noqa: E731
+    prog = trajopt.DirectCollocation(make, 15, duration=(1.0, 4.0), parameters=[1.0],
+                                     parameter_bounds=([0.5], [2.0]))
+    prog.set_initial_state([0.0, 0.0]).add_state_bounds([-10, -10], [10, 10])
+    prog.add_running_cost(lambda t, x, u: u @ u + jnp.sin(x[0]) ** 2)
+    prog.add_final_cost(lambda T, x: (x[0] - np.pi) ** 2 + T)
+    prog.add_path_constraint(lambda t, x, u: x[1] ** 2 + u[0] ** 2, 0.0, 50.0)
+    prog.add_periodicity([1])
+    z = prog.initial_guess(duration=2.5) + 0.1 * np.random.default_rng(1).standard_normal(prog.num_variables)
+    check = prog.nlp.check_derivatives(z)
+    assert check["jacobian_error"] < 1e-7 * max(1.0, check["jacobian_scale"])
+    assert check["hessian_error"] < 1e-6 * max(1.0, check["hessian_scale"])
+    assert check["outside_pattern"] == 0.0
+    sparsity = prog.nlp.sparsity()
+    assert sparsity["jacobian_nonzeros"] < 0.2 * sparsity["jacobian_dense"]
+
+
+def test_bad_problems_report_status():
+    # the origin cannot be reached from (-2, 0) in 1 s with |u| <= 1
+    plant = jd.models.DoubleIntegrator().with_input_limits(-1.0, 1.0)
+    prog = trajopt.DirectCollocation(plant, 21, duration=1.0)
+    prog.set_initial_state([-2.0, 0.0]).set_final_state([0.0, 0.0]).add_running_cost(lambda t, x, u: u @ u)
+    result = prog.solve()
+    assert not result.success and "infeasible" in result.message
+    assert result.constraint_violation > 1e-3
+    scipy_result = prog.solve(solver="scipy", max_iterations=300)
+    assert not scipy_result.success
+
+    nan_cost = min_effort(trajopt.DirectCollocation, 11).add_running_cost(lambda t, x, u: jnp.log(-1.0 - x[0] ** 2))
+    result = nan_cost.solve()
+    assert not result.success and "invalid number" in result.message
+
+    with pytest.raises(ValueError, match="lower bound 1.0 > upper bound -1.0"):
+        min_effort(trajopt.DirectCollocation, 11).add_input_bounds(1.0, -1.0)
+    with pytest.raises(ValueError, match="contradict earlier bounds"):
+        min_effort(trajopt.DirectCollocation, 11).add_state_bounds([-5, -5], [0.5, 5], knots=[0])
+    with pytest.raises(ValueError, match="duration"):
+        trajopt.DirectCollocation(plant, 11)
+    with pytest.raises(ValueError, match="discrete"):
+        trajopt.DirectCollocation(jd.models.SimpleDTExample(), 11, duration=1.0)
+    with pytest.raises(ValueError, match="hybrid"):
+        trajopt.DirectTranscription(jd.models.BouncingBall(), 11, duration=1.0)
+    with pytest.raises(ValueError, match="no cost"):
+        trajopt.DirectCollocation(plant, 11, duration=1.0).solve()
+    with pytest.raises(ValueError, match="initial guess for the states"):
+        min_effort(trajopt.DirectCollocation, 11).solve(states=np.zeros((5, 2)))
+
+
+def test_scipy_fallback_solves():
+    result = min_effort(trajopt.DirectCollocation, 11).solve(solver="scipy")
+    assert result.success and result.solver.solver == "scipy"
+    assert abs(result.cost - 12 / 8) < 1e-6
+
+
+def test_discrete_system_transcription():
+    """x+ = x^3 (SimpleDTExample, period 1) driven by u: with x_{k+1} = x_k^3 + u_k ... the
+    notes' discrete example has no input, so use a discrete double integrator instead."""
+    h = 0.1
+    plant = jd.System.from_functions(update=lambda t, x, u: jnp.array([x[0] + h * x[1], x[1] + h * u[0]]),
+                                     num_states=2, num_inputs=1, sample_time=h)
+    prog = trajopt.DirectTranscription(plant, 21)
+    prog.set_initial_state([1.0, 0.0]).set_final_state([0.0, 0.0]).add_running_cost(lambda t, x, u: u @ u)
+    result = prog.solve()
+    assert result.success and result.duration == pytest.approx(2.0)
+    # the same least-norm problem with Euler's matrices
+    A, B = np.array([[1.0, h], [0.0, 1.0]]), np.array([[0.0], [h]])
+    G = np.hstack([np.linalg.matrix_power(A, 19 - k) @ B for k in range(20)])
+    u = np.linalg.lstsq(G, -np.linalg.matrix_power(A, 20) @ np.array([1.0, 0.0]), rcond=None)[0]
+    assert abs(result.cost - h * u @ u) < 1e-10
+
+
+def test_ilqr_matches_discrete_optimum_and_batches():
+    N, T = 40, 2.0
+    plant = jd.models.DoubleIntegrator()
+    result = trajopt.ilqr(plant, jnp.array([1.0, 0.0]), jnp.zeros((N, 1)), T / N,
+                          lambda t, x, u: u @ u, final_state=jnp.zeros(2), constraint_tol=1e-11)
+    assert bool(result.converged)
+    assert abs(float(result.cost) - zoh_min_effort_cost(N, T)) < 1e-8
+
+    pendulum = jd.models.Pendulum(input_limits=(-2.0, 2.0))
+
+    def swing_up(x0):
+        return trajopt.ilqr(pendulum, x0, jnp.zeros((100, 1)), 0.05, lambda t, x, u: u @ u,
+                            final_state=jnp.array([np.pi, 0.0]), max_iterations=1000,
+                            constraint_tol=1e-5)
+
+    x0s = jnp.stack([jnp.linspace(-0.3, 0.3, 4), jnp.zeros(4)], axis=1)
+    batch = jax.jit(jax.vmap(swing_up))(x0s)
+    assert bool(jnp.all(batch.converged))
+    assert float(jnp.max(jnp.abs(batch.knot_inputs))) <= 2.0 + 1e-5  # bounds active and respected
+    assert float(jnp.max(jnp.abs(batch.knot_inputs))) > 1.9
+    single = swing_up(x0s[1])
+    np.testing.assert_allclose(batch.knot_inputs[1], single.knot_inputs, atol=1e-6)
+    # the same discretization by transcription (RK4, inputs held) and IPOPT: the same optimum
+    prog = trajopt.DirectTranscription(pendulum, 101, duration=5.0, rule="rk4")
+    prog.set_initial_state(x0s[1]).set_final_state([np.pi, 0.0]).add_running_cost(lambda t, x, u: u @ u)
+    reference = prog.solve(states=np.asarray(single.knot_states),
+                           inputs=np.asarray(jnp.concatenate([single.knot_inputs, single.knot_inputs[-1:]])))
+    assert reference.success
+    assert abs(float(single.cost) - reference.cost) < 1e-4 * reference.cost
+
+
+def test_float32_collocation():
+    with jax.enable_x64(False):
+        result = min_effort(trajopt.DirectCollocation, 11).solve()
+    assert result.success and abs(result.cost - 1.5) < 1e-8  # the program itself runs in float64
+    with jax.enable_x64(False):
+        fast = trajopt.ilqr(jd.models.DoubleIntegrator(), jnp.array([1.0, 0.0]), jnp.zeros((20, 1)), 0.1,
+                            lambda t, x, u: u @ u, final_state=jnp.zeros(2), constraint_tol=1e-4)
+        assert fast.knot_states.dtype == jnp.float32 and bool(fast.converged)
+
+
+def swing_up_program(name, N):
+    """The swing-ups of the examples: from hanging at rest to upright at rest, integral of u^2."""
+    if name == "acrobot":
+        plant, goal, limit, T = jd.models.Acrobot(), [np.pi, 0, 0, 0], 10.0, 5.0
+    else:
+        plant, goal, limit, T = jd.models.CartPole(), [0, np.pi, 0, 0], 50.0, 3.0
+    prog = trajopt.DirectCollocation(plant, N, duration=T).add_input_bounds(-limit, limit)
+    prog.set_initial_state(np.zeros(4)).set_final_state(goal)
+    return plant, prog.add_running_cost(lambda t, x, u: u @ u)
+
+
+def segment_errors(plant, result):
+    """Each segment simulated from its knot with the optimized first-order-hold input, at a
+    tolerance far below the collocation's error: the collocation's local error."""
+    ends = jax.jit(jax.vmap(lambda x, t0, t1: jd.simulate(plant, (t0, t1), x, inputs=result.inputs,
+                                                          rtol=1e-11, atol=1e-12).final_state))
+    simulated = ends(jnp.asarray(result.knot_states[:-1]), jnp.asarray(result.times[:-1]),
+                     jnp.asarray(result.times[1:]))
+    return np.max(np.abs(np.asarray(simulated) - result.knot_states[1:]))
+
+
+def test_acrobot_swing_up():
+    """From the straight line in state space and zero input: defects below 1e-8; each segment
+    simulated from its knot with the optimized input lands on the next knot within 1% of the
+    state's range (the collocation's local error with inputs on their bounds; the acrobot is
+    too unstable to replay 5 s open loop, and refining the knots finds other local optima)."""
+    plant, prog = swing_up_program("acrobot", 101)
+    result = prog.solve(hessian="limited-memory")
+    assert result.success and result.max_defect < 1e-8
+    assert np.max(np.abs(result.knot_inputs)) <= 10.0 * (1 + 1e-6)
+    np.testing.assert_allclose(result.knot_states[-1], [np.pi, 0, 0, 0], atol=1e-9)
+    assert segment_errors(plant, result) < 0.01 * np.max(np.abs(result.knot_states))
+
+
+def test_cart_pole_swing_up_and_simulation_reproduces_it():
+    """Defects below 1e-8; simulating the optimized input reproduces the collocated states to
+    the collocation's accuracy: the segment-wise error falls at Hermite-Simpson's order (local
+    error O(h^5)) when the knots are doubled, and the whole 3 s replays open loop."""
+    plant, coarse = swing_up_program("cartpole", 51)
+    result = coarse.solve(hessian="limited-memory")
+    assert result.success and result.max_defect < 1e-8
+    assert np.max(np.abs(result.knot_inputs)) <= 50.0 * (1 + 1e-6)
+    np.testing.assert_allclose(result.knot_states[-1], [0, np.pi, 0, 0], atol=1e-9)
+    _, fine = swing_up_program("cartpole", 101)
+    refined = fine.solve(states=result.states, inputs=result.inputs, hessian="limited-memory")
+    assert refined.success and refined.max_defect < 1e-8
+    assert abs(refined.cost - result.cost) < 0.01 * result.cost  # the same local optimum, refined
+    coarse_error, fine_error = segment_errors(plant, result), segment_errors(plant, refined)
+    assert fine_error < coarse_error / 8
+    whole = jd.simulate(plant, (0.0, refined.duration), refined.knot_states[0], inputs=refined.inputs,
+                        rtol=1e-11, atol=1e-12)
+    assert np.max(np.abs(np.asarray(whole.state(jnp.asarray(refined.times))) - refined.knot_states)) < 1e-3
