@@ -8,7 +8,10 @@ import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 EXAMPLES = sorted(p for p in (ROOT / "examples").glob("*.py") if not p.name.startswith("_"))
-NOTEBOOKS = sorted((ROOT / "notebooks").glob("*.ipynb"))
+# a notebook that repeats its example script at a much larger batch runs with `-m slow` only
+SLOW = {"swing_up.ipynb"}
+NOTEBOOKS = [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW else p
+             for p in sorted((ROOT / "notebooks").glob("*.ipynb"))]
 
 
 @pytest.mark.notebook
@@ -22,7 +25,7 @@ def test_example_script_runs_and_saves_its_figure(script, tmp_path):
 
 
 @pytest.mark.notebook
-@pytest.mark.parametrize("notebook", NOTEBOOKS, ids=lambda p: p.name)
+@pytest.mark.parametrize("notebook", NOTEBOOKS, ids=lambda p: getattr(p, "name", None))
 def test_notebook_executes(notebook):
     import nbclient
     import nbformat
