@@ -43,7 +43,7 @@ def ours(name, hessian):
 
 
 def drake(name):
-    from pydrake.all import (DiagramBuilder, DirectCollocation, IpoptSolver, MultibodyPlant, Parser,
+    from pydrake.all import (DirectCollocation, IpoptSolver, MultibodyPlant, Parser,
                              PiecewisePolynomial)
     from pydrake.examples import AcrobotPlant
 

@@ -194,7 +194,7 @@ class _TrajectoryProgram:
 
     def _ends_term(self, name, fn, lower=None, upper=None):
         """fn(x_0, x_N, T, p) once."""
-        n, m = self.num_states, self.num_inputs
+        n = self.num_states
         idx = np.concatenate([self._state_index(0), self._state_index(self.num_time_samples - 1),
                               self._globals])[None]
 
