@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..systems import LinearSystem, System
+from ..systems._system import require_plain_system
 from ._riccati import solve_continuous_are, solve_discrete_are
 
 
@@ -28,13 +29,7 @@ def linearize(system: System, x0, u0=None, *, t=0.0, check_equilibrium: bool = T
     deviations from (x0, u0). With `check_equilibrium`, (x0, u0) must be a fixed point:
     $|f(x_0, u_0)| \\le$ tolerance (continuous) or $|f_d(x_0, u_0) - x_0| \\le$ tolerance
     (discrete); otherwise a ValueError gives the residual."""
-    if not isinstance(system, System):
-        raise TypeError(f"linearize needs a jaxdrake.System, got {type(system).__name__}")
-    if system.is_hybrid or system.is_stochastic:
-        raise ValueError(f"linearize: {system.name} is hybrid or stochastic; linearize a mode "
-                         "(or the nominal deterministic system) instead")
-    if system.has_continuous_state and system.has_discrete_state:
-        raise ValueError(f"linearize: {system.name} mixes continuous and discrete states")
+    require_plain_system(system, "linearize", "linearize a mode (or the nominal deterministic system) instead")
     x0 = jnp.asarray(x0, dtype=float).reshape(system.num_states)
     u0 = jnp.zeros(system.num_inputs) if u0 is None else jnp.asarray(u0, dtype=float).reshape(system.num_inputs)
     discrete = system.has_discrete_state

@@ -291,6 +291,17 @@ class FunctionSystem(System):
         return super().initial_state() if self.functions.x0 is None else self.functions.x0
 
 
+def require_plain_system(system, caller: str, advice: str):
+    """Raise a named error unless `system` is a deterministic, non-hybrid `System` whose states
+    are all continuous or all discrete (what linearization and trajectory optimization take)."""
+    if not isinstance(system, System):
+        raise TypeError(f"{caller} needs a jaxdrake.System, got {type(system).__name__}")
+    if system.is_hybrid or system.is_stochastic:
+        raise ValueError(f"{caller}: {system.name} is hybrid or stochastic; {advice}")
+    if system.has_continuous_state and system.has_discrete_state:
+        raise ValueError(f"{caller}: {system.name} mixes continuous and discrete states")
+
+
 def _check_frame(frame, system_name, role, size, prefix):
     if frame is None:
         return Frame.default(f"{system_name}{role.capitalize()}", size, prefix)

@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..systems import System
+from ..systems._system import require_plain_system
 from ..trajectories import Trajectory
 from ._program import _explicit_step
 
@@ -56,10 +57,7 @@ class ILQRResult(eqx.Module):
 
 
 def _check(system, x0, inputs):
-    if not isinstance(system, System):
-        raise TypeError(f"ilqr needs a jaxdrake.System, got {type(system).__name__}")
-    if system.is_hybrid or system.is_stochastic or (system.has_discrete_state and system.has_continuous_state):
-        raise ValueError(f"ilqr: {system.name} must be purely continuous or purely discrete and deterministic")
+    require_plain_system(system, "ilqr", "optimize a deterministic system (one mode of a hybrid one)")
     if x0.shape != (system.num_states,):
         raise ValueError(f"ilqr: x0 must have shape ({system.num_states},), got {x0.shape}")
     if inputs.ndim != 2 or inputs.shape[1] != system.num_inputs:
@@ -145,12 +143,12 @@ def ilqr(system: System, x0, inputs, time_step, running_cost, final_cost=None, *
             Vreg = Vxx + reg * jnp.eye(n, dtype=dtype)
             Qx, Qu = lx + A.T @ Vx, lu + B.T @ Vx
             Qxx = lxx + A.T @ Vxx @ A
-            Quu = luu + B.T @ Vreg @ B
-            Qux = lux + B.T @ Vreg @ A
-            chol = jnp.linalg.cholesky((Quu + Quu.T) / 2)
+            Quu, Qux = luu + B.T @ Vxx @ B, lux + B.T @ Vxx @ A
+            Quu_reg = luu + B.T @ Vreg @ B  # regularized for the gains only (Tassa et al. 2012, eq. 10-11)
+            chol = jnp.linalg.cholesky((Quu_reg + Quu_reg.T) / 2)
             ok = ok & jnp.all(jnp.isfinite(chol))
             solve = lambda r: jax.scipy.linalg.cho_solve((chol, True), r)  # noqa: E731
-            kff, K = -solve(Qu), -solve(Qux)
+            kff, K = -solve(Qu), -solve(lux + B.T @ Vreg @ A)
             Vx = Qx + K.T @ Quu @ kff + K.T @ Qu + Qux.T @ kff
             Vxx = Qxx + K.T @ Quu @ K + K.T @ Qux + Qux.T @ K
             dv = dv + jnp.stack([kff @ Qu, kff @ Quu @ kff / 2])

@@ -29,6 +29,7 @@ import numpy as np
 
 from ..simulation import simulate
 from ..systems import System
+from ..systems._system import require_plain_system
 from ..trajectories import Trajectory
 from ._nlp import NonlinearProgram, SolverResult, Term, solve
 
@@ -97,13 +98,8 @@ class _TrajectoryProgram:
         else:
             self._p0 = np.zeros(0)
             self._make_system = None
-        if not isinstance(system, System):
-            raise TypeError(f"{type(self).__name__} needs a jaxdrake.System, got {type(system).__name__}")
-        if system.is_hybrid or system.is_stochastic:
-            raise ValueError(f"{type(self).__name__}: {system.name} is hybrid or stochastic; optimize a "
-                             "deterministic system (one mode of a hybrid one)")
-        if system.has_discrete_state and system.has_continuous_state:
-            raise ValueError(f"{type(self).__name__}: {system.name} mixes continuous and discrete states")
+        require_plain_system(system, type(self).__name__,
+                             "optimize a deterministic system (one mode of a hybrid one)")
         if not isinstance(num_time_samples, (int, np.integer)) or num_time_samples < 2:
             raise ValueError(f"num_time_samples must be an int >= 2, got {num_time_samples!r}")
         self.system = system
