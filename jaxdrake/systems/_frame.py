@@ -24,11 +24,14 @@ class Frame:
     - `coordinates`: one name per element of the vector, e.g. `("theta", "thetadot")`.
     - `generic`: True for the placeholder frames a system gets when it names none
       (`Frame.default`); a generic frame connects to any frame of the same size.
+    - `coder`: an LCM coder (`jaxdrake.lcm`) for this frame's vectors, set by `with_coder`;
+      not part of the frame's identity.
     """
 
     name: str
     coordinates: tuple[str, ...]
     generic: bool = dataclasses.field(default=False, compare=False)
+    coder: object = dataclasses.field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
         object.__setattr__(self, "coordinates", tuple(str(c) for c in self.coordinates))
@@ -39,6 +42,13 @@ class Frame:
     def default(cls, name: str, size: int, prefix: str) -> "Frame":
         """A generic frame with coordinates `prefix0, prefix1, ...`."""
         return cls(name, tuple(f"{prefix}{i}" for i in range(size)), generic=True)
+
+    def with_coder(self, coder) -> "Frame":
+        """This frame carrying an LCM `coder` (its vectors must have this frame's size), so a
+        port with this frame maps to an LCM channel."""
+        if coder.dim != self.dim:
+            raise ValueError(f"a coder of {coder.dim} coordinates ({coder.frame}) cannot carry frame {self}")
+        return dataclasses.replace(self, coder=coder)
 
     @property
     def dim(self) -> int:

@@ -1,0 +1,8 @@
+"""LCM: coders between message types and vectors (`jaxdrake.lcmtypes` holds the `lcm-gen`
+bindings of the definitions in the top-level `lcmtypes/`), attached to frames with
+`Frame.with_coder`."""
+
+from ._coders import (LcmCoder, MessageError, RobotCommandCoder, RobotStateCoder, SignalCoder,
+                      TypeCoder)
+
+__all__ = ["LcmCoder", "MessageError", "RobotCommandCoder", "RobotStateCoder", "SignalCoder", "TypeCoder"]
