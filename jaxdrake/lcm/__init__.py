@@ -2,7 +2,9 @@
 bindings of the definitions in the top-level `lcmtypes/`), attached to frames with
 `Frame.with_coder`."""
 
+from ._bridge import LcmNode, NodeStatistics
+from ._relay import LoopbackRelay
 from ._coders import (LcmCoder, MessageError, RobotCommandCoder, RobotStateCoder, SignalCoder,
                       TypeCoder)
 
-__all__ = ["LcmCoder", "MessageError", "RobotCommandCoder", "RobotStateCoder", "SignalCoder", "TypeCoder"]
+__all__ = ["LcmCoder", "LcmNode", "LoopbackRelay", "NodeStatistics", "MessageError", "RobotCommandCoder", "RobotStateCoder", "SignalCoder", "TypeCoder"]

@@ -1,0 +1,83 @@
+"""Run a system as an LCM node from the command line (a bridge process).
+
+    python -m jaxdrake.lcm SYSTEM --url URL [--rate HZ] [--input-channel C] [--output-channel C]
+        [--duration S | --max-ticks N] [--lockstep] [--input-timeout S] [--safe-input U ...]
+        [--log FILE]
+
+SYSTEM names a `jaxdrake.System`, or a function returning one, as `module:name` (e.g.
+`jaxdrake.models:Pendulum`) or `path/to/file.py:name`. The URL is required (LCM's default is a
+multicast group); `tcpq://127.0.0.1:PORT` with `jaxdrake.lcm.LoopbackRelay` stays on the host.
+SIGINT / SIGTERM stop the node cleanly; it then prints its counters and latencies.
+"""
+
+import argparse
+import importlib
+import importlib.util
+import logging
+import pathlib
+import sys
+
+import numpy as np
+
+
+def load_system(spec: str):
+    from ..systems import System
+
+    target, _, name = spec.rpartition(":")
+    if not target or not name:
+        raise SystemExit(f"SYSTEM must be 'module:name' or 'file.py:name', got {spec!r}")
+    if target.endswith(".py"):
+        path = pathlib.Path(target)
+        module_spec = importlib.util.spec_from_file_location(path.stem, path)
+        module = importlib.util.module_from_spec(module_spec)
+        sys.path.insert(0, str(path.parent))
+        module_spec.loader.exec_module(module)
+    else:
+        module = importlib.import_module(target)
+    obj = getattr(module, name)
+    system = obj if isinstance(obj, System) else obj()
+    if not isinstance(system, System):
+        raise SystemExit(f"{spec} is not a jaxdrake.System nor a function returning one")
+    return system
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("system")
+    parser.add_argument("--url", required=True)
+    parser.add_argument("--rate", type=float)
+    parser.add_argument("--input-channel")
+    parser.add_argument("--output-channel")
+    parser.add_argument("--duration", type=float)
+    parser.add_argument("--max-ticks", type=int)
+    parser.add_argument("--lockstep", action="store_true")
+    parser.add_argument("--input-timeout", type=float, default=0.5)
+    parser.add_argument("--safe-input", type=float, nargs="+")
+    parser.add_argument("--x0", type=float, nargs="+", help="initial state (default the system's)")
+    parser.add_argument("--log")
+    parser.add_argument("--x64", action="store_true", help="run the system in float64")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    import jax
+
+    if args.x64:
+        jax.config.update("jax_enable_x64", True)
+    from . import LcmNode
+
+    node = LcmNode(load_system(args.system), args.url, rate=args.rate, input_channel=args.input_channel,
+                   output_channel=args.output_channel, lockstep=args.lockstep, input_timeout=args.input_timeout,
+                   safe_input=args.safe_input, log_path=args.log, x0=args.x0)
+    print(f"node {node.system.name} on {args.url}: in {node.input_channel if node.input_coder else '-'}, "
+          f"out {node.output_channel}, rate {node.rate or 'on input'}", flush=True)
+    stats = node.run(duration=args.duration, max_ticks=args.max_ticks)
+    line = (f"stopped: {stats.ticks} ticks, {stats.received} received, {stats.published} published, "
+            f"{stats.malformed} malformed, {stats.stale_events} stale")
+    if stats.latencies:
+        lat = np.asarray(stats.latencies) * 1e6
+        line += (f"; latency input->output p50 {np.percentile(lat, 50):.0f} us, "
+                 f"p99 {np.percentile(lat, 99):.0f} us, max {lat.max():.0f} us")
+    print(line, flush=True)
+
+
+if __name__ == "__main__":
+    main()

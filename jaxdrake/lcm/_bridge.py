@@ -1,0 +1,269 @@
+r"""Run a system as a node on an LCM network (the notes' `runLCM(sys, ...)`, D.5.1).
+
+The node subscribes to the system's input channel, holds the latest input, and at every tick
+of its clock advances the jit-compiled system and publishes its output:
+
+- a continuous system is integrated over the tick, $x(t + \Delta) = \phi_\Delta(t, x, u)$, with
+  `simulate` (fixed-step RK4, the input held);
+- a discrete system takes its update at its sample time (the tick is its period);
+- a system without state (a controller $u = k(t, y)$) is evaluated on every input message
+  (`rate=None`) or at the rate.
+
+Each port's frame gives its coder (`Frame.with_coder`), `SignalCoder(frame)` by default; the
+channel defaults to the frame's name. A malformed message is counted and dropped; an input
+older than `input_timeout` is *stale*: the node logs it once, applies `safe_input` (or holds
+the last input when none is given) until messages return, and logs the recovery. `lockstep`
+runs a simulated plant as fast as its peer answers: tick k waits for the input stamped with
+tick k's time (or the timeout), so no message is lost and the loop is reproducible.
+SIGINT / SIGTERM end `run()` cleanly; every message in and out can be written to an LCM event
+log (`lcm-logplayer` replays it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import signal
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..simulation import simulate
+from ..systems import System
+from ._coders import MessageError, SignalCoder
+
+log = logging.getLogger("jaxdrake.lcm")
+
+
+def _no_delay(node):
+    """Set TCP_NODELAY on a tcpq client's socket: LCM's C client leaves Nagle's algorithm on,
+    which holds small messages back ~40 ms."""
+    import os
+    import socket
+
+    sock = socket.socket(fileno=os.dup(node.fileno()))
+    try:
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    except OSError:
+        pass
+    finally:
+        sock.close()
+
+
+def _coder(frame):
+    return frame.coder if frame.coder is not None else SignalCoder(frame)
+
+
+@dataclasses.dataclass
+class NodeStatistics:
+    """Counters of a node's run."""
+
+    received: int = 0
+    published: int = 0
+    malformed: int = 0
+    stale_events: int = 0
+    ticks: int = 0
+    latencies: list = dataclasses.field(default_factory=list)  # s, input message -> output publish
+
+
+class LcmNode:
+    """`system` as an LCM node on `url` (always pass one: LCM's default is a multicast group),
+    or on an existing `lcm.LCM` instance (e.g. one `memq://` shared in a process).
+
+    - `input_channel` / `output_channel`: default the input / output frame's name.
+    - `rate`: ticks per second (default: the sample time of a discrete system; 100 Hz for a
+      continuous one; None for a stateless one, which then answers each input message).
+    - `x0`: the initial state (default `system.initial_state()`); `t0` the initial time.
+    - `substeps`: RK4 steps per tick for a continuous system.
+    - `input_timeout` (s), `safe_input`: the stale-input behaviour (see the module doc).
+    - `lockstep`: wait each tick for the input stamped with that tick's time.
+    - `log_path`: write every message in and out to an LCM event log there.
+    """
+
+    def __init__(self, system: System, url: str, *, input_channel=None, output_channel=None, rate=None,
+                 x0=None, t0=0.0, substeps: int = 10, input_timeout: float = 0.5, safe_input=None,
+                 lockstep: bool = False, log_path=None):
+        import lcm
+
+        if not isinstance(system, System):
+            raise TypeError(f"LcmNode needs a jaxdrake.System, got {type(system).__name__}")
+        if not isinstance(url, lcm.LCM) and (not isinstance(url, str) or "://" not in url):
+            raise ValueError(f"give an explicit LCM URL such as 'udpm://239.255.76.67:7667?ttl=0' "
+                             f"or 'tcpq://127.0.0.1:7700', got {url!r}")
+        if system.is_hybrid or system.is_stochastic:
+            raise ValueError(f"LcmNode: {system.name} is hybrid or stochastic; run a deterministic system")
+        self.system, self.url = system, url if isinstance(url, str) else "an lcm.LCM instance"
+        self.stateless = system.num_states == 0
+        if rate is None and not self.stateless:
+            rate = 1.0 / system.sample_time if system.has_discrete_state else 100.0
+        self.rate = rate
+        self.input_coder = _coder(system.input_frame) if system.num_inputs else None
+        self.output_coder = _coder(system.output_frame)
+        self.input_channel = input_channel or system.input_frame.name
+        self.output_channel = output_channel or system.output_frame.name
+        self.input_timeout, self.lockstep = float(input_timeout), bool(lockstep)
+        self.safe_input = None if safe_input is None else np.asarray(safe_input, float).reshape(system.num_inputs)
+        self.t = float(t0)
+        self.x = np.asarray(system.initial_state() if x0 is None else x0, float).reshape(system.num_states)
+        self.u = np.zeros(system.num_inputs) if self.safe_input is None else self.safe_input.copy()
+        self.u_time, self.u_arrival = None, None
+        self.stale = False
+        self.stats = NodeStatistics()
+        self._stop = False
+        self._started = time.perf_counter()
+        self._lcm = url if isinstance(url, lcm.LCM) else lcm.LCM(url)
+        if self.url.startswith("tcpq://"):
+            _no_delay(self._lcm)
+        self._log = lcm.EventLog(str(log_path), "w", overwrite=True) if log_path else None
+        if self.input_coder is not None:
+            self._lcm.subscribe(self.input_channel, self._on_input)
+        self._compile(substeps)
+
+    def _compile(self, substeps):
+        system = self.system
+        dt = 1.0 / self.rate if self.rate else 0.0
+        if system.has_discrete_state:
+            advance = lambda t, x, u: system.update(t, x, u)  # noqa: E731
+        elif system.num_states:
+            def advance(t, x, u):
+                return simulate(system, (t, t + dt), x, inputs=lambda s: u, solver="rk4", dt=dt / substeps,
+                                dense=False, throw=False).final_state
+        else:
+            advance = lambda t, x, u: x  # noqa: E731
+        self._advance = jax.jit(advance)
+        self._output = jax.jit(lambda t, x, u: system.output(t, x, u))
+        self.dt = dt
+        # compile before the first message, so the real-time loop never waits for XLA
+        u = jnp.asarray(self.u)
+        jax.block_until_ready((self._advance(self.t, jnp.asarray(self.x), u),
+                               self._output(self.t, jnp.asarray(self.x), u)))
+
+    # ----- messages -------------------------------------------------------------------------
+
+    def _record(self, channel, data):
+        if self._log is not None:
+            self._log.write_event(int(time.time() * 1e6), channel, data)
+
+    def _on_input(self, channel, data):
+        arrival = time.perf_counter()
+        self._record(channel, data)
+        try:
+            t, u = self.input_coder.decode(data)
+        except MessageError as error:
+            self.stats.malformed += 1
+            log.debug("dropped a message on %s: %s", channel, error)
+            return
+        self.stats.received += 1
+        self.u, self.u_time, self.u_arrival = u, t, arrival
+        if self.stale:
+            self.stale = False
+            log.warning("%s: input %s resumed at t = %.3f", self.system.name, self.input_channel, self.t)
+        if self.stateless and self.rate is None:
+            self._publish(t, arrival)
+
+    def _publish(self, t, arrival=None):
+        y = np.asarray(self._output(t, jnp.asarray(self.x), jnp.asarray(self._applied_input())))
+        data = self.output_coder.encode(t, y)
+        self._lcm.publish(self.output_channel, data)
+        self._record(self.output_channel, data)
+        self.stats.published += 1
+        if arrival is not None:
+            self.stats.latencies.append(time.perf_counter() - arrival)
+
+    def _applied_input(self):
+        if self.stale and self.safe_input is not None:
+            return self.safe_input
+        return self.u
+
+    def _check_stale(self, now):
+        if self.input_coder is None or self.stale:
+            return
+        last = self.u_arrival if self.u_arrival is not None else self._started
+        if now - last > self.input_timeout:
+            self.stale = True
+            self.stats.stale_events += 1
+            action = "applying the safe input" if self.safe_input is not None else "holding the last input"
+            log.warning("%s: no message on %s for %.3f s: %s", self.system.name, self.input_channel,
+                        now - last, action)
+
+    # ----- the loop -------------------------------------------------------------------------
+
+    def tick(self):
+        """Publish y(t), then advance the state over one tick with the input applied now."""
+        self._publish(self.t, self.u_arrival)
+        u = jnp.asarray(self._applied_input())
+        self.x = np.asarray(self._advance(self.t, jnp.asarray(self.x), u))
+        self.t += self.dt
+        self.stats.ticks += 1
+
+    def _lockstep_tick(self):
+        """Publish y(t_k), wait for the input stamped t_k (or the timeout), then advance."""
+        self._publish(self.t)
+        deadline = time.perf_counter() + self.input_timeout
+        while (self.u_time is None or self.u_time < self.t - 1e-9) and not self._stop:
+            remaining = deadline - time.perf_counter()
+            if remaining <= 0:
+                self._check_stale(time.perf_counter())
+                break
+            self.handle(max(remaining, 0.001))
+        self.x = np.asarray(self._advance(self.t, jnp.asarray(self.x), jnp.asarray(self._applied_input())))
+        self.t += self.dt
+        self.stats.ticks += 1
+
+    def handle(self, timeout: float = 0.0):
+        """Handle the messages that arrive within `timeout` seconds (outside `run` too)."""
+        try:
+            self._lcm.handle_timeout(max(0, int(timeout * 1000)))
+            self._failures = 0
+        except OSError:  # a signal interrupts the wait (its handler runs after this returns)
+            self._failures = getattr(self, "_failures", 0) + 1
+            if self._failures > 3 and not self._stop:  # not a signal: the connection is gone
+                raise
+
+    def stop(self):
+        self._stop = True
+
+    def run(self, duration: float | None = None, max_ticks: int | None = None) -> NodeStatistics:
+        """Run until `duration` seconds of wall time (or `max_ticks`, or SIGINT / SIGTERM) pass;
+        return the counters."""
+        previous = {}
+        try:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                previous[sig] = signal.signal(sig, lambda *_: self.stop())
+        except ValueError:  # not the main thread: stop() is the way out
+            previous = {}
+        if self.input_coder is not None:  # let the subscription reach the network (a relay, a
+            settle = time.perf_counter() + 0.2  # multicast join) before the first output
+            while time.perf_counter() < settle:
+                self.handle(0.05)
+        self._started = start = time.perf_counter()
+        next_tick = start
+        try:
+            while not self._stop:
+                now = time.perf_counter()
+                if duration is not None and now - start >= duration:
+                    break
+                if max_ticks is not None and self.stats.ticks >= max_ticks:
+                    break
+                self._check_stale(now)
+                if self.rate is None:  # event-driven: answer messages
+                    self.handle(0.05)
+                    continue
+                if self.lockstep and self.input_coder is not None:
+                    self._lockstep_tick()
+                    continue
+                if now >= next_tick:
+                    self.tick()
+                    next_tick += self.dt
+                    if next_tick < now:  # overrun: do not try to catch up with a burst
+                        next_tick = now + self.dt
+                else:
+                    self.handle(next_tick - now)
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+            if self._log is not None:
+                self._log.close()
+        return self.stats

@@ -1,0 +1,161 @@
+"""The LCM bridge: two OS processes close a plant / controller loop over loopback TCP, fuzzed
+messages never stop a node, a stale input triggers the safe behaviour and recovery, SIGINT
+stops a node cleanly. Only 127.0.0.1 (a LoopbackRelay) and log files are used."""
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import jax
+import jax.numpy as jnp
+import lcm
+import numpy as np
+import pytest
+
+import jaxdrake as jd
+from jaxdrake.lcm import LcmNode, LoopbackRelay, SignalCoder
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+NODES = os.path.join(ROOT, "examples", "_lcm_nodes.py")
+sys.path.insert(0, os.path.join(ROOT, "examples"))
+import _lcm_nodes  # noqa: E402
+
+X0 = [np.pi - 0.3, 0.0]
+
+
+def node_process(name, url, *extra):
+    return subprocess.Popen([sys.executable, "-m", "jaxdrake.lcm", f"{NODES}:{name}", "--url", url, "--x64", *extra],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def wait_until_running(process, timeout=120):
+    """Read the node's output until its start line (printed once compiled and subscribed)."""
+    deadline, line = time.time() + timeout, ""
+    while not line.startswith("node ") and time.time() < deadline:
+        line = process.stdout.readline()
+    time.sleep(0.5)  # past the node's settling time
+
+
+def read_log(path):
+    events = {}
+    for event in lcm.EventLog(str(path), "r"):
+        events.setdefault(event.channel, []).append(event.data)
+    return events
+
+
+def test_two_processes_close_the_loop_without_losing_a_message(tmp_path):
+    ticks, rate = 10_000, 100.0
+    with LoopbackRelay() as relay:
+        controller = node_process("controller", relay.url, "--log", str(tmp_path / "controller.log"))
+        wait_until_running(controller)
+        plant = node_process("plant", relay.url, "--rate", str(rate), "--lockstep", "--max-ticks", str(ticks),
+                             "--input-timeout", "30", "--x0", *map(str, X0), "--log", str(tmp_path / "plant.log"))
+        plant_out, _ = plant.communicate(timeout=600)
+        controller.send_signal(signal.SIGINT)
+        controller_out, _ = controller.communicate(timeout=60)
+    assert plant.returncode == 0, plant_out
+    assert controller.returncode == 0 and "stopped:" in controller_out, controller_out
+    assert f"{ticks} ticks" in plant_out and "0 malformed, 0 stale" in plant_out, plant_out
+
+    plant_log, controller_log = read_log(tmp_path / "plant.log"), read_log(tmp_path / "controller.log")
+    assert len(plant_log["PendulumState"]) == ticks and plant_log["PendulumState"] == controller_log["PendulumState"]
+    assert len(plant_log["PendulumInput"]) == ticks and plant_log["PendulumInput"] == controller_log["PendulumInput"]
+
+    pendulum, lqr = _lcm_nodes.plant(), _lcm_nodes.controller()
+    state_coder, input_coder = SignalCoder(pendulum.output_frame), SignalCoder(pendulum.input_frame)
+    times, states = zip(*(state_coder.decode(d) for d in plant_log["PendulumState"]))
+    inputs = np.array([input_coder.decode(d)[1] for d in plant_log["PendulumInput"]])
+    np.testing.assert_allclose(np.diff(times), 1 / rate, atol=1e-6)
+
+    # the same sampled loop in one process: u_k = k(x_k), x_{k+1} = RK4 over the tick, u held
+    def sampled_loop(dt, steps):
+        @jax.jit
+        def run(x0):
+            def step(x, k):
+                u = lqr.output(k * dt, jnp.zeros(0), x)
+                x_next = jd.simulate(pendulum, (k * dt, k * dt + dt), x, inputs=lambda s: u, solver="rk4",
+                                     dt=dt / 10, dense=False).final_state
+                return x_next, (x, u)
+            return jax.lax.scan(step, x0, jnp.arange(steps))[1]
+        return run(jnp.asarray(X0))
+
+    xs, us = sampled_loop(1 / rate, 200)
+    np.testing.assert_allclose(np.array(states[:200]), xs, atol=1e-9)
+    np.testing.assert_allclose(inputs[:200], us, atol=1e-9)
+    # and the continuous closed loop, to the sample-and-hold's first-order error: halving the
+    # tick halves the gap
+    continuous = jd.simulate(jd.feedback(pendulum, lqr), (0.0, 2.0), jnp.asarray(X0), rtol=1e-10, atol=1e-12)
+    gap = np.max(np.abs(np.asarray(continuous.state(jnp.asarray(times[:200]))) - np.array(states[:200])))
+    finer, _ = sampled_loop(0.5 / rate, 400)
+    finer_gap = np.max(np.abs(np.asarray(continuous.state(jnp.arange(400) * 0.5 / rate)) - np.asarray(finer)))
+    assert 1.6 < gap / finer_gap < 2.4, (gap, finer_gap)
+    assert np.abs(states[-1] - np.array([np.pi, 0.0])).max() < 1e-6
+
+
+def test_fuzzed_messages_never_stop_a_node(tmp_path):
+    rng = np.random.default_rng(1)
+    pendulum = _lcm_nodes.plant()
+    bus = lcm.LCM("memq://")
+    node = LcmNode(_lcm_nodes.controller(), bus)
+    replies = []
+    bus.subscribe("PendulumInput", lambda channel, data: replies.append(data))
+    state_coder = SignalCoder(pendulum.output_frame)
+    valid = state_coder.encode(0.0, X0)
+    for k in range(10_000):
+        data = rng.bytes(int(rng.integers(0, 120))) if k % 2 else valid[: int(rng.integers(0, len(valid)))]
+        bus.publish("PendulumState", data)
+        node.handle()
+    assert node.stats.malformed == 10_000 and node.stats.received == 0 and not replies
+    bus.publish("PendulumState", valid)
+    node.handle()
+    node.handle()  # memq delivers the node's reply on the next dispatch
+    assert node.stats.received == 1 and len(replies) == 1
+    u = SignalCoder(pendulum.input_frame).decode(replies[0])[1]
+    np.testing.assert_allclose(u, _lcm_nodes.controller().output(0.0, jnp.zeros(0), jnp.asarray(X0)), atol=1e-12)
+
+
+def test_stale_input_applies_the_safe_input_and_recovers(caplog):
+    with LoopbackRelay() as relay:
+        node = LcmNode(_lcm_nodes.plant(), relay.url, rate=200.0, input_timeout=0.1, safe_input=[0.0],
+                       x0=[0.0, 0.0])
+        publisher = lcm.LCM(relay.url)
+        coder = SignalCoder(node.system.input_frame)
+
+        def publish_with_a_gap():
+            for phase_end, active in ((0.4, True), (0.9, False), (1.4, True)):
+                while time.perf_counter() - start < phase_end:
+                    if active:
+                        publisher.publish("PendulumInput", coder.encode(0.0, [1.0]))
+                    time.sleep(0.01)
+
+        start = time.perf_counter()
+        thread = threading.Thread(target=publish_with_a_gap)
+        with caplog.at_level(logging.WARNING, logger="jaxdrake.lcm"):
+            thread.start()
+            stats = node.run(duration=1.6)
+            thread.join()
+        del publisher
+    assert stats.stale_events >= 1 and stats.received > 50
+    messages = [r.getMessage() for r in caplog.records]
+    assert any("applying the safe input" in m for m in messages), messages
+    assert any("resumed" in m for m in messages), messages
+
+
+def test_sigint_stops_a_node_cleanly(tmp_path):
+    with LoopbackRelay() as relay:
+        node = node_process("plant", relay.url, "--rate", "100", "--log", str(tmp_path / "plant.log"))
+        wait_until_running(node)
+        node.send_signal(signal.SIGINT)
+        out, _ = node.communicate(timeout=60)
+    assert node.returncode == 0 and "stopped:" in out, out
+    events = read_log(tmp_path / "plant.log")
+    assert len(events["PendulumState"]) > 10  # the log was closed properly and replays
+
+
+def test_node_refuses_a_missing_url():
+    with pytest.raises(ValueError, match="explicit LCM URL"):
+        LcmNode(_lcm_nodes.plant(), "")
