@@ -2,10 +2,11 @@
 controller (Q = diag(10, 1), R = 1 about the upright), named for `python -m jaxdrake.lcm`."""
 
 import jax.numpy as jnp
+import numpy as np
 
 import jaxdrake as jd
 
-UPRIGHT = jnp.array([jnp.pi, 0.0])
+UPRIGHT = np.array([np.pi, 0.0])  # numpy: made in the precision JAX has when it is used
 
 
 def plant():
@@ -13,4 +14,4 @@ def plant():
 
 
 def controller():
-    return jd.control.lqr(plant(), jnp.diag(jnp.array([10.0, 1.0])), jnp.eye(1), x0=UPRIGHT).controller
+    return jd.control.lqr(plant(), jnp.diag(jnp.array([10.0, 1.0])), jnp.eye(1), x0=jnp.asarray(UPRIGHT)).controller

@@ -138,7 +138,6 @@ def test_stale_input_applies_the_safe_input_and_recovers(caplog):
             thread.start()
             stats = node.run(duration=1.6)
             thread.join()
-        del publisher
     assert stats.stale_events >= 1 and stats.received > 50
     messages = [r.getMessage() for r in caplog.records]
     assert any("applying the safe input" in m for m in messages), messages
