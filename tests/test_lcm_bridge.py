@@ -156,5 +156,55 @@ def test_sigint_stops_a_node_cleanly(tmp_path):
 
 
 def test_node_refuses_a_missing_url():
-    with pytest.raises(ValueError, match="explicit LCM URL"):
+    with pytest.raises(ValueError, match="an LCM URL looks like"):
         LcmNode(_lcm_nodes.plant(), "")
+
+
+def test_discrete_system_node_updates_at_its_period():
+    """x+ = 0.5 x + u at 100 Hz with no input arriving (the last input, zero, is held): the
+    published outputs are x0 0.5^k at t = k / 100."""
+    system = jd.System.from_functions(update=lambda t, x, u: 0.5 * x + u, num_states=1, num_inputs=1,
+                                      sample_time=0.01)
+    bus = lcm.LCM("memq://")
+    node = LcmNode(system, bus, x0=[8.0], input_timeout=10.0)
+    outputs = []
+    bus.subscribe(system.output_frame.name, lambda channel, data: outputs.append(SignalCoder(system.output_frame).decode(data)))
+    node.run(max_ticks=6)
+    bus.handle_timeout(10)
+    while bus.handle_timeout(0):
+        pass
+    times, values = zip(*outputs)
+    np.testing.assert_allclose(times, 0.01 * np.arange(len(times)), atol=1e-12)
+    np.testing.assert_allclose(np.ravel(values), 8.0 * 0.5 ** np.arange(len(values)))
+    assert len(values) >= 5
+
+
+def test_killed_and_restarted_controller_process(caplog):
+    """The plant node (here) loses its controller process (SIGKILL): it reports the stale
+    input, applies the safe input, and resumes when a new controller process answers."""
+    with LoopbackRelay() as relay:
+        node = LcmNode(_lcm_nodes.plant(), relay.url, rate=100.0, input_timeout=0.3, safe_input=[0.0],
+                       x0=X0)
+        events = []
+
+        def controller_life():
+            for life in range(2):
+                process = node_process("controller", relay.url)
+                wait_until_running(process)
+                time.sleep(1.0)
+                events.append(node.stats.received)
+                process.kill()
+                process.wait()
+                time.sleep(1.0)
+            node.stop()
+
+        thread = threading.Thread(target=controller_life)
+        with caplog.at_level(logging.WARNING, logger="jaxdrake.lcm"):
+            thread.start()
+            stats = node.run(duration=120)
+            thread.join()
+    messages = [r.getMessage() for r in caplog.records]
+    assert sum("applying the safe input" in m for m in messages) >= 2, messages
+    assert sum("resumed" in m for m in messages) == 2, messages
+    assert events[0] > 20 and events[1] > events[0] + 20  # answered in both lives
+    assert stats.malformed == 0

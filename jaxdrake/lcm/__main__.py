@@ -1,12 +1,13 @@
 """Run a system as an LCM node from the command line (a bridge process).
 
-    python -m jaxdrake.lcm SYSTEM --url URL [--rate HZ] [--input-channel C] [--output-channel C]
+    python -m jaxdrake.lcm SYSTEM [--url URL] [--rate HZ] [--input-channel C] [--output-channel C]
         [--duration S | --max-ticks N] [--lockstep] [--input-timeout S] [--safe-input U ...]
         [--log FILE]
 
 SYSTEM names a `jaxdrake.System`, or a function returning one, as `module:name` (e.g.
-`jaxdrake.models:Pendulum`) or `path/to/file.py:name`. The URL is required (LCM's default is a
-multicast group); `tcpq://127.0.0.1:PORT` with `jaxdrake.lcm.LoopbackRelay` stays on the host.
+`jaxdrake.models:Pendulum`) or `path/to/file.py:name`. The default URL is LCM's multicast group
+with ttl=0 (host only); `tcpq://127.0.0.1:PORT` with `jaxdrake.lcm.LoopbackRelay` needs no
+multicast at all.
 SIGINT / SIGTERM stop the node cleanly; it then prints its counters and latencies.
 """
 
@@ -44,7 +45,7 @@ def load_system(spec: str):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("system")
-    parser.add_argument("--url", required=True)
+    parser.add_argument("--url", default=None, help="LCM URL (default: the multicast group with ttl=0, host only)")
     parser.add_argument("--rate", type=float)
     parser.add_argument("--input-channel")
     parser.add_argument("--output-channel")
@@ -64,6 +65,9 @@ def main(argv=None):
         jax.config.update("jax_enable_x64", True)
     from . import LcmNode
 
+    from ._bridge import HOST_ONLY_URL
+
+    args.url = args.url or HOST_ONLY_URL
     node = LcmNode(load_system(args.system), args.url, rate=args.rate, input_channel=args.input_channel,
                    output_channel=args.output_channel, lockstep=args.lockstep, input_timeout=args.input_timeout,
                    safe_input=args.safe_input, log_path=args.log, x0=args.x0)

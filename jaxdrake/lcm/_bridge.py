@@ -36,6 +36,9 @@ from ._coders import MessageError, SignalCoder
 log = logging.getLogger("jaxdrake.lcm")
 
 
+HOST_ONLY_URL = "udpm://239.255.76.67:7667?ttl=0"  # LCM's usual group; ttl=0: never leaves the host
+
+
 def _no_delay(node):
     """Set TCP_NODELAY on a tcpq client's socket: LCM's C client leaves Nagle's algorithm on,
     which holds small messages back ~40 ms."""
@@ -68,8 +71,9 @@ class NodeStatistics:
 
 
 class LcmNode:
-    """`system` as an LCM node on `url` (always pass one: LCM's default is a multicast group),
-    or on an existing `lcm.LCM` instance (e.g. one `memq://` shared in a process).
+    """`system` as an LCM node on `url` — by default LCM's multicast group with ttl=0, which
+    never leaves the host (LCM's own default, `lcm.LCM()`, has ttl=1 and reaches the LAN) — or
+    on an existing `lcm.LCM` instance (e.g. one `memq://` shared in a process).
 
     - `input_channel` / `output_channel`: default the input / output frame's name.
     - `rate`: ticks per second (default: the sample time of a discrete system; 100 Hz for a
@@ -81,7 +85,7 @@ class LcmNode:
     - `log_path`: write every message in and out to an LCM event log there.
     """
 
-    def __init__(self, system: System, url: str, *, input_channel=None, output_channel=None, rate=None,
+    def __init__(self, system: System, url=HOST_ONLY_URL, *, input_channel=None, output_channel=None, rate=None,
                  x0=None, t0=0.0, substeps: int = 10, input_timeout: float = 0.5, safe_input=None,
                  lockstep: bool = False, log_path=None):
         import lcm
@@ -89,8 +93,8 @@ class LcmNode:
         if not isinstance(system, System):
             raise TypeError(f"LcmNode needs a jaxdrake.System, got {type(system).__name__}")
         if not isinstance(url, lcm.LCM) and (not isinstance(url, str) or "://" not in url):
-            raise ValueError(f"give an explicit LCM URL such as 'udpm://239.255.76.67:7667?ttl=0' "
-                             f"or 'tcpq://127.0.0.1:7700', got {url!r}")
+            raise ValueError(f"an LCM URL looks like 'udpm://239.255.76.67:7667?ttl=0', 'tcpq://127.0.0.1:7700' "
+                             f"or 'memq://', got {url!r}")
         if system.is_hybrid or system.is_stochastic:
             raise ValueError(f"LcmNode: {system.name} is hybrid or stochastic; run a deterministic system")
         self.system, self.url = system, url if isinstance(url, str) else "an lcm.LCM instance"
