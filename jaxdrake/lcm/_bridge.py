@@ -31,6 +31,7 @@ import numpy as np
 
 from ..simulation import simulate
 from ..systems import System
+from ..systems._system import require_plain_system
 from ._coders import MessageError, SignalCoder
 
 log = logging.getLogger("jaxdrake.lcm")
@@ -90,13 +91,10 @@ class LcmNode:
                  lockstep: bool = False, log_path=None):
         import lcm
 
-        if not isinstance(system, System):
-            raise TypeError(f"LcmNode needs a jaxdrake.System, got {type(system).__name__}")
+        require_plain_system(system, "LcmNode", "run a deterministic system (one mode of a hybrid one)")
         if not isinstance(url, lcm.LCM) and (not isinstance(url, str) or "://" not in url):
             raise ValueError(f"an LCM URL looks like 'udpm://239.255.76.67:7667?ttl=0', 'tcpq://127.0.0.1:7700' "
                              f"or 'memq://', got {url!r}")
-        if system.is_hybrid or system.is_stochastic:
-            raise ValueError(f"LcmNode: {system.name} is hybrid or stochastic; run a deterministic system")
         self.system, self.url = system, url if isinstance(url, str) else "an lcm.LCM instance"
         self.stateless = system.num_states == 0
         if rate is None and not self.stateless:
@@ -112,9 +110,10 @@ class LcmNode:
         self.x = np.asarray(system.initial_state() if x0 is None else x0, float).reshape(system.num_states)
         self.u = np.zeros(system.num_inputs) if self.safe_input is None else self.safe_input.copy()
         self.u_time, self.u_arrival = None, None
+        self._fresh_arrival = None  # arrival time of an input not yet answered by an output
         self.stale = False
         self.stats = NodeStatistics()
-        self._stop = False
+        self._stop, self._failures = False, 0
         self._started = time.perf_counter()
         self._lcm = url if isinstance(url, lcm.LCM) else lcm.LCM(url)
         if self.url.startswith("tcpq://"):
@@ -157,21 +156,23 @@ class LcmNode:
             log.debug("dropped a message on %s: %s", channel, error)
             return
         self.stats.received += 1
-        self.u, self.u_time, self.u_arrival = u, t, arrival
+        self.u, self.u_time, self.u_arrival, self._fresh_arrival = u, t, arrival, arrival
         if self.stale:
             self.stale = False
             log.warning("%s: input %s resumed at t = %.3f", self.system.name, self.input_channel, self.t)
         if self.stateless and self.rate is None:
-            self._publish(t, arrival)
+            self._publish(t)
 
-    def _publish(self, t, arrival=None):
+    def _publish(self, t):
+        """Publish y(t); the first output after an input message times its latency."""
         y = np.asarray(self._output(t, self.x, self._applied_input()))  # numpy in: ~35 us less dispatch
         data = self.output_coder.encode(t, y)
         self._lcm.publish(self.output_channel, data)
         self._record(self.output_channel, data)
         self.stats.published += 1
-        if arrival is not None:
-            self.stats.latencies.append(time.perf_counter() - arrival)
+        if self._fresh_arrival is not None:
+            self.stats.latencies.append(time.perf_counter() - self._fresh_arrival)
+            self._fresh_arrival = None
 
     def _applied_input(self):
         if self.stale and self.safe_input is not None:
@@ -193,7 +194,10 @@ class LcmNode:
 
     def tick(self):
         """Publish y(t), then advance the state over one tick with the input applied now."""
-        self._publish(self.t, self.u_arrival)
+        self._publish(self.t)
+        self._advance_one_tick()
+
+    def _advance_one_tick(self):
         self.x = np.asarray(self._advance(self.t, self.x, self._applied_input()))
         self.t += self.dt
         self.stats.ticks += 1
@@ -208,9 +212,7 @@ class LcmNode:
                 self._check_stale(time.perf_counter())
                 break
             self.handle(max(remaining, 0.001))
-        self.x = np.asarray(self._advance(self.t, self.x, self._applied_input()))
-        self.t += self.dt
-        self.stats.ticks += 1
+        self._advance_one_tick()
 
     def handle(self, timeout: float = 0.0):
         """Handle the messages that arrive within `timeout` seconds (outside `run` too)."""
@@ -218,7 +220,7 @@ class LcmNode:
             self._lcm.handle_timeout(max(0, int(timeout * 1000)))
             self._failures = 0
         except OSError:  # a signal interrupts the wait (its handler runs after this returns)
-            self._failures = getattr(self, "_failures", 0) + 1
+            self._failures += 1
             if self._failures > 3 and not self._stop:  # not a signal: the connection is gone
                 raise
 

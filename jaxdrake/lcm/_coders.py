@@ -10,6 +10,8 @@ Any failure to read a message (wrong fingerprint, truncated, wrong sizes or name
 
 from __future__ import annotations
 
+import importlib
+
 import numpy as np
 
 from ..lcmtypes.drake import lcmt_drake_signal
@@ -234,8 +236,6 @@ def _typename(cls, field):
 
 
 def _resolve(typename):
-    import importlib
-
     module, _, name = typename.rpartition(".")
     return getattr(importlib.import_module(module), name)
 

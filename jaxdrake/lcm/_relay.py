@@ -45,7 +45,6 @@ class LoopbackRelay:
         self.port = self._server.getsockname()[1]
         self._clients: dict[socket.socket, list[re.Pattern]] = {}
         self._lock = threading.Lock()
-        self._threads: list[threading.Thread] = []
         self._closed = False
 
     @property
@@ -53,9 +52,7 @@ class LoopbackRelay:
         return f"tcpq://127.0.0.1:{self.port}"
 
     def start(self) -> "LoopbackRelay":
-        thread = threading.Thread(target=self._accept, daemon=True)
-        thread.start()
-        self._threads.append(thread)
+        threading.Thread(target=self._accept, daemon=True).start()
         return self
 
     def __enter__(self):
@@ -86,9 +83,7 @@ class LoopbackRelay:
             except OSError:
                 return
             client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            thread = threading.Thread(target=self._serve, args=(client,), daemon=True)
-            thread.start()
-            self._threads.append(thread)
+            threading.Thread(target=self._serve, args=(client,), daemon=True).start()
 
     def _serve(self, client):
         try:

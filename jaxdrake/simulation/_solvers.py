@@ -58,6 +58,20 @@ class Euler(AbstractSolver):
         return y0 + dy, None, _pad([y0, dy]), None
 
 
+class Midpoint(AbstractSolver):
+    """The explicit midpoint rule, $y_1 = y_0 + h f(t_0 + h/2,\ y_0 + \tfrac h2 f(t_0, y_0))$; fixed
+    step. Dense output: the quadratic through $y_0$ with slope $f_0$ reaching $y_1$."""
+
+    adaptive: ClassVar[bool] = False
+    order: ClassVar[int] = 2
+    error_order: ClassVar[int] = 2
+
+    def step(self, f, t0, h, y0, f0=None):
+        k1 = f(t0, y0)
+        k2 = f(t0 + h / 2, y0 + h / 2 * k1)
+        return y0 + h * k2, None, _pad([y0, h * k1, h * (k2 - k1)]), None
+
+
 class RK4(AbstractSolver):
     """The classical fourth-order Runge-Kutta method; fixed step.
 
@@ -164,7 +178,7 @@ class Rosenbrock23(AbstractSolver):
         return y1, err, _pad([y0, scale * (k1 - 2.0 * d * k2), scale * (k2 - k1)]), None
 
 
-SOLVERS = {"dopri5": Dopri5, "rk4": RK4, "euler": Euler, "rosenbrock23": Rosenbrock23}
+SOLVERS = {"dopri5": Dopri5, "rk4": RK4, "midpoint": Midpoint, "euler": Euler, "rosenbrock23": Rosenbrock23}
 
 
 def make_solver(solver) -> AbstractSolver:

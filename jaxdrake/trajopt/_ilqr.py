@@ -23,7 +23,7 @@ import numpy as np
 from ..systems import System
 from ..systems._system import require_plain_system
 from ..trajectories import Trajectory
-from ._program import _explicit_step
+from ._program import explicit_step
 
 _ALPHAS = 0.5 ** np.arange(10)
 
@@ -102,7 +102,7 @@ def ilqr(system: System, x0, inputs, time_step, running_cost, final_cost=None, *
     def step(t, x, u):
         if system.has_discrete_state:
             return system.update(t, x, u)
-        return _explicit_step("rk4", system, t, x, u, h)
+        return explicit_step("rk4", system, t, x, u, h)
 
     def input_constraints(u):  # c(u) <= 0, zero where unbounded
         return jnp.where(bounded, jnp.concatenate([u - jnp.where(jnp.isfinite(u_hi), u_hi, 0.0),
@@ -167,8 +167,8 @@ def ilqr(system: System, x0, inputs, time_step, running_cost, final_cost=None, *
         xN, (X_new, U_new) = jax.lax.scan(body, x0, (times, X[:-1], U, kff, K))
         return jnp.concatenate([X_new, xN[None]]), U_new
 
-    def inner_iteration(state):
-        X, U, J, reg, lam_u, lam_f, mu, it, done, inner_tol = state
+    def inner_iteration(state, lam_u, lam_f, mu, inner_tol):
+        X, U, J, reg, it, _ = state
         kff, K, ok, dv = backward(X, U, lam_u, lam_f, mu, reg)
         trials = jax.vmap(lambda a: forward(X, U, kff, K, a))(jnp.asarray(_ALPHAS, dtype))
         costs = jax.vmap(lambda Xa, Ua: total(Xa, Ua, lam_u, lam_f, mu))(*trials)
@@ -182,35 +182,38 @@ def ilqr(system: System, x0, inputs, time_step, running_cost, final_cost=None, *
         reg = jnp.where(improved, jnp.maximum(reg / 10, 1e-9), jnp.minimum(reg * 10, 1e10))
         small = improved & (J - J_new <= inner_tol * (1 + jnp.abs(J_new)))
         done = small | (~improved & (reg >= 1e10))
-        return X_new, U_new, J_new, reg, lam_u, lam_f, mu, it + 1, done, inner_tol
+        return X_new, U_new, J_new, reg, it + 1, done
 
     def violation(X, U):
         return jnp.maximum(jnp.max(jnp.maximum(jax.vmap(input_constraints)(U), 0.0), initial=0.0),
                            jnp.max(jnp.abs(goal_constraint(X[-1])), initial=0.0))
 
+    def inner_tolerance(outer):  # loose first, tighter after each multiplier update (as ALTRO)
+        return jnp.maximum(tol, 1e-3 * 0.1 ** outer.astype(dtype))
+
     def outer_iteration(state):
-        X, U, reg, lam_u, lam_f, mu, it, outer = state
+        X, U, lam_u, lam_f, mu, it, outer = state
         J = total(X, U, lam_u, lam_f, mu)
-        inner_tol = jnp.maximum(tol, 1e-3 * 0.1 ** outer.astype(dtype))  # loose first (as ALTRO)
-        reg = jnp.asarray(1e-6, dtype)  # a failed inner solve must not stall the next one
-        inner = jax.lax.while_loop(lambda s: (~s[-2]) & (s[-3] < max_iterations), inner_iteration,
-                                   (X, U, J, reg, lam_u, lam_f, mu, it, jnp.asarray(False), inner_tol))
-        X, U, _, reg, _, _, _, it, _, _ = inner
+        inner = jax.lax.while_loop(
+            lambda s: (~s[-1]) & (s[-2] < max_iterations),
+            lambda s: inner_iteration(s, lam_u, lam_f, mu, inner_tolerance(outer)),
+            (X, U, J, jnp.asarray(1e-6, dtype), it, jnp.asarray(False)))  # fresh regularization
+        X, U, _, _, it, _ = inner
         lam_u = jnp.maximum(0.0, lam_u + mu * jax.vmap(input_constraints)(U))
         lam_f = lam_f + mu * goal_constraint(X[-1])
-        return X, U, reg, lam_u, lam_f, jnp.minimum(mu * penalty_growth, 1e8), it, outer + 1
+        return X, U, lam_u, lam_f, jnp.minimum(mu * penalty_growth, 1e8), it, outer + 1
 
     def keep_going(state):
-        X, U, reg, lam_u, lam_f, mu, it, outer = state
-        last_inner_tol = 1e-3 * 0.1 ** (outer - 1).astype(dtype)  # the last inner solve's tolerance
-        unfinished = (outer == 0) | (violation(X, U) > constraint_tol) | (last_inner_tol > tol)
+        X, U, lam_u, lam_f, mu, it, outer = state
+        last_was_loose = inner_tolerance(outer - 1) > tol
+        unfinished = (outer == 0) | (violation(X, U) > constraint_tol) | last_was_loose
         return (outer < max_outer) & (it < max_iterations) & unfinished
 
     U0 = jnp.clip(inputs, u_lo, u_hi)
     X0 = rollout(U0)
-    state = (X0, U0, jnp.asarray(1e-6, dtype), jnp.zeros((N, 2 * m), dtype), jnp.zeros(n, dtype),
-             jnp.asarray(penalty, dtype), jnp.asarray(0), jnp.asarray(0))
-    X, U, reg, lam_u, lam_f, mu, it, outer = jax.lax.while_loop(keep_going, outer_iteration, state)
+    state = (X0, U0, jnp.zeros((N, 2 * m), dtype), jnp.zeros(n, dtype), jnp.asarray(penalty, dtype),
+             jnp.asarray(0), jnp.asarray(0))
+    X, U, lam_u, lam_f, mu, it, outer = jax.lax.while_loop(keep_going, outer_iteration, state)
     cost = jnp.sum(jax.vmap(lambda t, x, u: h * running_cost(t, x, u))(times, X[:-1], U)) + final_cost(X[-1])
     viol = violation(X, U)
     converged = jnp.isfinite(cost) & (viol <= constraint_tol) & (it < max_iterations)

@@ -55,10 +55,10 @@ class NonlinearProgram:
             sizes = [self._output_size(term) for term in self.constraints]
         self._sizes = sizes
         self.num_constraints = int(sum(term.idx.shape[0] * r for term, r in zip(self.constraints, sizes)))
-        self.constraint_lower = np.concatenate([np.broadcast_to(t.lower, (t.idx.shape[0], r)).ravel()
-                                                for t, r in zip(self.constraints, sizes)] or [np.zeros(0)])
-        self.constraint_upper = np.concatenate([np.broadcast_to(t.upper, (t.idx.shape[0], r)).ravel()
-                                                for t, r in zip(self.constraints, sizes)] or [np.zeros(0)])
+        self.constraint_lower, self.constraint_upper = (
+            np.concatenate([np.broadcast_to(getattr(t, side), (t.idx.shape[0], r)).ravel()
+                            for t, r in zip(self.constraints, sizes)] or [np.zeros(0)])
+            for side in ("lower", "upper"))
         self._jacobian_structure()
         self._hessian_structure()
         self._compile()
@@ -121,10 +121,13 @@ class NonlinearProgram:
         def objective(z):
             return sum(jnp.sum(apply(t, t.fn, z)) for t in costs)
 
+        def summed(fn):  # a cost term's instance as a scalar
+            return lambda v, k: jnp.sum(fn(v, k))
+
         def gradient(z):  # forward mode per block: works through forward-mode simulations too
             out = jnp.zeros_like(z)
             for t in costs:
-                blocks = apply(t, jax.jacfwd(lambda v, k, fn=t.fn: jnp.sum(fn(v, k))), z)
+                blocks = apply(t, jax.jacfwd(summed(t.fn)), z)
                 out = out.at[t.idx].add(blocks)
             return out
 
@@ -139,7 +142,7 @@ class NonlinearProgram:
         def hessian_values(z, multipliers, sigma):
             blocks, offset = [], 0
             for t in costs:
-                blocks.append(sigma * apply(t, jax.hessian(lambda v, k, fn=t.fn: jnp.sum(fn(v, k))), z).ravel())
+                blocks.append(sigma * apply(t, jax.hessian(summed(t.fn)), z).ravel())
             for t, r in zip(constraints, sizes):
                 K = t.idx.shape[0]
                 lam = multipliers[offset: offset + K * r].reshape(K, r)
@@ -371,14 +374,19 @@ def solve_scipy(nlp: NonlinearProgram, z0, *, tol=1e-8, max_iterations=3000, opt
 SOLVERS = {"ipopt": solve_ipopt, "scipy": solve_scipy}
 
 
-def solve(nlp: NonlinearProgram, z0, solver: str = "auto", **kwargs) -> SolverResult:
-    """Solve with `solver`: "ipopt", "scipy", or "auto" (IPOPT when `cyipopt` imports)."""
+def resolve_solver(solver: str) -> str:
+    """"ipopt" or "scipy" for `solver`; "auto" is IPOPT when `cyipopt` imports."""
     if solver == "auto":
         try:
             import cyipopt  # noqa: F401
-            solver = "ipopt"
+            return "ipopt"
         except ImportError:
-            solver = "scipy"
+            return "scipy"
     if solver not in SOLVERS:
         raise ValueError(f"unknown solver {solver!r}; use 'ipopt', 'scipy' or 'auto'")
-    return SOLVERS[solver](nlp, z0, **kwargs)
+    return solver
+
+
+def solve(nlp: NonlinearProgram, z0, solver: str = "auto", **kwargs) -> SolverResult:
+    """Solve with `solver`: "ipopt", "scipy", or "auto" (IPOPT when `cyipopt` imports)."""
+    return SOLVERS[resolve_solver(solver)](nlp, z0, **kwargs)

@@ -21,6 +21,7 @@ autodiff blocks.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Callable
 
 import jax
@@ -28,10 +29,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..simulation import simulate
+from ..simulation._solvers import make_solver
 from ..systems import System
 from ..systems._system import require_plain_system
 from ..trajectories import Trajectory
-from ._nlp import NonlinearProgram, SolverResult, Term, solve
+from ._nlp import NonlinearProgram, SolverResult, Term, resolve_solver, solve
 
 
 @dataclasses.dataclass
@@ -372,6 +374,7 @@ class _TrajectoryProgram:
         hessian = self._hessian_approximation if hessian is None else hessian
         if hessian not in ("exact", "limited-memory"):
             raise ValueError(f"hessian must be 'exact' or 'limited-memory', got {hessian!r}")
+        solver = resolve_solver(solver)
         if hessian != "exact":
             if solver == "scipy":
                 raise ValueError("the SciPy solver needs hessian='exact'")
@@ -445,9 +448,12 @@ class DirectCollocation(_TrajectoryProgram):
 
         return self._segment_term("running cost", simpson)
 
+    @functools.cached_property
+    def _knot_derivatives(self):
+        return jax.jit(lambda g, t, x, u: jax.vmap(self._unpack_globals(g)[2].dynamics)(t, x, u))
+
     def _reconstruct(self, times, X, U, g):
-        F = jax.jit(lambda g, t, x, u: jax.vmap(self._unpack_globals(g)[2].dynamics)(t, x, u))(
-            g, jnp.asarray(times), X, U)
+        F = self._knot_derivatives(g, jnp.asarray(times), X, U)
         h = times[1] - times[0]
         x0, x1, f0, f1 = X[:-1], X[1:], h * F[:-1], h * F[1:]
         zero = jnp.zeros_like(x0)
@@ -459,17 +465,9 @@ class DirectCollocation(_TrajectoryProgram):
 _RULES = ("euler", "midpoint", "rk4")
 
 
-def _explicit_step(rule, system, t, x, u, h):
-    f = lambda t, x: system.dynamics(t, x, u)  # noqa: E731 (u held over the step)
-    if rule == "euler":
-        return x + h * f(t, x)
-    if rule == "midpoint":
-        return x + h * f(t + h / 2, x + h / 2 * f(t, x))
-    k1 = f(t, x)
-    k2 = f(t + h / 2, x + h / 2 * k1)
-    k3 = f(t + h / 2, x + h / 2 * k2)
-    k4 = f(t + h, x + h * k3)
-    return x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+def explicit_step(rule, system, t, x, u, h):
+    """One step of the simulator's fixed-step `rule` ("euler", "midpoint", "rk4") with u held."""
+    return make_solver(rule).step(lambda s, y: system.dynamics(s, y, u), t, h, x)[0]
 
 
 class DirectTranscription(_TrajectoryProgram):
@@ -491,7 +489,7 @@ class DirectTranscription(_TrajectoryProgram):
     def _defect(self, t, x0, u0, x1, u1, h, system):
         if system.has_discrete_state:
             return x1 - system.update(t, x0, u0)
-        return x1 - _explicit_step(self.rule, system, t, x0, u0, h)
+        return x1 - explicit_step(self.rule, system, t, x0, u0, h)
 
     def _running_cost_term(self, fn):
         return self._knot_term("running cost", lambda t, x, u, h, s: h * fn(t, x, u),
@@ -523,46 +521,42 @@ class MultipleShooting(_TrajectoryProgram):
         super().__init__(system, num_time_samples, duration=duration, parameters=parameters,
                          parameter_bounds=parameter_bounds)
 
-    def _simulate_segment(self, t, x0, u0, u1, h, system, cost=None):
-        """The state (and, with `cost`, the integrated cost) at t + h."""
-        n = self.num_states
-
-        def rhs(s, z, _):
-            u = u0 + (s - t) / h * (u1 - u0)
-            xdot = system.dynamics(s, z[:n], u)
-            return xdot if cost is None else jnp.append(xdot, cost(s, z[:n], u))
-
-        start = x0 if cost is None else jnp.append(x0, 0.0)
-        segment = System.from_functions(rhs, num_states=start.shape[0])
-        return simulate(segment, (t, t + h), start, rtol=self.rtol, atol=self.atol, dense=False,
-                        autodiff="forward", max_steps=self.max_steps, throw=False).final_state
+    def _simulate_segment(self, t, x0, u0, u1, h, system, cost=None, dense=False):
+        """The segment's simulation from (t, x0) over h with the input going linearly from u0
+        to u1; with `cost`, the system carries the running cost as one more state."""
+        foh = lambda s: u0 + (s - t) / h * (u1 - u0)  # noqa: E731
+        inputs = foh
+        if cost is not None:
+            n, plant = self.num_states, system
+            system = System.from_functions(
+                lambda s, z, _: jnp.append(plant.dynamics(s, z[:n], foh(s)), cost(s, z[:n], foh(s))),
+                num_states=n + 1)
+            x0, inputs = jnp.append(x0, 0.0), None
+        return simulate(system, (t, t + h), x0, inputs=inputs, rtol=self.rtol, atol=self.atol, dense=dense,
+                        autodiff="forward", max_steps=self.max_steps, throw=False)
 
     def _defect(self, t, x0, u0, x1, u1, h, system):
-        return x1 - self._simulate_segment(t, x0, u0, u1, h, system)
+        return x1 - self._simulate_segment(t, x0, u0, u1, h, system).final_state
 
     def _running_cost_term(self, fn):
         n = self.num_states
         return self._segment_term(
             "running cost", lambda t, x0, u0, x1, u1, h, system:
-            self._simulate_segment(t, x0, u0, u1, h, system, cost=fn)[n])
+            self._simulate_segment(t, x0, u0, u1, h, system, cost=fn).final_state[n])
+
+    @functools.cached_property
+    def _segment_samples(self):
+        """Compiled once: each segment's own simulation sampled at 8 points, so an unstable
+        plant is not re-integrated across the whole horizon."""
+        def sample(g, t, h, x, u0, u1, s):
+            return self._simulate_segment(t, x, u0, u1, h, self._unpack_globals(g)[2], dense=True).state(s)
+
+        return jax.jit(jax.vmap(sample, (None, 0, None, 0, 0, 0, 0)))
 
     def _reconstruct(self, times, X, U, g):
         h = times[1] - times[0]
-        inputs = Trajectory.from_samples(times, U, "linear")
-        # each segment's own simulation, sampled densely, so an unstable plant is not re-integrated
-        fine = np.linspace(0.0, 1.0, 9)[:-1]
-        samples = times[:-1, None] + fine[None] * h
-
-        def segment_samples(g, t, x, u0, u1, s):
-            system = self._unpack_globals(g)[2]
-            segment = System.from_functions(
-                lambda r, z, _: system.dynamics(r, z, u0 + (r - t) / h * (u1 - u0)), num_states=self.num_states)
-            return simulate(segment, (t, t + h), x, rtol=self.rtol, atol=self.atol,
-                            max_steps=self.max_steps, throw=False).state(s)
-
-        values = jax.jit(jax.vmap(segment_samples, (None, 0, 0, 0, 0, 0)))(
-            g, jnp.asarray(times[:-1]), X[:-1], U[:-1], U[1:], jnp.asarray(samples)).reshape(-1, self.num_states)
-        ts = samples.ravel()
-        states = Trajectory.from_samples(np.append(ts, times[-1]), jnp.concatenate([values, X[-1:]]), "linear")
-        return states, inputs
-
+        samples = times[:-1, None] + np.linspace(0.0, 1.0, 9)[None, :-1] * h
+        values = self._segment_samples(g, jnp.asarray(times[:-1]), h, X[:-1], U[:-1], U[1:], jnp.asarray(samples))
+        states = Trajectory.from_samples(np.append(samples.ravel(), times[-1]),
+                                         jnp.concatenate([values.reshape(-1, self.num_states), X[-1:]]), "linear")
+        return states, Trajectory.from_samples(times, U, "linear")
