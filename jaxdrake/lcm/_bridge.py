@@ -4,7 +4,7 @@ The node subscribes to the system's input channel, holds the latest input, and a
 of its clock advances the jit-compiled system and publishes its output:
 
 - a continuous system is integrated over the tick, $x(t + \Delta) = \phi_\Delta(t, x, u)$, with
-  `simulate` (fixed-step RK4, the input held);
+  `discrete_step` (`substeps` fixed RK4 steps, the input held);
 - a discrete system takes its update at its sample time (the tick is its period);
 - a system without state (a controller $u = k(t, y)$) is evaluated on every input message
   (`rate=None`) or at the rate.
@@ -29,7 +29,7 @@ import time
 import jax
 import numpy as np
 
-from ..simulation import simulate
+from ..simulation import discrete_step
 from ..systems import System
 from ..systems._system import require_plain_system
 from ._coders import MessageError, SignalCoder
@@ -126,15 +126,7 @@ class LcmNode:
     def _compile(self, substeps):
         system = self.system
         dt = 1.0 / self.rate if self.rate else 0.0
-        if system.has_discrete_state:
-            advance = lambda t, x, u: system.update(t, x, u)  # noqa: E731
-        elif system.num_states:
-            def advance(t, x, u):
-                return simulate(system, (t, t + dt), x, inputs=lambda s: u, solver="rk4", dt=dt / substeps,
-                                dense=False, throw=False).final_state
-        else:
-            advance = lambda t, x, u: x  # noqa: E731
-        self._advance = jax.jit(advance)
+        self._advance = jax.jit(lambda t, x, u: discrete_step(system, t, x, u, dt, "rk4", substeps))
         self._output = jax.jit(lambda t, x, u: system.output(t, x, u))
         self.dt = dt
         # compile before the first message, so the real-time loop never waits for XLA

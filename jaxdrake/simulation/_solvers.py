@@ -1,9 +1,16 @@
-"""One-step ODE methods, each with a dense-output polynomial.
+"""One-step ODE methods, each with a dense-output polynomial, each tracing the vector field once.
 
 Every method returns, besides the new state, the coefficients $c_0..c_4$ of its continuous
 extension in monomial form, $y(t_0 + \\theta h) = \\sum_j c_j \\theta^j$ for $\\theta \\in [0, 1]$.
 The monomial form makes the simulation loop solver-agnostic: a step cut short at an event
 at $\\theta^*$ is the polynomial with coefficients $c_j \\theta^{*j}$.
+
+The stages of an explicit Runge-Kutta method run in a `lax.scan` over the rows of its Butcher
+tableau (as Diffrax does), so the vector field appears once in the compiled program whatever
+the number of stages; its dense output is a fixed linear combination of the stages. The
+step size is chosen *inside* the step, from the first stage $k_0 = f(t_0, y_0)$ (through the
+caller's `step_size(k0)`), so that an adaptive method's initial-step heuristic needs no
+evaluation of its own.
 """
 
 from __future__ import annotations
@@ -19,21 +26,34 @@ import numpy as np
 from ..trajectories._trajectory import NUM_COEFFICIENTS
 
 
-def _pad(coefficients):
-    """Stack dense-output coefficients, padding with zero rows to NUM_COEFFICIENTS."""
-    rows = list(coefficients)
-    rows += [jnp.zeros_like(rows[0])] * (NUM_COEFFICIENTS - len(rows))
-    return jnp.stack(rows)
+class StepResult(eqx.Module):
+    """What one attempted step produced.
+
+    - `h`: the step size taken (from the caller's `step_size`).
+    - `k_first`: $f(t_0, y_0)$, the first stage (from which `step_size` chose h).
+    - `y1`: the state at $t_0 + h$.
+    - `error`: the local error estimate (None for fixed-step methods).
+    - `coefficients`: (NUM_COEFFICIENTS, n), the dense output in the normalized time.
+    - `k_last`: $f(t_0 + h, y_1)$ for a first-same-as-last method (the next step's first
+      stage), else None.
+    """
+
+    h: jax.Array
+    k_first: jax.Array
+    y1: jax.Array
+    error: jax.Array | None
+    coefficients: jax.Array
+    k_last: jax.Array | None
 
 
 class AbstractSolver(eqx.Module):
     """A one-step method for $\\dot y = f(t, y)$.
 
-    `step(f, t0, h, y0, f0=None)` returns `(y1, error_estimate, coefficients, f1)`;
-    `error_estimate` is None for fixed-step methods. `error_order` q means the estimate is
-    $O(h^{q+1})$, which sets the exponent of the step-size controller. A method with `fsal`
-    ("first same as last") evaluates $f_1 = f(t_0 + h, y_1)$ anyway and returns it, and takes
-    it back as `f0` of the next step, saving one evaluation; others return None.
+    `step(f, t0, y0, step_size, k0=None)` takes the step of size `h = step_size(k0)`, where
+    $k_0 = f(t_0, y_0)$ is the method's first evaluation (given as `k0` to a first-same-as-last
+    method, which then skips it) and returns a `StepResult`. `error_order` q means the error
+    estimate is $O(h^{q+1})$, which sets the exponent of the step-size controller. `fsal`
+    ("first same as last"): the last stage is $f(t_0 + h, y_1)$, the next step's first.
     """
 
     adaptive: ClassVar[bool]
@@ -42,37 +62,97 @@ class AbstractSolver(eqx.Module):
     fsal: ClassVar[bool] = False
 
     @abc.abstractmethod
-    def step(self, f, t0, h, y0, f0=None):
+    def step(self, f, t0, y0, step_size, k0=None) -> StepResult:
         ...
 
 
-class Euler(AbstractSolver):
+class AbstractExplicitRungeKutta(AbstractSolver):
+    r"""An explicit Runge-Kutta method given by its tableau: nodes `c`, the strictly lower
+    triangular `a`, weights `b`, error weights `e` (None: fixed step) and `dense`, the rows
+    $w_j$ with $c_j = h\,w_j \cdot k$ for $j = 1..4$ ($c_0 = y_0$).
+
+    Stage $i$: $k_i = f(t_0 + c_i h,\ y_0 + h \sum_{j<i} a_{ij} k_j)$;
+    $y_1 = y_0 + h \sum_i b_i k_i$; error $h \sum_i e_i k_i$.
+
+    The sums are accumulated as the stages are evaluated: stage i, once known, adds
+    $w_{mi} k_i$ to the running sum of every row m of $[a; b; e; \text{dense}]$. Only
+    elementwise products and sums, in stage order: no matmul (on a GPU a float32 matmul may run
+    in reduced precision) and no reduction (whose order XLA may change under vmap), so a
+    batched run agrees with single runs bit for bit.
+    """
+
+    c: ClassVar[np.ndarray]
+    a: ClassVar[np.ndarray]
+    b: ClassVar[np.ndarray]
+    e: ClassVar[np.ndarray | None] = None
+    dense: ClassVar[np.ndarray]
+
+    def step(self, f, t0, y0, step_size, k0=None):
+        dtype = y0.dtype
+        num_stages = len(self.c)
+        rows = [self.a, self.b[None]] + ([] if self.e is None else [self.e[None]]) + [self.dense]
+        weights = jnp.asarray(np.concatenate(rows), dtype)  # (rows, stages)
+        c = jnp.asarray(self.c, dtype)
+        sums = jnp.zeros((weights.shape[0],) + y0.shape, dtype)
+
+        def add(sums, i, k):
+            return sums + weights[:, i, None] * k
+
+        first, k_first = 0, None
+        if k0 is not None:
+            first, k_first, sums = 1, k0, add(sums, 0, k0)
+
+        def stage(carry, i):
+            sums, k_first = carry
+            h = step_size(k_first)  # stage 0 sits at (t0, y0) whatever h is
+            k = f(t0 + c[i] * h, y0 + h * sums[i])
+            k_first = k if k_first is None else jnp.where(i == 0, k, k_first)
+            return (add(sums, i, k), k_first), k
+
+        if k_first is None:  # the first stage's value is needed for h: carry it from i = 0
+            k_first = jnp.zeros_like(y0)
+        (sums, k_first), ks = jax.lax.scan(stage, (sums, k_first), jnp.arange(first, num_stages))
+        h = step_size(k_first)
+        s = num_stages
+        y1 = y0 + h * sums[s]
+        error = None if self.e is None else h * sums[s + 1]
+        coefficients = jnp.concatenate([y0[None], h * sums[-(NUM_COEFFICIENTS - 1):]])
+        return StepResult(h, k_first, y1, error, coefficients, ks[-1] if self.fsal else None)
+
+
+def _dense_rows(*rows, num_stages):
+    """Dense-output weights padded with zero rows to NUM_COEFFICIENTS - 1."""
+    rows = [np.asarray(r, float) for r in rows]
+    rows += [np.zeros(num_stages)] * (NUM_COEFFICIENTS - 1 - len(rows))
+    return np.stack(rows)
+
+
+class Euler(AbstractExplicitRungeKutta):
     """Forward Euler, $y_1 = y_0 + h f(t_0, y_0)$; fixed step, linear dense output."""
 
     adaptive: ClassVar[bool] = False
     order: ClassVar[int] = 1
     error_order: ClassVar[int] = 1
+    c = np.array([0.0])
+    a = np.zeros((1, 1))
+    b = np.array([1.0])
+    dense = _dense_rows([1.0], num_stages=1)
 
-    def step(self, f, t0, h, y0, f0=None):
-        dy = h * f(t0, y0)
-        return y0 + dy, None, _pad([y0, dy]), None
 
-
-class Midpoint(AbstractSolver):
-    """The explicit midpoint rule, $y_1 = y_0 + h f(t_0 + h/2,\ y_0 + \tfrac h2 f(t_0, y_0))$; fixed
-    step. Dense output: the quadratic through $y_0$ with slope $f_0$ reaching $y_1$."""
+class Midpoint(AbstractExplicitRungeKutta):
+    """The explicit midpoint rule, $y_1 = y_0 + h f(t_0 + h/2,\\ y_0 + \\tfrac h2 f(t_0, y_0))$;
+    fixed step. Dense output: the quadratic through $y_0$ with slope $f_0$ reaching $y_1$."""
 
     adaptive: ClassVar[bool] = False
     order: ClassVar[int] = 2
     error_order: ClassVar[int] = 2
+    c = np.array([0.0, 0.5])
+    a = np.array([[0.0, 0.0], [0.5, 0.0]])
+    b = np.array([0.0, 1.0])
+    dense = _dense_rows([1.0, 0.0], [-1.0, 1.0], num_stages=2)
 
-    def step(self, f, t0, h, y0, f0=None):
-        k1 = f(t0, y0)
-        k2 = f(t0 + h / 2, y0 + h / 2 * k1)
-        return y0 + h * k2, None, _pad([y0, h * k1, h * (k2 - k1)]), None
 
-
-class RK4(AbstractSolver):
+class RK4(AbstractExplicitRungeKutta):
     """The classical fourth-order Runge-Kutta method; fixed step.
 
     Dense output: its third-order continuous extension (Hairer, Norsett & Wanner, *Solving
@@ -83,62 +163,47 @@ class RK4(AbstractSolver):
     adaptive: ClassVar[bool] = False
     order: ClassVar[int] = 4
     error_order: ClassVar[int] = 4
-
-    def step(self, f, t0, h, y0, f0=None):
-        k1 = f(t0, y0)
-        k2 = f(t0 + h / 2, y0 + h / 2 * k1)
-        k3 = f(t0 + h / 2, y0 + h / 2 * k2)
-        k4 = f(t0 + h, y0 + h * k3)
-        y1 = y0 + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-        c2 = h * (-1.5 * k1 + k2 + k3 - 0.5 * k4)
-        c3 = h * (2.0 / 3.0) * (k1 - k2 - k3 + k4)
-        return y1, None, _pad([y0, h * k1, c2, c3]), None
+    c = np.array([0.0, 0.5, 0.5, 1.0])
+    a = np.array([[0, 0, 0, 0], [0.5, 0, 0, 0], [0, 0.5, 0, 0], [0, 0, 1.0, 0]])
+    b = np.array([1.0, 2.0, 2.0, 1.0]) / 6.0
+    dense = _dense_rows([1.0, 0.0, 0.0, 0.0], [-1.5, 1.0, 1.0, -0.5],
+                        [2.0 / 3.0, -2.0 / 3.0, -2.0 / 3.0, 2.0 / 3.0], num_stages=4)
 
 
 # Dormand & Prince (1980) tableau, and Shampine's dense-output weights as given by Hairer,
 # Norsett & Wanner, *Solving ODEs I* (the `contd5` continuous extension of DOPRI5).
-_DP_C = (0.0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1.0, 1.0)
-_DP_A = (
-    (),
-    (1 / 5,),
-    (3 / 40, 9 / 40),
-    (44 / 45, -56 / 15, 32 / 9),
-    (19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729),
-    (9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656),
-    (35 / 384, 0.0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84),
-)
-_DP_E = (71 / 57600, 0.0, -71 / 16695, 71 / 1920, -17253 / 339200, 22 / 525, -1 / 40)
-_DP_D = (-12715105075 / 11282082432, 0.0, 87487479700 / 32700410799,
-         -10690763975 / 1880347072, 701980252875 / 199316789632,
-         -1453857185 / 822651844, 69997945 / 29380423)
+_DP_C = np.array([0.0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1.0, 1.0])
+_DP_A = np.zeros((7, 7))
+for _i, _row in enumerate([(), (1 / 5,), (3 / 40, 9 / 40), (44 / 45, -56 / 15, 32 / 9),
+                           (19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729),
+                           (9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656),
+                           (35 / 384, 0.0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84)]):
+    _DP_A[_i, :len(_row)] = _row
+_DP_E = np.array([71 / 57600, 0.0, -71 / 16695, 71 / 1920, -17253 / 339200, 22 / 525, -1 / 40])
+_DP_D = np.array([-12715105075 / 11282082432, 0.0, 87487479700 / 32700410799,
+                  -10690763975 / 1880347072, 701980252875 / 199316789632,
+                  -1453857185 / 822651844, 69997945 / 29380423])
+_E0, _E6 = np.eye(7)[0], np.eye(7)[6]
 
 
-class Dopri5(AbstractSolver):
+class Dopri5(AbstractExplicitRungeKutta):
     """Dormand-Prince 5(4): adaptive, fifth order with a fourth-order error estimate, and
-    a fourth-order dense output. The default solver (MATLAB's ode45, SciPy's RK45)."""
+    a fourth-order dense output. The default solver (MATLAB's ode45, SciPy's RK45).
+
+    Dense output: $y_0 + \\theta h(r_2 + (1-\\theta)(r_3 + \\theta(r_4 + (1-\\theta) r_5)))$
+    with $r_2 = y_1 - y_0$, $r_3 = h k_0 - r_2$, $r_4 = r_2 - h k_6 - r_3$, $r_5 = h\\,d\\cdot k$,
+    expanded in powers of $\\theta$ (each a fixed combination of the stages)."""
 
     adaptive: ClassVar[bool] = True
     order: ClassVar[int] = 5
     error_order: ClassVar[int] = 4
     fsal: ClassVar[bool] = True
-
-    def step(self, f, t0, h, y0, f0=None):
-        ks = [] if f0 is None else [f0]
-        for c, a in zip(_DP_C[len(ks):], _DP_A[len(ks):]):
-            yi = y0
-            for aij, kj in zip(a, ks):
-                if aij != 0.0:
-                    yi = yi + (h * aij) * kj
-            if len(ks) == 6:
-                y1 = yi  # the seventh stage is evaluated at the new point (FSAL)
-            ks.append(f(t0 + c * h, yi))
-        err = h * sum(e * k for e, k in zip(_DP_E, ks) if e != 0.0)
-        r2 = y1 - y0
-        r3 = h * ks[0] - r2
-        r4 = r2 - h * ks[6] - r3
-        r5 = h * sum(d * k for d, k in zip(_DP_D, ks) if d != 0.0)
-        # y0 + th(r2 + (1-th)(r3 + th(r4 + (1-th) r5))) expanded in powers of th
-        return y1, err, _pad([y0, r2 + r3, r4 + r5 - r3, -(r4 + 2 * r5), r5]), ks[6]
+    c = _DP_C
+    a = _DP_A
+    b = _DP_A[6]
+    e = _DP_E
+    dense = _dense_rows(_E0, 3 * _DP_A[6] - 2 * _E0 - _E6 + _DP_D,
+                        -2 * _DP_A[6] + _E0 + _E6 - 2 * _DP_D, _DP_D, num_stages=7)
 
 
 _ROS_D = 1.0 / (2.0 + np.sqrt(2.0))
@@ -152,30 +217,41 @@ class Rosenbrock23(AbstractSolver):
     With $W = I - h d J$, $J = \\partial f/\\partial y$, $T = \\partial f / \\partial t$,
     $d = 1/(2+\\sqrt 2)$: $k_1 = W^{-1}(f_0 + h d T)$,
     $k_2 = W^{-1}(f(t_0 + h/2, y_0 + h k_1/2) - k_1) + k_1$, $y_1 = y_0 + h k_2$ (second
-    order), and a third-order error estimate. No Newton iterations: one Jacobian (by
-    forward-mode autodiff) and one LU factorization per step.
+    order), and a third-order error estimate $\\tfrac h6(k_1 - 2k_2 + k_3)$,
+    $k_3 = W^{-1}(f(t_0 + h, y_1) - e_{32}(k_2 - f_1) - 2(k_1 - f_0) + h d T)$. No Newton
+    iterations: $f_0$, $T$ and $J$ from one linearization, one LU factorization per step, and
+    the two further evaluations in a loop.
     """
 
     adaptive: ClassVar[bool] = True
     order: ClassVar[int] = 2
     error_order: ClassVar[int] = 2
 
-    def step(self, f, t0, h, y0, f0=None):
+    def step(self, f, t0, y0, step_size, k0=None):
         d = _ROS_D
-        f0, dfdt = jax.jvp(lambda t: f(t, y0), (t0,), (jnp.ones_like(t0),))
-        J = jax.jacfwd(lambda y: f(t0, y))(y0)
+        f0, tangent = jax.linearize(f, t0, y0)
+        dfdt = tangent(jnp.ones_like(t0), jnp.zeros_like(y0))
+        J = jax.vmap(lambda v: tangent(jnp.zeros_like(t0), v), out_axes=1)(
+            jnp.eye(y0.shape[0], dtype=y0.dtype))
+        h = step_size(f0)
         W = jnp.eye(y0.shape[0], dtype=y0.dtype) - (h * d) * J
         lu = jax.scipy.linalg.lu_factor(W)
-        solve = lambda b: jax.scipy.linalg.lu_solve(lu, b)
+        solve = lambda b: jax.scipy.linalg.lu_solve(lu, b)  # noqa: E731
         k1 = solve(f0 + (h * d) * dfdt)
-        f1 = f(t0 + h / 2, y0 + (h / 2) * k1)
-        k2 = solve(f1 - k1) + k1
+
+        def stage(carry, i):  # i = 0: f1 = f(t0 + h/2, y0 + h k1 / 2); i = 1: f2 = f(t0 + h, y1)
+            k2, _ = carry
+            fi = f(t0 + h * (0.5 + 0.5 * i), y0 + h * jnp.where(i == 0, 0.5 * k1, k2))
+            return (jnp.where(i == 0, solve(fi - k1) + k1, k2), fi), fi
+
+        (k2, f2), (f1, _) = jax.lax.scan(stage, (k1, f0), jnp.arange(2))
         y1 = y0 + h * k2
-        f2 = f(t0 + h, y1)
         k3 = solve(f2 - _ROS_E32 * (k2 - f1) - 2.0 * (k1 - f0) + (h * d) * dfdt)
-        err = (h / 6.0) * (k1 - 2.0 * k2 + k3)
+        error = (h / 6.0) * (k1 - 2.0 * k2 + k3)
         scale = h / (1.0 - 2.0 * d)
-        return y1, err, _pad([y0, scale * (k1 - 2.0 * d * k2), scale * (k2 - k1)]), None
+        zeros = jnp.zeros((NUM_COEFFICIENTS - 3,) + y0.shape, y0.dtype)
+        coefficients = jnp.concatenate([jnp.stack([y0, scale * (k1 - 2.0 * d * k2), scale * (k2 - k1)]), zeros])
+        return StepResult(h, f0, y1, error, coefficients, None)
 
 
 SOLVERS = {"dopri5": Dopri5, "rk4": RK4, "midpoint": Midpoint, "euler": Euler, "rosenbrock23": Rosenbrock23}

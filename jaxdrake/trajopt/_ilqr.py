@@ -20,10 +20,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..simulation import discrete_step
 from ..systems import System
 from ..systems._system import require_plain_system
 from ..trajectories import Trajectory
-from ._program import explicit_step
 
 _ALPHAS = 0.5 ** np.arange(10)
 
@@ -100,9 +100,7 @@ def ilqr(system: System, x0, inputs, time_step, running_cost, final_cost=None, *
     times = jnp.arange(N, dtype=dtype) * h
 
     def step(t, x, u):
-        if system.has_discrete_state:
-            return system.update(t, x, u)
-        return explicit_step("rk4", system, t, x, u, h)
+        return discrete_step(system, t, x, u, h, "rk4")
 
     def input_constraints(u):  # c(u) <= 0, zero where unbounded
         return jnp.where(bounded, jnp.concatenate([u - jnp.where(jnp.isfinite(u_hi), u_hi, 0.0),

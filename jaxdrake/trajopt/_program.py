@@ -28,8 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..simulation import simulate
-from ..simulation._solvers import make_solver
+from ..simulation import FIXED_STEP_RULES, discrete_step, simulate
 from ..systems import System
 from ..systems._system import require_plain_system
 from ..trajectories import Trajectory
@@ -462,14 +461,6 @@ class DirectCollocation(_TrajectoryProgram):
         return states, Trajectory.from_samples(times, U, "linear")
 
 
-_RULES = ("euler", "midpoint", "rk4")
-
-
-def explicit_step(rule, system, t, x, u, h):
-    """One step of the simulator's fixed-step `rule` ("euler", "midpoint", "rk4") with u held."""
-    return make_solver(rule).step(lambda s, y: system.dynamics(s, y, u), t, h, x)[0]
-
-
 class DirectTranscription(_TrajectoryProgram):
     r"""Direct transcription (Drake's `DirectTranscription`): $x_{k+1} = x_k + \dots$ one step of
     an explicit `rule` ("euler", "midpoint", "rk4") with the input held (zero-order hold) for a
@@ -480,16 +471,14 @@ class DirectTranscription(_TrajectoryProgram):
 
     def __init__(self, system, num_time_samples, *, duration=None, rule: str = "euler",
                  parameters=None, parameter_bounds=None):
-        if rule not in _RULES:
-            raise ValueError(f"unknown rule {rule!r}; use one of {_RULES}")
+        if rule not in FIXED_STEP_RULES:
+            raise ValueError(f"unknown rule {rule!r}; use one of {FIXED_STEP_RULES}")
         self.rule = rule
         super().__init__(system, num_time_samples, duration=duration, parameters=parameters,
                          parameter_bounds=parameter_bounds)
 
     def _defect(self, t, x0, u0, x1, u1, h, system):
-        if system.has_discrete_state:
-            return x1 - system.update(t, x0, u0)
-        return x1 - explicit_step(self.rule, system, t, x0, u0, h)
+        return x1 - discrete_step(system, t, x0, u0, h, self.rule)
 
     def _running_cost_term(self, fn):
         return self._knot_term("running cost", lambda t, x, u, h, s: h * fn(t, x, u),

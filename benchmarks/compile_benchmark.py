@@ -1,0 +1,107 @@
+"""First-call cost: how long the first call of a jitted program takes (trace + compile + run),
+set beside the compile of `jax.jit(system.dynamics)` alone, in one process.
+
+For each system the first call of
+- `jax.jit(system.dynamics)` (the reference: what the vector field alone costs),
+- `simulate(system, (0, 1), x0)` with the default solver (Dormand-Prince 5(4)),
+- `simulate(..., solver="euler", dt=1e-3)`,
+- `jax.jit(jax.grad(loss))`, loss = |x(1)|^2 of a default simulation, w.r.t. x0,
+and the second call of each (the compiled program kept). Targets (issue 17): default
+simulate <= 1.5 x dynamics + 1 s; gradient <= 3 x dynamics + 1 s; the bouncing ball <= 1.5 s;
+the pendulum <= 0.6 s.
+
+    python benchmarks/compile_benchmark.py [--systems pendulum acrobot panda solo12 ball]
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import pathlib
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxdrake as jd
+from _common import argument_parser, machine_line  # benchmarks/_common.py
+
+jax.config.update("jax_enable_x64", True)
+
+
+def robot(relative, **kwargs):
+    root = importlib.metadata.distribution("example-robot-data").locate_file(
+        "cmeel.prefix/share/example-robot-data/robots")
+    return jd.RigidBodySystem.from_urdf(pathlib.Path(root) / relative, **kwargs)
+
+
+def systems():
+    """name: (factory, x0 factory)."""
+    def standing(plant):
+        x0 = np.zeros(plant.num_states)
+        q = np.asarray(plant.initial_state())[: plant.tree.nq] if hasattr(plant, "tree") else None
+        if q is not None:
+            x0[: len(q)] = q
+        x0[: min(3, len(x0))] += 0.1
+        return x0
+
+    def floating(plant):
+        x0 = np.zeros(plant.num_states)
+        x0[6] = 1.0  # unit quaternion qw
+        x0[7:plant.tree.nq] = 0.1
+        return x0
+
+    return {
+        "pendulum": (jd.models.Pendulum, lambda p: np.array([1.0, 0.0])),
+        "acrobot": (jd.models.Acrobot, lambda p: np.array([0.1, 0.2, 0.0, 0.0])),
+        "panda": (lambda: robot("panda_description/urdf/panda.urdf"), standing),
+        "solo12": (lambda: robot("solo_description/robots/solo12.urdf", floating_base=True), floating),
+        "ball": (jd.models.BouncingBall, lambda p: np.array([5.0, 0.0])),
+    }
+
+
+def first_and_second(fn):
+    start = time.perf_counter()
+    jax.block_until_ready(fn())
+    first = time.perf_counter() - start
+    start = time.perf_counter()
+    jax.block_until_ready(fn())
+    return first, time.perf_counter() - start
+
+
+def measure(name, make, make_x0):
+    plant = make()
+    x0 = jnp.asarray(make_x0(plant))
+    u = jnp.zeros(plant.num_inputs)
+    rows = {}
+    if name != "ball":
+        dynamics = jax.jit(lambda t, x, u: plant.dynamics(t, x, u))
+        rows["jit(dynamics)"] = first_and_second(lambda: dynamics(0.0, x0, u))
+    rows["simulate (dopri5)"] = first_and_second(
+        lambda: jd.simulate(plant, (0.0, 1.0), x0).final_state)
+    if name != "ball":
+        rows["simulate (euler)"] = first_and_second(
+            lambda: jd.simulate(plant, (0.0, 1.0), x0, solver="euler", dt=1e-2).final_state)
+    loss = jax.jit(jax.grad(lambda x: jnp.sum(jd.simulate(plant, (0.0, 1.0), x).final_state ** 2)))
+    rows["jit(grad(simulate))"] = first_and_second(lambda: loss(x0))
+    return rows
+
+
+def main():
+    parser = argument_parser(__doc__, repeats=1, gpu_help="unused")
+    parser.add_argument("--systems", nargs="*", default=list(systems()))
+    args = parser.parse_args()
+    print(machine_line())
+    print(f"{'system':10s} {'program':22s} {'first call':>11s} {'second':>9s} {'/ dynamics':>11s}")
+    for name in args.systems:
+        make, make_x0 = systems()[name]
+        rows = measure(name, make, make_x0)
+        reference = rows.get("jit(dynamics)", (None,))[0]
+        for program, (first, second) in rows.items():
+            ratio = f"{first / reference:10.1f}x" if reference else ""
+            print(f"{name:10s} {program:22s} {first:10.2f}s {second * 1e3:7.1f}ms {ratio:>11s}", flush=True)
+        jax.clear_caches()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,111 @@
+"""The compiled program grows with structure, not repetition: every solver traces a user's
+vector field no more often than Euler does (its stages run in a loop), in forward and reverse
+mode, with events, input limits and discrete updates; and the shared one-step rule."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxdrake as jd
+
+
+class Counter:
+    def __init__(self):
+        self.traces = 0
+
+
+def counted_oscillator(counter, **kwargs):
+    """x'' = -x + u, counting the traces of its vector field."""
+    def dynamics(t, x, u):
+        counter.traces += 1  # runs at trace time only
+        return jnp.stack([x[1], -x[0] + u[0]])
+
+    return jd.System.from_functions(dynamics=dynamics, num_states=2, num_inputs=1, direct_feedthrough=False,
+                                    **kwargs)
+
+
+def counted_ball(counter):
+    """A bouncing ball whose flight dynamics count their traces."""
+    def flight(t, x, u):
+        counter.traces += 1
+        return jnp.stack([x[1], -9.81 * jnp.ones_like(x[1])])
+
+    plant = jd.System.from_functions(dynamics=flight, num_states=2)
+    bounce = jd.Transition(0, lambda s, t, x, u: jnp.where(x[1] < 0, x[0], 1.0),
+                           lambda s, t, x, u: jnp.stack([x[0], -0.8 * x[1]]), 0)
+    return jd.HybridSystem([plant], [bounce])
+
+
+def counted_mixed(counter):
+    """A continuous oscillator plus a discrete sampler of its position (period 0.1)."""
+    def dynamics(t, x, u):
+        counter.traces += 1
+        return jnp.stack([x[2], -x[1]])
+
+    return jd.System.from_functions(dynamics=dynamics, update=lambda t, x, u: x[1:2], num_states=3,
+                                    num_discrete_states=1, sample_time=0.1)
+
+
+def traces(make, solver, mode, **simulate_kwargs):
+    counter = Counter()
+    system = make(counter)
+    x0 = jnp.asarray(np.asarray(system.initial_state()) + 1.0)
+    dt = None if solver == "dopri5" else 1e-2
+
+    def final(x0):
+        return jd.simulate(system, (0.0, 1.0), x0, solver=solver, dt=dt, autodiff=mode,
+                           **simulate_kwargs).final_state
+
+    if mode == "reverse":
+        jax.jit(jax.grad(lambda x0: jnp.sum(final(x0))))(x0)
+    else:
+        jax.jit(jax.jacfwd(final))(x0)
+    return counter.traces
+
+
+SYSTEMS = {
+    "plain": lambda c: counted_oscillator(c),
+    "input limits": lambda c: counted_oscillator(c, input_limits=(-0.5, 0.5)),
+    "hybrid events": counted_ball,
+    "discrete updates": counted_mixed,
+}
+
+
+@pytest.mark.parametrize("mode", ["reverse", "forward"])
+@pytest.mark.parametrize("kind", list(SYSTEMS))
+def test_dopri5_traces_the_vector_field_no_more_than_euler(kind, mode):
+    inputs = (lambda t: jnp.sin(3 * t)[None]) if kind == "input limits" else None
+    kwargs = {"inputs": inputs} if inputs is not None else {}
+    euler = traces(SYSTEMS[kind], "euler", mode, **kwargs)
+    dopri5 = traces(SYSTEMS[kind], "dopri5", mode, **kwargs)
+    rk4 = traces(SYSTEMS[kind], "rk4", mode, **kwargs)
+    assert 0 < dopri5 <= euler and rk4 <= euler, (euler, rk4, dopri5)
+
+
+def test_a_new_parameter_value_retraces_nothing():
+    counter = Counter()
+    system = counted_oscillator(counter)
+    jd.simulate(system, (0.0, 1.0), jnp.array([1.0, 0.0]))
+    first = counter.traces
+    jd.simulate(system, (0.0, 2.0), jnp.array([0.5, 0.1]))
+    assert counter.traces == first
+
+
+def test_discrete_step_is_the_rule_and_the_update():
+    a, h = -0.7, 0.3
+    linear = jd.LinearSystem([[a]], [[1.0]], [[1.0]], [[0.0]])
+    x = jnp.array([2.0])
+    z = a * h
+    taylor4 = 1 + z + z ** 2 / 2 + z ** 3 / 6 + z ** 4 / 24  # RK4 on x' = a x, exactly
+    np.testing.assert_allclose(jd.simulation.discrete_step(linear, 0.0, x, jnp.zeros(1), h, "rk4"), 2 * taylor4,
+                               rtol=1e-14)
+    np.testing.assert_allclose(jd.simulation.discrete_step(linear, 0.0, x, jnp.zeros(1), h, "euler"), 2 * (1 + z),
+                               rtol=1e-14)
+    zh = z / 3
+    np.testing.assert_allclose(jd.simulation.discrete_step(linear, 0.0, x, jnp.zeros(1), h, "midpoint", substeps=3),
+                               2 * (1 + zh + zh ** 2 / 2) ** 3, rtol=1e-14)
+    sampled = jd.LinearSystem([[0.5]], [[1.0]], [[1.0]], [[0.0]], sample_time=0.1)
+    np.testing.assert_allclose(jd.simulation.discrete_step(sampled, 0.0, x, jnp.array([1.0]), 0.1), [2.0])
+    with pytest.raises(ValueError, match="fixed-step rule"):
+        jd.simulation.discrete_step(linear, 0.0, x, jnp.zeros(1), h, "dopri5")
