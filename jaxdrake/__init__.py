@@ -3,7 +3,7 @@
 from . import control, models, multibody, simulation, systems, trajectories
 from .control import linearize
 from .multibody import LoopConstraint, RigidBodySystem
-from .simulation import SimulationError, SimulationStatus, simulate
+from .simulation import SimulatedTrajectory, SimulationError, SimulationStatus, simulate
 from .systems import (Diagram, DiagramBuilder, Frame, HybridSystem, LinearSystem, Polynomial,
                       PolynomialSystem, StochasticSystem,
                       System, Transition, add_frame_conversion, and_guards, cascade, feedback,
@@ -13,7 +13,7 @@ from .trajectories import Trajectory
 __version__ = "0.1.0"
 
 __all__ = ["Diagram", "DiagramBuilder", "Frame", "HybridSystem", "LinearSystem", "SimulationError",
-           "LoopConstraint", "Polynomial", "PolynomialSystem", "RigidBodySystem", "SimulationStatus", "StochasticSystem", "System", "Trajectory", "Transition",
+           "LoopConstraint", "Polynomial", "PolynomialSystem", "RigidBodySystem", "SimulatedTrajectory", "SimulationStatus", "StochasticSystem", "System", "Trajectory", "Transition",
            "add_frame_conversion", "and_guards", "cascade", "control", "feedback", "linearize", "models", "multibody", "not_guard",
            "parallel", "simulate", "simulation", "systems", "trajectories"]
 

@@ -14,30 +14,18 @@ $K(t) = R^{-1}(B^T S + N^T)$; the controller is $u = u_0(t) - K(t)(x - x_0(t))$.
 
 from __future__ import annotations
 
-from math import comb
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..simulation import simulate
+from ..simulation import SimulatedTrajectory, simulate
 from ..systems import System
 from ..trajectories import Trajectory
-from ..trajectories._trajectory import NUM_COEFFICIENTS
-
-# Reversing a piece: sum_j c_j theta^j with theta = 1 - theta' has the coefficients
-# c'_k = (-1)^k sum_{j >= k} binom(j, k) c_j.
-_REVERSAL = np.array([[(-1) ** k * comb(j, k) for j in range(NUM_COEFFICIENTS)]
-                      for k in range(NUM_COEFFICIENTS)], dtype=float)
-# Fitting a piece through values at theta = 0, 1/4, ..., 1: the inverse Vandermonde matrix.
-_FIT_NODES = np.linspace(0.0, 1.0, NUM_COEFFICIENTS)
-_FIT = np.linalg.inv(np.vander(_FIT_NODES, NUM_COEFFICIENTS, increasing=True))
-
 
 def _nominal_at(nominal, t):
     """A nominal signal at time t: a `Trajectory` (its state) or a constant array."""
-    return nominal.state(t) if isinstance(nominal, Trajectory) else nominal
+    return nominal.state(t) if isinstance(nominal, (Trajectory, SimulatedTrajectory)) else nominal
 
 
 def _jacobians(plant, t, x_nominal, u_nominal):
@@ -54,32 +42,6 @@ def _riccati_rhs(tau, s, u, params):
     SBN = S @ B + N
     dS = Q + S @ A + A.T @ S - SBN @ jnp.linalg.solve(R, SBN.T)
     return ((dS + dS.T) / 2).reshape(-1)
-
-
-def _reverse_in_time(traj: Trajectory, tf) -> Trajectory:
-    """The trajectory of tau = t_f - t as a trajectory of t (pieces in reverse order)."""
-    size = traj.t_start.shape[0]
-    used = traj.num_segments
-    order = jnp.clip(used - 1 - jnp.arange(size), 0, size - 1)
-    pad = jnp.arange(size) >= used
-    t_start = jnp.where(pad, tf, tf - traj.t_end[order])
-    t_end = jnp.where(pad, tf, tf - traj.t_start[order])
-    reversal = jnp.asarray(_REVERSAL, traj.coefficients.dtype)
-    coefficients = jnp.einsum("kj,pjn->pkn", reversal, traj.coefficients[order])
-    return Trajectory.from_pieces(t_start, t_end, coefficients, used)
-
-
-def _gain_pieces(S: Trajectory, gain_at) -> Trajectory:
-    """K(t) as quartic pieces interpolating the exact gain `gain_at(t, S(t))` at five points
-    of each piece of S."""
-    widths = S.t_end - S.t_start
-    theta = jnp.asarray(_FIT_NODES, widths.dtype)
-    times = S.t_start[:, None] + widths[:, None] * theta
-    s_values = jnp.einsum("kj,pjn->pkn", jnp.vander(theta, NUM_COEFFICIENTS, increasing=True),
-                          S.coefficients)
-    values = jax.vmap(jax.vmap(gain_at))(times, s_values)  # (pieces, 5, m * n)
-    coefficients = jnp.einsum("kj,pjn->pkn", jnp.asarray(_FIT, values.dtype), values)
-    return Trajectory.from_pieces(S.t_start, S.t_end, coefficients, S.num_segments)
 
 
 def _tracking_output(t, _, plant_state, params):
@@ -109,7 +71,7 @@ class FiniteHorizonLQRResult(eqx.Module):
 
 
 def _as_nominal(value, size, label, name):
-    if isinstance(value, Trajectory):
+    if isinstance(value, (Trajectory, SimulatedTrajectory)):
         if value.num_states != size:
             raise ValueError(f"finite_horizon_lqr: the nominal {label} trajectory has {value.num_states} "
                              f"coordinates, {name} needs {size}")
@@ -147,14 +109,14 @@ def finite_horizon_lqr(system: System, Q, R, tspan, *, Qf=None, x_nominal=None, 
                                     time_invariant=False)
     backward = simulate(riccati, (0.0, tf - t0), ((Qf + Qf.T) / 2).reshape(-1),
                         rtol=rtol, atol=atol, max_steps=max_steps)
-    S = _reverse_in_time(backward, tf)
+    S = backward.state_trajectory.reversed_in_time(tf)  # a trajectory of t
 
     def gain_at(t, s):
         _, B = _jacobians(system, t, x_nominal, u_nominal)
         S_t = s.reshape(n, n)
         return jnp.linalg.solve(R, B.T @ S_t + N.T).reshape(-1)
 
-    K = _gain_pieces(S, gain_at)
+    K = S.interpolate(gain_at)  # K(t) is not polynomial: quartic pieces through the exact gain
     controller = System.from_functions(
         output=_tracking_output, num_states=0, num_inputs=n, num_outputs=m,
         params=(K, x_nominal, u_nominal), time_invariant=False,

@@ -66,40 +66,40 @@ def saturation_after_event(saturation, index, num_inputs):
 _ROOT_ITERATIONS = 6  # safeguarded Newton from a secant start: ~4 suffice for smooth guards
 
 
-def locate_first_crossing(guard_fn, crossed, h, tol):
+def locate_first_crossing(guard_fn, crossed, g_start, g_end, h, tol):
     """The earliest crossing in theta in [0, 1] among the crossed guards, and which guard it is.
 
     It is the root of G(theta) = max over crossed guards of g_i(theta) (G < 0 at 0, G >= 0 at
-    1), found by Newton's method safeguarded with bisection: the bracket [lo, hi] keeps
-    G(lo) < 0 <= G(hi), and a Newton iterate outside it is replaced by the midpoint. It stops
-    when the last update or the bracket is below `tol` in time: a few iterations for smooth
-    guards, where bisection alone needs ~30 (which under vmap every member pays whenever any
-    member has an event). Ties go to the lowest index.
-    `guard_fn(theta)` gives all guards; not differentiated (see the Newton step in the loop)."""
-    def G(theta):
-        return jnp.max(jnp.where(crossed, guard_fn(theta), -jnp.inf))
+    1; `g_start`, `g_end` are the guards there), found by Newton's method safeguarded with
+    bisection: the bracket [lo, hi] keeps G(lo) < 0 <= G(hi), and a Newton iterate outside it
+    is replaced by the midpoint. It stops when the last update or the bracket is below `tol`
+    in time: a few iterations for smooth guards, where bisection alone needs ~30 (which under
+    vmap every member pays whenever any member has an event). Ties go to the lowest index.
+    `guard_fn(theta)` gives all guards; not differentiated (see the Newton step in the loop).
+    """
+    def G(g):
+        return jnp.max(jnp.where(crossed, g, -jnp.inf))
 
-    g0, g1 = G(jnp.zeros((), h.dtype)), G(jnp.ones((), h.dtype))
+    g0, g1 = G(g_start), G(g_end)
     secant = jnp.clip(-g0 / jnp.where(g1 > g0, g1 - g0, 1.0), 0.0, 1.0)
 
     def iterate(state):
-        lo, hi, theta, done = state
-        g, dg = jax.jvp(G, (theta,), (jnp.ones_like(theta),))
+        lo, hi, theta, which, done = state
+        gs, dgs = jax.jvp(guard_fn, (theta,), (jnp.ones_like(theta),))
+        masked = jnp.where(crossed, gs, -jnp.inf)
+        k = jnp.argmax(masked).astype(jnp.int32)
+        g, dg = masked[k], dgs[k]
         lo, hi = jnp.where(g >= 0, lo, theta), jnp.where(g >= 0, theta, hi)
         newton = theta - g / jnp.where(dg != 0, dg, 1.0)
         new = jnp.where((dg != 0) & (newton > lo) & (newton < hi), newton, (lo + hi) / 2)
         converged = done | (jnp.abs(new - theta) * h <= tol) | ((hi - lo) * h <= tol)
-        return lo, hi, jnp.where(done, theta, new), converged
+        return lo, hi, jnp.where(done, theta, new), jnp.where(done, which, k), converged
 
-    state = (jnp.zeros_like(secant), jnp.ones_like(secant), secant, ~jnp.any(crossed))
-    # The first iterations unrolled (a nested while loop costs a device-host round trip per
-    # iteration on a GPU), then a loop for the rare hard case (a kink of an and-guard near
-    # the root sends Newton to bisection), bounded.
-    for _ in range(_ROOT_ITERATIONS):
-        state = iterate(state)
-    state = jax.lax.while_loop(lambda s: ~s[3] & (s[1] - s[0] > 0), iterate, state)
-    theta = state[2]
-    which = jnp.argmax(jnp.where(crossed, guard_fn(theta), -jnp.inf)).astype(jnp.int32)
-    return theta, which
-
-
+    which0 = jnp.argmax(jnp.where(crossed, g_end, -jnp.inf)).astype(jnp.int32)
+    state = (jnp.zeros_like(secant), jnp.ones_like(secant), secant, which0, ~jnp.any(crossed))
+    # The first iterations unrolled in the program (a nested while loop costs a device-host
+    # round trip per iteration on a GPU) but traced once, then a loop for the rare hard case
+    # (a kink of an and-guard near the root sends Newton to bisection), bounded.
+    state = jax.lax.fori_loop(0, _ROOT_ITERATIONS, lambda i, s: iterate(s), state, unroll=True)
+    state = jax.lax.while_loop(lambda s: ~s[4] & (s[1] - s[0] > 0), iterate, state)
+    return state[2], state[3]

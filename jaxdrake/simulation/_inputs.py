@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..trajectories import Trajectory
+from ._result import SimulatedTrajectory
 
 
 class InputSource(eqx.Module):
@@ -45,7 +46,7 @@ class _FunctionInput(InputSource):
 
 
 class _TrajectoryInput(InputSource):
-    trajectory: Trajectory
+    trajectory: Trajectory | SimulatedTrajectory
     num_inputs: int = eqx.field(static=True)
     piece: jax.Array | None = None
     has_breakpoints = True
@@ -73,7 +74,7 @@ class NoisyInput(InputSource):
     breakpoints: a step never straddles a jump of w, so `on_step` draws the step's samples
     once and every stage of the step reuses them."""
 
-    inputs: _InputSource
+    inputs: InputSource
     key: jax.Array
     groups: tuple = eqx.field(static=True)
     samples: jax.Array | None = None
@@ -126,13 +127,14 @@ def make_source(system, inputs, t0, dtype):
         return _ZeroInput(nu, np.dtype(dtype))
     if nu == 0:
         raise ValueError(f"{system.name} has no inputs, but inputs were given")
-    if isinstance(inputs, Trajectory):
+    tape = isinstance(inputs, (Trajectory, SimulatedTrajectory))  # a simulation's output is a tape too
+    if tape:
         source = _TrajectoryInput(leaves_to_arrays(inputs, dtype), nu)
     elif callable(inputs):
         source = _FunctionInput(inputs, nu)
     else:
         raise TypeError(f"inputs must be a Trajectory or a function of time, got {type(inputs).__name__}")
-    raw = inputs.eval if isinstance(inputs, Trajectory) else inputs
+    raw = inputs.eval if tape else inputs
     try:
         shape = jax.eval_shape(raw, t0).shape
     except Exception as e:

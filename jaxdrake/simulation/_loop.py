@@ -37,6 +37,7 @@ from ..trajectories._trajectory import NUM_COEFFICIENTS, eval_polynomial
 from . import _events as ev
 from ._controller import AbstractStepSizeController
 from ._inputs import InputSource
+from ._result import SimulatedTrajectory
 from ._solvers import AbstractSolver
 from ._status import SimulationStatus, status_array
 
@@ -300,17 +301,18 @@ class Loop(eqx.Module):
             return s, a
         source = self.source.on_step(s.t)
         g_step = lambda tt, xx: self.guards(tt, xx, s.mode, s.saturation, source)  # noqa: E731
-        crossed = a.accept & (g_step(s.t, s.x) < 0) & (g_step(a.t_end, a.x_end) >= 0)
+        g_start, g_end = jax.vmap(g_step)(jnp.stack([s.t, a.t_end]), jnp.stack([s.x, a.x_end]))
+        crossed = a.accept & (g_start < 0) & (g_end >= 0)
         room = s.events.count < self.max_events
         status = jnp.where(jnp.any(crossed) & ~room, SimulationStatus.TOO_MANY_EVENTS, s.status)
         event = jnp.any(crossed) & room
 
         def cut(a):
             t, h, dtype = s.t, a.h, s.x.dtype
-            frozen = jax.lax.stop_gradient((a.coefficients, t, h))
+            frozen = jax.lax.stop_gradient((a.coefficients, t, h, g_start, g_end))
             theta_located, which = ev.locate_first_crossing(
                 lambda th: jax.lax.stop_gradient(g_step(frozen[1] + th * frozen[2], eval_polynomial(frozen[0], th))),
-                crossed, frozen[2], self.event_tol)
+                crossed, frozen[3], frozen[4], frozen[2], self.event_tol)
             g_of = lambda th: g_step(t + th * h, eval_polynomial(a.coefficients, th))[which]  # noqa: E731
             g_val, g_dot = jax.jvp(g_of, (theta_located,), (jnp.ones((), dtype),))
             g_dot = jax.lax.stop_gradient(g_dot)
@@ -439,7 +441,7 @@ class Loop(eqx.Module):
 
 
 def run_simulation(system, solver, controller, source, t0, tf, x0, h0, dt_max, event_tol, max_steps: int,
-                   max_events: int, dense: bool, constraint_projection: bool, autodiff: str) -> Trajectory:
+                   max_events: int, dense: bool, constraint_projection: bool, autodiff: str) -> SimulatedTrajectory:
     """Project x0 onto the state constraints, run the loop, and package the trajectory."""
     dtype, eps = x0.dtype, jnp.finfo(x0.dtype).eps
     status = status_array(SimulationStatus.SUCCESS)
@@ -470,7 +472,8 @@ def run_simulation(system, solver, controller, source, t0, tf, x0, h0, dt_max, e
         coefficients, count = jnp.concatenate([coefficients, last]), jnp.asarray(2)
         modes = jnp.concatenate([modes, s.mode[None]])
     e = s.events
-    return Trajectory(t_start=t_start, t_end=t_end, coefficients=coefficients, num_segments=count,
-                      t_final=s.t, status=status, event_times=e.times, event_indices=e.indices,
-                      num_events=e.count, num_rejected_steps=s.rejected, modes=modes, event_modes=e.modes,
-                      event_states=e.states, system=system, inputs=source, side="left", dense=dense)
+    return SimulatedTrajectory(
+        state_trajectory=Trajectory(t_start, t_end, coefficients, count, side="left"), modes=modes,
+        t_final=s.t, status=status, event_times=e.times, event_indices=e.indices, event_modes=e.modes,
+        event_states=e.states, num_events=e.count, num_rejected_steps=s.rejected, system=system,
+        inputs=source, dense=dense)

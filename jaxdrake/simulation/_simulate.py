@@ -16,10 +16,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..systems import Diagram, HybridSystem, System
-from ..trajectories import Trajectory
 from ._controller import ConstantStepSize, IController
 from ._inputs import NoisyInput, leaves_to_arrays, make_source
 from ._loop import run_simulation
+from ._result import SimulatedTrajectory
 from ._solvers import make_solver
 from ._status import SimulationError, SimulationStatus
 
@@ -37,7 +37,7 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
              atol=1e-9, dt=None, max_step_size=None, max_steps: int = 4096,
              max_events: int = 256, event_tol=1e-10, dense: bool = True,
              constraint_projection: bool = False, autodiff: str = "reverse",
-             throw: bool = True) -> Trajectory:
+             throw: bool = True) -> SimulatedTrajectory:
     """Simulate a system over `tspan = (t0, tf)` (the notes' `simulate(sys, [t0 tf], x0)`).
 
     **Arguments:**
@@ -64,7 +64,7 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     - `throw`: outside `jit` / `vmap`, raise `SimulationError` on failure; inside, the
       status is on the result (`traj.status`, `traj.success`) either way.
 
-    **Returns:** a `Trajectory`.
+    **Returns:** a `SimulatedTrajectory`.
     """
     if not isinstance(system, System):
         raise TypeError(f"simulate needs a jaxdrake.System, got {type(system).__name__}")

@@ -54,7 +54,14 @@ class _AndGuard:
     guards: tuple
 
     def __call__(self, system, t, x, u):
-        return jnp.max(jnp.stack([jnp.asarray(g(system, t, x, u)).reshape(()) for g in self.guards]))
+        # the max as selects, whose derivative is the chosen guard's: the derivative rule of
+        # jnp.max divides by the number of entries equal to the max, which XLA can make 0
+        # (NaN) when it recomputes an entry with other rounding in a fused kernel
+        values = [jnp.asarray(g(system, t, x, u)).reshape(()) for g in self.guards]
+        largest = values[0]
+        for v in values[1:]:
+            largest = jnp.where(v > largest, v, largest)
+        return largest
 
 
 @dataclasses.dataclass(frozen=True)

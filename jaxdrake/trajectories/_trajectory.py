@@ -1,8 +1,13 @@
-"""Trajectories: piecewise polynomials in fixed-size buffers (pytrees), evaluable at any time."""
+"""Trajectories: piecewise polynomials in fixed-size buffers (pytrees), evaluable at any time.
+
+A `Trajectory` knows nothing of simulation (statuses, events, guards): input tapes, trajectory
+optimization results, time-varying LQR gains, and the state of a simulation
+(`jaxdrake.simulation.SimulatedTrajectory` holds one) are all `Trajectory`s.
+"""
 
 from __future__ import annotations
 
-from typing import Any
+from math import comb
 
 import equinox as eqx
 import jax
@@ -10,6 +15,14 @@ import jax.numpy as jnp
 import numpy as np
 
 NUM_COEFFICIENTS = 5  # pieces are polynomials of degree <= 4 in the normalized time theta
+
+# Reversing a piece: sum_j c_j theta^j with theta = 1 - theta' has the coefficients
+# c'_k = (-1)^k sum_{j >= k} binom(j, k) c_j.
+_REVERSAL = np.array([[(-1) ** k * comb(j, k) for j in range(NUM_COEFFICIENTS)]
+                      for k in range(NUM_COEFFICIENTS)], dtype=float)
+# Fitting a piece through values at theta = 0, 1/4, ..., 1: the inverse Vandermonde matrix.
+_FIT_NODES = np.linspace(0.0, 1.0, NUM_COEFFICIENTS)
+_FIT = np.linalg.inv(np.vander(_FIT_NODES, NUM_COEFFICIENTS, increasing=True))
 
 
 def eval_polynomial(coefficients, theta):
@@ -20,42 +33,40 @@ def eval_polynomial(coefficients, theta):
     return y
 
 
+def vectorize_in_time(fn, t, dtype):
+    """fn at a scalar time, or mapped over a 1-D array of times."""
+    t = jnp.asarray(t, dtype=dtype)
+    if t.ndim == 0:
+        return fn(t)
+    if t.ndim == 1:
+        return jax.vmap(fn)(t)
+    raise ValueError(f"times must be a scalar or a 1-D array, got shape {t.shape}")
+
+
+def check_side(side):
+    if side not in ("left", "right"):
+        raise ValueError(f"side must be 'left' or 'right', got {side!r}")
+    return side
+
+
 class Trajectory(eqx.Module):
-    r"""A piecewise-polynomial signal, as returned by `simulate` (the notes' `Trajectory`).
+    r"""A piecewise-polynomial signal (the notes' `Trajectory`).
 
     Piece $i$ covers $(t^{start}_i, t^{end}_i]$ and is $x(t) = \sum_{j=0}^{4} c_{ij}\theta^j$
     with $\theta = (t - t^{start}_i)/(t^{end}_i - t^{start}_i)$. Buffers have a fixed size (so a
     trajectory can be returned from `jit`, vmapped and differentiated); only the first
     `num_segments` pieces are used.
 
-    At a jump (a discrete update, an event) the value depends on the side: `"left"` gives
-    the limit from before, `"right"` the limit from after. Simulated trajectories default to
-    `"left"`, the notes' timing for discrete states (an update computed at $t_k$ holds on
-    $(t_k, t_{k+1}]$); zero-order-hold input tapes default to `"right"`.
-
-    A simulated trajectory also holds its system and input source, so `eval(t)` gives the
-    system's output $y(t) = g(t, x(t), u(t))$ while `state(t)` gives $x(t)$; a trajectory made
-    from samples has no system and `eval` gives the interpolated value. A trajectory can be
-    passed as `inputs` to `simulate` (an input tape).
+    At a jump the value depends on the side: `"left"` gives the limit from before, `"right"`
+    the limit from after (`side` is the default; zero-order-hold tapes use `"right"`). A
+    trajectory can be passed as `inputs` to `simulate` (an input tape).
     """
 
     t_start: jax.Array
     t_end: jax.Array
     coefficients: jax.Array
     num_segments: jax.Array
-    t_final: jax.Array
-    status: jax.Array
-    event_times: jax.Array
-    event_indices: jax.Array
-    num_events: jax.Array
-    num_rejected_steps: jax.Array
-    modes: jax.Array | None = None
-    event_modes: jax.Array | None = None
-    event_states: jax.Array | None = None
-    system: Any = None
-    inputs: Any = None
     side: str = eqx.field(static=True, default="left")
-    dense: bool = eqx.field(static=True, default=True)
 
     # ----- construction ---------------------------------------------------------------------
 
@@ -101,16 +112,12 @@ class Trajectory(eqx.Module):
             raise ValueError(f"from_pieces needs coefficients of shape (pieces, {NUM_COEFFICIENTS}, n), "
                              f"got {coefficients.shape}")
         size = coefficients.shape[0]
-        used = jnp.asarray(size if num_segments is None else num_segments)
-        t_end = jnp.asarray(t_end, coefficients.dtype)
-        return cls(t_start=jnp.asarray(t_start, coefficients.dtype), t_end=t_end,
-                   coefficients=coefficients, num_segments=used, t_final=t_end[used - 1],
-                   status=jnp.asarray(0), event_times=jnp.zeros(0, t_end.dtype),
-                   event_indices=jnp.zeros(0, int), num_events=jnp.asarray(0),
-                   num_rejected_steps=jnp.asarray(0), modes=jnp.zeros(size, jnp.int32), side=side)
+        return cls(t_start=jnp.asarray(t_start, coefficients.dtype), t_end=jnp.asarray(t_end, coefficients.dtype),
+                   coefficients=coefficients, num_segments=jnp.asarray(size if num_segments is None else num_segments),
+                   side=check_side(side))
 
     def __getitem__(self, i) -> "Trajectory":
-        """Member i of a batch of trajectories (the result of `jax.vmap(simulate...)`)."""
+        """Member i of a batch of trajectories (the result of `jax.vmap`)."""
         if self.t_start.ndim < 2:
             raise IndexError("this trajectory is not a batch: only vmapped trajectories can be indexed")
         return jax.tree.map(lambda leaf: leaf[i] if isinstance(leaf, jax.Array) else leaf, self)
@@ -126,167 +133,121 @@ class Trajectory(eqx.Module):
         return self.t_start[0]
 
     @property
-    def success(self):
-        """True when the simulation reached its final time (or was stopped by a reset)."""
-        return (self.status == 0) | (self.status == 6)  # SimulationStatus SUCCESS, STOPPED_BY_RESET
-
-    def _check_dense(self):
-        if not self.dense:
-            raise ValueError("this trajectory was simulated with dense=False and keeps only the "
-                             "final state: use traj.final_state, or simulate with dense=True")
-
-    def _vectorize(self, fn, t):
-        t = jnp.asarray(t, dtype=self.t_start.dtype)
-        if t.ndim == 0:
-            return fn(t)
-        if t.ndim == 1:
-            return jax.vmap(fn)(t)
-        raise ValueError(f"times must be a scalar or a 1-D array, got shape {t.shape}")
+    def t_final(self):
+        """The end of the last used piece."""
+        return jnp.take_along_axis(self.t_end, jnp.asarray(self.num_segments - 1)[..., None], axis=-1)[..., 0]
 
     def piece_index(self, t, side: str = "right"):
         """The index of the piece holding time t (at a breakpoint: the piece after it for
         `side="right"`, before it for `"left"`)."""
         return jnp.clip(jnp.searchsorted(self.t_end, t, side=side), 0, self.num_segments - 1)
 
-    def _state_in_piece(self, i, t):
+    def eval_piece(self, i, t):
+        """The value at time t computed from piece i alone (its one-sided limits at its ends)."""
         t0, t1 = self.t_start[i], self.t_end[i]
         width = t1 - t0
         safe = jnp.where(width > 0, width, 1.0)  # zero-length pieces are constants
         theta = jnp.clip(jnp.where(width > 0, (t - t0) / safe, 0.0), 0.0, 1.0)
         return eval_polynomial(self.coefficients[i], theta)
 
-    def _state_at(self, t, side):
-        return self._state_in_piece(self.piece_index(t, side), t)
-
-    def eval_piece(self, i, t):
-        """The output at time t computed from piece i alone (its one-sided limits at its ends)."""
-        x = self._state_in_piece(i, t)
-        if self.system is None:
-            return x
-        return self.system.mode_output(self.modes[i], t, x, self.system.saturate(self.inputs(t)))
-
-    def mode(self, t, side: str | None = None):
-        """The active mode at time t (for a hybrid system; 0 otherwise)."""
-        side = self._side(side)
-        return self._vectorize(lambda s: self.modes[self.piece_index(s, side)], t)
+    def eval(self, t, side: str | None = None):
+        """The value x(t) (shape (n,), or (len(t), n) for an array of times)."""
+        side = check_side(self.side if side is None else side)
+        return vectorize_in_time(lambda s: self.eval_piece(self.piece_index(s, side), s), t, self.t_start.dtype)
 
     def state(self, t, side: str | None = None):
-        """The state x(t) (shape (n,), or (len(t), n) for an array of times)."""
-        self._check_dense()
-        side = self._side(side)
-        return self._vectorize(lambda s: self._state_at(s, side), t)
-
-    def input(self, t):
-        """The input u(t) applied to the system (after its input limits)."""
-        if self.system is None:
-            raise ValueError("this trajectory has no system, so no input")
-        nu = self.system.num_inputs  # without the noise samples of a stochastic system
-        return self._vectorize(lambda s: self.system.saturate(self.inputs(s))[:nu], t)
-
-    def eval(self, t, side: str | None = None):
-        """The output y(t) = g(t, x(t), u(t)) of the simulated system at any time (dense)."""
-        self._check_dense()
-        side = self._side(side)
-        if self.system is None:
-            return self._vectorize(lambda s: self._state_at(s, side), t)
-
-        return self._vectorize(lambda s: self.eval_piece(self.piece_index(s, side), s), t)
+        """Same as `eval`: the trajectory's value (a state trajectory's x(t))."""
+        return self.eval(t, side)
 
     def __call__(self, t):
         """Same as `eval(t)`: a trajectory is a function of time (usable as an input)."""
         return self.eval(t)
 
-    def _side(self, side):
-        side = self.side if side is None else side
-        if side not in ("left", "right"):
-            raise ValueError(f"side must be 'left' or 'right', got {side!r}")
-        return side
-
     @property
-    def final_state(self):
-        """The state at the last time reached (for a batch, of every member): the last piece
-        at theta = 1, the sum of its coefficients."""
+    def final_value(self):
+        """The value at the end of the last piece (for a batch, of every member): the sum of
+        the last piece's coefficients."""
         last = jnp.asarray(self.num_segments - 1)[..., None, None, None]
         return jnp.take_along_axis(self.coefficients, last, axis=-3)[..., 0, :, :].sum(axis=-2)
+
+    # ----- algebra on the pieces ------------------------------------------------------------
+
+    def reversed_in_time(self, t_reflect) -> "Trajectory":
+        """The trajectory of s = t_reflect - t, as a function of t: piece order reversed and
+        each piece re-expanded in 1 - theta (e.g. a Riccati solution integrated backward in
+        tau = t_f - t, made a trajectory of t)."""
+        size = self.t_start.shape[0]
+        used = self.num_segments
+        order = jnp.clip(used - 1 - jnp.arange(size), 0, size - 1)
+        pad = jnp.arange(size) >= used
+        t_start = jnp.where(pad, t_reflect, t_reflect - self.t_end[order])
+        t_end = jnp.where(pad, t_reflect, t_reflect - self.t_start[order])
+        reversal = jnp.asarray(_REVERSAL, self.coefficients.dtype)
+        coefficients = jnp.einsum("kj,pjn->pkn", reversal, self.coefficients[order])
+        return Trajectory.from_pieces(t_start, t_end, coefficients, used, side=self.side)
+
+    def interpolate(self, fn) -> "Trajectory":
+        """g(t) = fn(t, x(t)) on the same pieces, each the quartic through g at five equally
+        spaced points of the piece (exact when g is a polynomial of degree <= 4 in t on it)."""
+        widths = self.t_end - self.t_start
+        theta = jnp.asarray(_FIT_NODES, widths.dtype)
+        times = self.t_start[:, None] + widths[:, None] * theta
+        x_values = jnp.einsum("kj,pjn->pkn", jnp.vander(theta, NUM_COEFFICIENTS, increasing=True), self.coefficients)
+        values = jax.vmap(jax.vmap(fn))(times, x_values)  # (pieces, 5, m)
+        coefficients = jnp.einsum("kj,pjn->pkn", jnp.asarray(_FIT, values.dtype), values)
+        return Trajectory.from_pieces(self.t_start, self.t_end, coefficients, self.num_segments, side=self.side)
 
     # ----- host-side views ------------------------------------------------------------------
 
     def breakpoints(self) -> np.ndarray:
-        """The times at which pieces start and end (steps, sample times, events), on the host."""
+        """The times at which pieces start and end, on the host."""
         n = int(self.num_segments)
         return np.unique(np.concatenate([np.asarray(self.t_start[:n]), np.asarray(self.t_end[:n])]))
 
-    @property
-    def events(self) -> dict:
-        """Events that fired, on the host: `times`; `indices`, the guard that fired (input
-        limits first: 2 per input, high then low; then the transitions, so that index
-        `2 * num_inputs_with_limits + k` is transition k); `transitions`, k or -1 for an
-        input-limit event; `modes`, the mode after the event; `states`, the state after it."""
-        n = int(self.num_events)
-        indices = np.asarray(self.event_indices[:n])
-        out = {"times": np.asarray(self.event_times[:n]), "indices": indices}
-        if self.system is not None:
-            limit_guards = 2 * self.system.num_inputs if self.system.input_limits is not None else 0
-            out["transitions"] = np.where(indices >= limit_guards, indices - limit_guards, -1)
-        if self.event_modes is not None:
-            out["modes"] = np.asarray(self.event_modes[:n])
-            out["states"] = np.asarray(self.event_states[:n])
-        return out
-
-    @property
-    def num_steps(self) -> int:
-        """The number of accepted integration steps (pieces after the initial point)."""
-        return int(self.num_segments) - 1
-
     def sample(self, num: int = 400):
-        """Times and outputs for plotting: a uniform grid plus both sides of every breakpoint,
-        so that jumps show as vertical lines. Returns (ts, ys) as numpy arrays."""
-        self._check_dense()
-        t0, tf = float(self.t_start[0]), float(self.t_final)
-        grid = np.linspace(t0, tf, num)
-        br = self.breakpoints()
-        br = br[(br >= t0) & (br <= tf)]
-        if len(br) > 4 * num:  # many small steps: the uniform grid already resolves the curve
-            br = br[:0]
-        ts = np.sort(np.concatenate([grid, br, br]))
-        sides = np.zeros(len(ts), bool)
-        sides[1:] = ts[1:] == ts[:-1]  # the second copy of a repeated time takes the right limit
-        left = np.asarray(self.eval(jnp.asarray(ts), side="left"))
-        right = np.asarray(self.eval(jnp.asarray(ts), side="right"))
-        ys = np.where(sides[:, None], right, left)
-        return ts, ys
+        """Times and values for plotting (see `sample_signal`). Returns (ts, ys) as numpy arrays."""
+        return sample_signal(self.eval, float(self.t_start[0]), float(self.t_final), self.breakpoints(), num)
 
     def plot(self, ax=None, outputs=None, **kwargs):
-        """Plot outputs against time with matplotlib (the notes' `fnplt`); returns the figure.
-
-        `outputs`: indices or coordinate names of the outputs to draw (default all).
-        Outputs of discrete-time systems are drawn as held values with a dot at each sample.
-        """
-        import matplotlib.pyplot as plt
-
-        if ax is None:
-            fig, ax = plt.subplots(figsize=(6, 3.5), layout="constrained")
-        fig = ax.figure
+        """Plot the values against time with matplotlib (the notes' `fnplt`); returns the figure.
+        `outputs`: indices of the coordinates to draw (default all)."""
         ts, ys = self.sample()
-        frame = None if self.system is None else self.system.output_frame
-        names = (list(frame.coordinates) if frame is not None
-                 else [f"y{i}" for i in range(ys.shape[1])])
-        if outputs is None:
-            outputs = range(ys.shape[1])
-        idx = [names.index(o) if isinstance(o, str) else int(o) for o in outputs]
-        discrete = (self.system is not None and self.system.has_discrete_state
-                    and not self.system.has_continuous_state)
-        for i in idx:
-            line, = ax.plot(ts, ys[:, i], label=names[i], **kwargs)
-            if discrete:
-                dt = min(self.system.sample_times)  # the fastest rate of a multi-rate system
-                tk = np.arange(np.ceil(ts[0] / dt), np.floor(ts[-1] / dt) + 1) * dt
-                ax.plot(tk, np.asarray(self.eval(jnp.asarray(tk)))[:, i], "o", ms=4,
-                        color=line.get_color())
-        ax.set_xlabel("t")
-        if frame is not None:
-            ax.set_title(frame.name)
-        if len(idx) > 1 or frame is not None:
-            ax.legend(loc="best")
-        ax.grid(True, alpha=0.3)
-        return fig
+        return plot_signal(ts, ys, [f"y{i}" for i in range(ys.shape[1])], None, outputs, ax=ax, **kwargs)
+
+
+def sample_signal(eval_fn, t0: float, tf: float, breakpoints: np.ndarray, num: int = 400):
+    """Times and values of `eval_fn(ts, side=...)` for plotting: a uniform grid plus both sides of
+    every breakpoint, so that jumps show as vertical lines."""
+    grid = np.linspace(t0, tf, num)
+    br = breakpoints[(breakpoints >= t0) & (breakpoints <= tf)]
+    if len(br) > 4 * num:  # many small steps: the uniform grid already resolves the curve
+        br = br[:0]
+    ts = np.sort(np.concatenate([grid, br, br]))
+    sides = np.zeros(len(ts), bool)
+    sides[1:] = ts[1:] == ts[:-1]  # the second copy of a repeated time takes the right limit
+    left = np.asarray(eval_fn(jnp.asarray(ts), side="left"))
+    right = np.asarray(eval_fn(jnp.asarray(ts), side="right"))
+    return ts, np.where(sides[:, None], right, left)
+
+
+def plot_signal(ts, ys, names, title, outputs=None, *, ax=None, held_samples=None, **kwargs):
+    """Lines of the columns `outputs` (indices or names; default all) of ys against ts.
+    `held_samples`: (tk, yk) drawn as dots (the samples of a discrete-time signal)."""
+    import matplotlib.pyplot as plt
+
+    if ax is None:
+        _, ax = plt.subplots(figsize=(6, 3.5), layout="constrained")
+    if outputs is None:
+        outputs = range(ys.shape[1])
+    idx = [list(names).index(o) if isinstance(o, str) else int(o) for o in outputs]
+    for i in idx:
+        line, = ax.plot(ts, ys[:, i], label=names[i], **kwargs)
+        if held_samples is not None:
+            ax.plot(held_samples[0], held_samples[1][:, i], "o", ms=4, color=line.get_color())
+    ax.set_xlabel("t")
+    if title is not None:
+        ax.set_title(title)
+    if len(idx) > 1 or title is not None:
+        ax.legend(loc="best")
+    ax.grid(True, alpha=0.3)
+    return ax.figure
