@@ -75,7 +75,8 @@ def locate_first_crossing(guard_fn, crossed, g_start, g_end, h, tol):
     is replaced by the midpoint. It stops when the last update or the bracket is below `tol`
     in time: a few iterations for smooth guards, where bisection alone needs ~30 (which under
     vmap every member pays whenever any member has an event). Ties go to the lowest index.
-    `guard_fn(theta)` gives all guards; not differentiated (see the Newton step in the loop).
+    `guard_fn(theta)` gives all guards (of frozen coefficients); its values and theta-derivatives
+    are not differentiated further (see the differentiable Newton step in the loop).
     """
     def G(g):
         return jnp.max(jnp.where(crossed, g, -jnp.inf))
@@ -85,7 +86,7 @@ def locate_first_crossing(guard_fn, crossed, g_start, g_end, h, tol):
 
     def iterate(state):
         lo, hi, theta, which, done = state
-        gs, dgs = jax.jvp(guard_fn, (theta,), (jnp.ones_like(theta),))
+        gs, dgs = jax.lax.stop_gradient(jax.jvp(guard_fn, (theta,), (jnp.ones_like(theta),)))
         masked = jnp.where(crossed, gs, -jnp.inf)
         k = jnp.argmax(masked).astype(jnp.int32)
         g, dg = masked[k], dgs[k]

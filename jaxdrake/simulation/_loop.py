@@ -311,7 +311,7 @@ class Loop(eqx.Module):
             t, h, dtype = s.t, a.h, s.x.dtype
             frozen = jax.lax.stop_gradient((a.coefficients, t, h, g_start, g_end))
             theta_located, which = ev.locate_first_crossing(
-                lambda th: jax.lax.stop_gradient(g_step(frozen[1] + th * frozen[2], eval_polynomial(frozen[0], th))),
+                lambda th: g_step(frozen[1] + th * frozen[2], eval_polynomial(frozen[0], th)),
                 crossed, frozen[3], frozen[4], frozen[2], self.event_tol)
             g_of = lambda th: g_step(t + th * h, eval_polynomial(a.coefficients, th))[which]  # noqa: E731
             g_val, g_dot = jax.jvp(g_of, (theta_located,), (jnp.ones((), dtype),))

@@ -20,6 +20,7 @@ from typing import ClassVar
 
 import equinox as eqx
 import jax
+import jax.extend
 import jax.numpy as jnp
 import numpy as np
 
@@ -74,11 +75,12 @@ class AbstractExplicitRungeKutta(AbstractSolver):
     Stage $i$: $k_i = f(t_0 + c_i h,\ y_0 + h \sum_{j<i} a_{ij} k_j)$;
     $y_1 = y_0 + h \sum_i b_i k_i$; error $h \sum_i e_i k_i$.
 
-    The sums are accumulated as the stages are evaluated: stage i, once known, adds
-    $w_{mi} k_i$ to the running sum of every row m of $[a; b; e; \text{dense}]$. Only
-    elementwise products and sums, in stage order: no matmul (on a GPU a float32 matmul may run
-    in reduced precision) and no reduction (whose order XLA may change under vmap), so a
-    batched run agrees with single runs bit for bit.
+    The vector field is traced once (`jax.make_jaxpr`) and evaluated from its jaxpr at every
+    stage. A small one (equations x stages <= `UNROLL_BELOW`) runs its stages one after
+    another, as straight-line code is faster than a loop whose per-iteration cost exceeds the
+    evaluations; a larger one runs them in a `lax.scan` over the tableau, so it appears once in
+    the compiled program. The weighted sums are elementwise products and sums in stage order
+    (no matmul, no reduction), so a batched run agrees with single runs bit for bit.
     """
 
     c: ClassVar[np.ndarray]
@@ -88,6 +90,29 @@ class AbstractExplicitRungeKutta(AbstractSolver):
     dense: ClassVar[np.ndarray]
 
     def step(self, f, t0, y0, step_size, k0=None):
+        # the vector field traced once, then evaluated from its jaxpr at every stage
+        vector_field = jax.make_jaxpr(f)(t0, y0)
+        evaluate = jax.extend.core.jaxpr_as_fun(vector_field)
+        if _size(vector_field.jaxpr) * len(self.c) <= UNROLL_BELOW:
+            return self._unrolled_step(lambda t, y: evaluate(t, y)[0], t0, y0, step_size, k0)
+        return self._looped_step(lambda t, y: evaluate(t, y)[0], t0, y0, step_size, k0)
+
+    def _unrolled_step(self, f, t0, y0, step_size, k0):
+        """The stages one after another: for a small vector field, whose evaluations cost less
+        than a loop iteration."""
+        ks = [f(t0, y0) if k0 is None else k0]
+        h = step_size(ks[0])
+        for i in range(1, len(self.c)):
+            ks.append(f(t0 + float(self.c[i]) * h, y0 + h * _combine(self.a[i, :i], ks)))
+        y1 = y0 + h * _combine(self.b, ks)
+        error = None if self.e is None else h * _combine(self.e, ks)
+        coefficients = jnp.stack([y0] + [h * _combine(row, ks) for row in self.dense])
+        return StepResult(h, ks[0], y1, error, coefficients, ks[-1] if self.fsal else None)
+
+    def _looped_step(self, f, t0, y0, step_size, k0):
+        """The stages in a loop over the tableau: the vector field once in the program. Stage i,
+        once known, adds $w_{mi} k_i$ to the running sum of every row m of
+        $[a; b; e; \\text{dense}]$."""
         dtype = y0.dtype
         num_stages = len(self.c)
         rows = [self.a, self.b[None]] + ([] if self.e is None else [self.e[None]]) + [self.dense]
@@ -98,7 +123,7 @@ class AbstractExplicitRungeKutta(AbstractSolver):
         def add(sums, i, k):
             return sums + weights[:, i, None] * k
 
-        first, k_first = 0, None
+        first, k_first = 0, jnp.zeros_like(y0)  # the first stage's value, needed for h
         if k0 is not None:
             first, k_first, sums = 1, k0, add(sums, 0, k0)
 
@@ -106,11 +131,8 @@ class AbstractExplicitRungeKutta(AbstractSolver):
             sums, k_first = carry
             h = step_size(k_first)  # stage 0 sits at (t0, y0) whatever h is
             k = f(t0 + c[i] * h, y0 + h * sums[i])
-            k_first = k if k_first is None else jnp.where(i == 0, k, k_first)
-            return (add(sums, i, k), k_first), k
+            return (add(sums, i, k), jnp.where(i == 0, k, k_first)), k
 
-        if k_first is None:  # the first stage's value is needed for h: carry it from i = 0
-            k_first = jnp.zeros_like(y0)
         (sums, k_first), ks = jax.lax.scan(stage, (sums, k_first), jnp.arange(first, num_stages))
         h = step_size(k_first)
         s = num_stages
@@ -118,6 +140,26 @@ class AbstractExplicitRungeKutta(AbstractSolver):
         error = None if self.e is None else h * sums[s + 1]
         coefficients = jnp.concatenate([y0[None], h * sums[-(NUM_COEFFICIENTS - 1):]])
         return StepResult(h, k_first, y1, error, coefficients, ks[-1] if self.fsal else None)
+
+
+def _combine(weights, ks):
+    """sum_i weights[i] * ks[i] for static weights, added in stage order and skipping zeros:
+    elementwise only (no matmul, which on a GPU may run in reduced precision, and no reduction,
+    whose order XLA may change under vmap), so a batched run agrees with single runs bit for
+    bit."""
+    total = None
+    for w, k in zip(np.asarray(weights, float), ks):
+        if w != 0.0:
+            total = w * k if total is None else total + w * k
+    return jnp.zeros_like(ks[0]) if total is None else total
+
+
+UNROLL_BELOW = 400  # equations of the vector field x stages (a pendulum: ~10 x 7; an acrobot: ~500 x 7)
+
+
+def _size(jaxpr) -> int:
+    """The number of equations of a jaxpr, those of its sub-jaxprs included."""
+    return len(jaxpr.eqns) + sum(_size(sub) for sub in jax.extend.core.subjaxprs(jaxpr))
 
 
 def _dense_rows(*rows, num_stages):
