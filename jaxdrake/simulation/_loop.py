@@ -17,9 +17,10 @@ One iteration (`Loop.iterate`), like Drake's `Simulator::Step`:
 8. `adapt_step_size`: accept or reject, the next step size, failures as a status;
 9. `record`: the step's dense-output polynomial and the event into the buffers.
 
-Every user function is traced once per program: the vector field inside the solver's stage
-loop (which also picks the initial step size from its first stage), the guards, discrete
-updates and resets at one call site each.
+The vector field is traced once per program (the solver evaluates its jaxpr at every stage
+and picks the initial step size from the first one); discrete updates, resets and outputs have
+one call site each; the guards have four (the ready check, both ends of a step in one vmapped
+call, the root finder's iteration, the differentiable Newton step).
 """
 
 from __future__ import annotations
