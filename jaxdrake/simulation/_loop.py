@@ -19,8 +19,8 @@ One iteration (`Loop.iterate`), like Drake's `Simulator::Step`:
 
 The vector field is traced once per program (the solver evaluates its jaxpr at every stage
 and picks the initial step size from the first one); discrete updates, resets and outputs have
-one call site each; the guards have four (the ready check, both ends of a step in one vmapped
-call, the root finder's iteration, the differentiable Newton step).
+one call site each; the guards have five (the ready check, both ends of a step in one vmapped
+call, the root finder's unrolled and looped iterations, the differentiable Newton step).
 """
 
 from __future__ import annotations
