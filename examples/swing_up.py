@@ -93,7 +93,7 @@ def main(out: pathlib.Path, num: int) -> pathlib.Path:
     acrobot, acrobot_switch, acrobot_goal = acrobot_loop()
     cart_pole, cart_pole_switch, cart_pole_goal = cart_pole_loop()
     plot_run([fig.add_subplot(grid[0, 0]), fig.add_subplot(grid[1, 0])], acrobot, acrobot_switch, 20.0,
-             jnp.array([0.1, -0.01, 0.0, 0.0]), {0: "q1 (shoulder)", 1: "q2 (elbow)"}, "acrobot")
+             jnp.array([0.1, -0.02, 0.0, 0.0]), {0: "q1 (shoulder)", 1: "q2 (elbow)"}, "acrobot")
     plot_run([fig.add_subplot(grid[0, 1]), fig.add_subplot(grid[1, 1])], cart_pole, cart_pole_switch, 8.0,
              jnp.array([0.0, 0.1, 0.0, 0.0]), {0: "x (cart)", 1: "theta (pole)"}, "cart-pole")
 

@@ -274,7 +274,7 @@ def test_acrobot_swing_up_switches_to_lqr_where_V_crosses_the_threshold_and_bala
                                     enter=300.0, leave=3000.0, output_limits=(-20.0, 20.0))
     # q2 = 0 exactly would leave the direction of the first swing to rounding noise (the
     # outcome then flips with the tolerance); a small elbow angle decides it
-    traj = jd.simulate(jd.feedback(acrobot, switch), (0.0, 20.0), jnp.array([0.1, -0.01, 0.0, 0.0]),
+    traj = jd.simulate(jd.feedback(acrobot, switch), (0.0, 20.0), jnp.array([0.1, -0.02, 0.0, 0.0]),
                        max_steps=8000)
     events = traj.events
     assert events["modes"][-1] == 1 and upright_error(traj.final_state, goal, [0, 1]) < 1e-3
