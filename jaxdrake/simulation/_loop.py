@@ -40,7 +40,7 @@ from ._controller import AbstractStepSizeController
 from ._inputs import InputSource
 from ._result import SimulatedTrajectory
 from ._solvers import AbstractSolver
-from ._status import SimulationStatus, status_array
+from ._status import SimulationStatus
 
 
 def project_to_constraints(system: System, x, iterations: int = 20):
@@ -445,7 +445,7 @@ def run_simulation(system, solver, controller, source, t0, tf, x0, h0, dt_max, e
                    max_events: int, dense: bool, constraint_projection: bool, autodiff: str) -> SimulatedTrajectory:
     """Project x0 onto the state constraints, run the loop, and package the trajectory."""
     dtype, eps = x0.dtype, jnp.finfo(x0.dtype).eps
-    status = status_array(SimulationStatus.SUCCESS)
+    status = jnp.asarray(int(SimulationStatus.SUCCESS), jnp.int32)
     if system.num_state_constraints:
         x0 = project_to_constraints(system, x0)
         residual = jnp.max(jnp.abs(system.state_constraints(x0)))

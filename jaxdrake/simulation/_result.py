@@ -101,12 +101,9 @@ class SimulatedTrajectory(eqx.Module):
         input-limit event; `modes`, the mode after the event; `states`, the state after it."""
         n = int(self.num_events)
         indices = np.asarray(self.event_indices[:n])
-        out = {"times": np.asarray(self.event_times[:n]), "indices": indices}
-        if self.system is not None:
-            out["transitions"] = event_transitions(self.system, indices)
-        out["modes"] = np.asarray(self.event_modes[:n])
-        out["states"] = np.asarray(self.event_states[:n])
-        return out
+        return {"times": np.asarray(self.event_times[:n]), "indices": indices,
+                "transitions": event_transitions(self.system, indices),
+                "modes": np.asarray(self.event_modes[:n]), "states": np.asarray(self.event_states[:n])}
 
     # ----- evaluation -----------------------------------------------------------------------
 

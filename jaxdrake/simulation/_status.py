@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import enum
 
-import jax.numpy as jnp
-
 
 class SimulationStatus(enum.IntEnum):
     """Why a simulation stopped. SUCCESS and STOPPED_BY_RESET are not failures."""
@@ -42,11 +40,6 @@ _MESSAGES = {
     SimulationStatus.CONSTRAINT_PROJECTION_FAILED: "no state satisfying the state constraints "
                                                    "phi(x) = 0 was found near x0",
 }
-
-
-def status_array(status: SimulationStatus):
-    """A status as the int32 the loop carries."""
-    return jnp.asarray(int(status), jnp.int32)
 
 
 class SimulationError(RuntimeError):
