@@ -1,61 +1,143 @@
-r"""Featherstone's recursive algorithms on a `KinematicTree`, in JAX.
+r"""Featherstone's algorithms on a `KinematicTree`, in JAX, level by level.
 
 Inverse dynamics (RNEA), the mass matrix (CRBA), forward dynamics (ABA), forward kinematics
 and frame Jacobians (R. Featherstone, *Rigid Body Dynamics Algorithms*, Springer 2008,
-ch. 5-7). The loops over bodies are Python loops over the static tree, unrolled when traced:
-one fused program per tree, no per-call Python work under `jit`, and `vmap` / `grad` apply.
+ch. 5-7), written in *world coordinates*: every spatial vector and inertia is expressed in
+one fixed frame, world-aligned, whose origin O is the world's (the floating base's position
+for a floating-base tree, which keeps float32 accurate far from the world origin). Then
 
-Conventions: spatial vectors angular first (see `_spatial`); gravity enters as a fictitious
-base acceleration $a_0 = -[0; g]$; generalized forces are those of the joint coordinates
-(for a floating base, the force and torque on the base in its own frame, Pinocchio's).
+$$V_i = V_{\lambda(i)} + s_i \dot q_i, \qquad
+  A_i = A_{\lambda(i)} + s_i \ddot q_i + V_i \times s_i \dot q_i$$
+
+need no coordinate transforms, so velocities, accelerations and the forces summed over
+subtrees are products with the tree's static subtree matrix (one batched operation), and
+the composite inertias of CRBA are subtree sums too. Only forward kinematics and the two
+sweeps of ABA recurse, one batched step per tree depth (`TreeLayout`): the traced program
+grows with the depth of the tree, not with the number of bodies (as MJX's scans over
+depth). `vmap`, `grad` and float32 apply.
+
+Conventions: spatial vectors angular first, $[\omega; v_O]$ with $v_O$ the velocity of the
+body point at O; a spatial inertia is kept as (m, h = m c, $\bar I$ the rotational inertia
+about O); gravity enters as a fictitious base acceleration $a_0 = -[0; g]$; generalized forces
+are those of the joint coordinates (for a floating base, the force and torque on the base in
+its own frame, Pinocchio's).
 """
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 
-from ._spatial import (axis_angle, force_cross, motion_cross,
-                       quaternion_matrix, skew, spatial_inertia, transform_force_back, transform_inertia,
-                       transform_motion)
+from ._spatial import quaternion_matrix, skew
 from ._tree import KinematicTree
 
-
-def _joint(tree: KinematicTree, i: int, q):
-    """Body i's pose in its parent's frame (R, p), and its motion subspace S (6 x dofs)."""
-    kind, s = tree.joint_types[i], tree.q_starts[i]
-    R_o, p_o, axis = tree.origin_rotation[i], tree.origin_translation[i], tree.axes[i]
-    zero = jnp.zeros(3, q.dtype)
-    if kind == "revolute":
-        R_j, p_j = axis_angle(axis, q[s]), zero
-        S = jnp.concatenate([axis, zero])[:, None]
-    elif kind == "prismatic":
-        R_j, p_j = jnp.eye(3, dtype=q.dtype), axis * q[s]
-        S = jnp.concatenate([zero, axis])[:, None]
-    else:  # floating: v = [v_linear; omega] in the body frame, spatial vectors angular first
-        R_j, p_j = quaternion_matrix(q[s + 3: s + 7]), q[s: s + 3]
-        eye, zeros = jnp.eye(3, dtype=q.dtype), jnp.zeros((3, 3), q.dtype)
-        S = jnp.block([[zeros, eye], [eye, zeros]])
-    return R_o @ R_j, p_o + R_o @ p_j, S
+# ----- kinematics -----------------------------------------------------------------------------
 
 
-def _velocity(tree, i, v):
-    s = tree.v_starts[i]
-    return v[s: s + (6 if tree.joint_types[i] == "floating" else 1)]
+def _mv(M, x):
+    """Batched matrix-vector product M x as multiply-and-sum (fuses with its neighbours; a
+    `dot` of 3x3 or 6x6 operands would be a separate kernel, costlier to compile and run)."""
+    return jnp.sum(M * x[..., None, :], -1)
 
 
-def _body_inertia(tree, i):
-    return spatial_inertia(tree.mass[i], tree.com[i], tree.inertia[i])
+def _mm(A, B):
+    """Batched matrix product as multiply-and-sum (see `_mv`)."""
+    return jnp.sum(A[..., :, :, None] * B[..., None, :, :], -2)
 
 
-def _transforms(tree, q):
-    """For every body i: S[i], and its pose (R, p) in its parent's frame, which makes the
-    transform ^i X_parent(i) = (E, r) = (R^T, p)."""
-    S, poses = [], []
-    for i in range(tree.num_bodies):
-        R, p, S_i = _joint(tree, i, q)
-        S.append(S_i)
-        poses.append((R, p))
-    return S, poses
+def _rotation_about(axis, angle):
+    """Rodrigues' formula, batched: rotations by `angle[k]` about the unit `axis[k]`."""
+    K = skew(axis)
+    s, c = jnp.sin(angle)[:, None, None], jnp.cos(angle)[:, None, None]
+    return jnp.eye(3, dtype=K.dtype) + s * K + (1 - c) * _mm(K, K)
+
+
+def _kinematics(tree: KinematicTree, q):
+    """World rotations R (n, 3, 3) and positions p (n, 3) of the body frames relative to O,
+    in level order, and the motion subspaces: S1 (m, 6), one column per one-dof body, and
+    the floating base's 6x6 S0 (None without one), columns [v_lin; omega] in its frame."""
+    L = tree.layout
+    f = int(L.floating)
+    one_dof = L.order[f:]
+    axis = tree.axes[one_dof]
+    angle = q[L.q_index]
+    revolute = jnp.asarray(L.revolute, q.dtype)
+    R_local = _mm(tree.origin_rotation[one_dof], _rotation_about(axis, angle * revolute))
+    p_local = tree.origin_translation[one_dof] + _mv(tree.origin_rotation[one_dof],
+                                                     axis * (angle * (1 - revolute))[:, None])
+    if f:
+        R_root, p_root = quaternion_matrix(q[3:7]), jnp.zeros(3, q.dtype)
+    else:  # the world
+        R_root, p_root = jnp.eye(3, dtype=q.dtype), jnp.zeros(3, q.dtype)
+
+    def one_depth(above, local):
+        (R_above, p_above), (R_loc, p_loc, parent) = above, local
+        R_parent, p_parent = _from_parents(L, parent, R_above), _from_parents(L, parent, p_above)
+        R_new = _mm(R_parent, R_loc)
+        p_new = _mv(R_parent, p_loc) + p_parent
+        return (R_new, p_new), (R_new, p_new)
+
+    init = (jnp.broadcast_to(R_root, (L.width, 3, 3)), jnp.broadcast_to(p_root, (L.width, 3)))
+    eye = jnp.eye(3, dtype=q.dtype)
+    _, (R_slots, p_slots) = jax.lax.scan(one_depth, init, (
+        _to_slots(L, R_local, eye), _to_slots(L, p_local, jnp.zeros(3, q.dtype)), L.parent_of_slot))
+    R, p = _from_slots(L, R_slots), _from_slots(L, p_slots)
+    if f:
+        R, p = jnp.concatenate([R_root[None], R]), jnp.concatenate([p_root[None], p])
+    axis_world = _mv(R[f:], axis)
+    S1 = jnp.concatenate([axis_world * revolute[:, None],
+                          jnp.cross(p[f:], axis_world) * revolute[:, None]
+                          + axis_world * (1 - revolute)[:, None]], axis=1)
+    S0 = None
+    if f:
+        zero = jnp.zeros((3, 3), q.dtype)
+        S0 = jnp.block([[zero, R[0]], [R[0], zero]])
+    return R, p, S1, S0
+
+
+def _to_slots(L, x, fill):
+    """Per one-dof body (level order) -> padded per depth and slot (depths, width, ...)."""
+    return jnp.concatenate([x, jnp.broadcast_to(fill, (1,) + x.shape[1:]).astype(x.dtype)])[
+        L.slots - L.first_scanned]
+
+
+def _from_slots(L, x):
+    """The inverse of `_to_slots`: (depths, width, ...) -> per one-dof body, level order."""
+    return x.reshape((-1,) + x.shape[2:])[L.unslot]
+
+
+def _from_parents(L, parent, x):
+    """Each slot's parent's value: x (width, ...) of the depth above, `parent` its one-hot
+    (width x width) slot matrix (a chain has one slot: nothing to gather)."""
+    return x if L.width == 1 else jnp.tensordot(parent.T.astype(x.dtype), x, axes=1)
+
+
+def _to_parents(L, parent, x):
+    """Sum each slot's x into its parent's slot (the transpose of `_from_parents`)."""
+    return x if L.width == 1 else jnp.tensordot(parent.astype(x.dtype), x, axes=1)
+
+
+def _dof_columns(L, S1, S0):
+    """The motion subspace of every velocity coordinate, rows (nv, 6), in the tree's order."""
+    rows = S1 if S0 is None else jnp.concatenate([S0.T, S1])
+    return rows[L.dof_level_order]
+
+
+def _joint_velocity(L, S1, S0, v):
+    """s_i qdot_i of every body's own joint (n, 6), level order, from velocity coordinates v."""
+    one = S1 * v[L.level_dofs[6 * int(L.floating):]][:, None]
+    return one if S0 is None else jnp.concatenate([(S0 @ v[:6])[None], one])
+
+
+def _subtree_sum(L, x):
+    """For every body, the sum of x over its subtree (x: (n, ...), level order)."""
+    return jnp.tensordot(jnp.asarray(L.subtree, x.dtype), x, axes=1)
+
+
+def _ancestor_sum(L, x):
+    """For every body, the sum of x over its ancestors and itself."""
+    return jnp.tensordot(jnp.asarray(L.subtree.T, x.dtype), x, axes=1)
 
 
 def _base_acceleration(tree, dtype, gravity: bool):
@@ -63,57 +145,115 @@ def _base_acceleration(tree, dtype, gravity: bool):
     return jnp.concatenate([jnp.zeros(3, dtype), -g])
 
 
+# ----- spatial algebra, batched over the leading axis ----------------------------------------
+
+
+def _motion_cross(v, m):
+    """v x m for motion vectors (..., 6)."""
+    w, u = v[..., :3], v[..., 3:]
+    return jnp.concatenate([jnp.cross(w, m[..., :3]), jnp.cross(u, m[..., :3]) + jnp.cross(w, m[..., 3:])], -1)
+
+
+def _force_cross(v, f):
+    """v x* f for a motion vector v and a force f (..., 6)."""
+    w, u = v[..., :3], v[..., 3:]
+    return jnp.concatenate([jnp.cross(w, f[..., :3]) + jnp.cross(u, f[..., 3:]), jnp.cross(w, f[..., 3:])], -1)
+
+
+def _world_inertias(tree, R, p):
+    """Every body's spatial inertia about O, world axes, as (m, h = m c, I_bar) in level order:
+    $I\\,[\\omega; v] = [\\bar I \\omega + h \\times v;\\ m v - h \\times \\omega]$."""
+    L = tree.layout
+    m = tree.mass[L.order].astype(R.dtype)
+    c = _mv(R, tree.com[L.order]) + p
+    I_com = _mm(_mm(R, tree.inertia[L.order]), jnp.swapaxes(R, 1, 2))
+    eye = jnp.eye(3, dtype=R.dtype)
+    I_bar = I_com + m[:, None, None] * (jnp.sum(c * c, -1)[:, None, None] * eye - c[:, :, None] * c[:, None, :])
+    return m, m[:, None] * c, I_bar
+
+
+def _apply_inertia(inertia, v):
+    m, h, I_bar = inertia
+    w, u = v[..., :3], v[..., 3:]
+    return jnp.concatenate([_mv(I_bar, w) + jnp.cross(h, u),
+                            m[..., None] * u - jnp.cross(h, w)], -1)
+
+
+def _dense_inertia(inertia):
+    """The 6x6 matrices of (m, h, I_bar)."""
+    m, h, I_bar = inertia
+    H = skew(h)
+    eye = jnp.eye(3, dtype=I_bar.dtype)
+    return jnp.concatenate([jnp.concatenate([I_bar, H], -1),
+                            jnp.concatenate([jnp.swapaxes(H, -1, -2), m[..., None, None] * eye], -1)], -2)
+
+
+def _solve_spd6(M, b):
+    """M^{-1} b for one symmetric positive-definite 6x6 M, by 3x3 blocks (Schur complement)."""
+    A, B, C = M[:3, :3], M[:3, 3:], M[3:, 3:]
+    C_inv = _inverse3(C)
+    BC = B @ C_inv
+    x1 = _inverse3(A - BC @ B.T) @ (b[:3] - BC @ b[3:])
+    return jnp.concatenate([x1, C_inv @ (b[3:] - B.T @ x1)])
+
+
+def _inverse3(M):
+    """The inverse of a 3x3 matrix by its adjugate."""
+    a, b, c = M[0], M[1], M[2]
+    adj = jnp.stack([jnp.cross(b, c), jnp.cross(c, a), jnp.cross(a, b)], axis=1)
+    return adj / jnp.dot(a, jnp.cross(b, c))
+
+
+def _from_level_order(L, x):
+    """Velocity-coordinate vector in level order -> the tree's coordinate order."""
+    return x[L.dof_level_order]
+
+
+# ----- the algorithms ---------------------------------------------------------------------------
+
+
+def _velocities(tree, q, v):
+    R, p, S1, S0 = _kinematics(tree, q)
+    L = tree.layout
+    joint = _joint_velocity(L, S1, S0, v)
+    return R, p, S1, S0, joint, _ancestor_sum(L, joint)
+
+
 def rnea(tree: KinematicTree, q, v, a, *, gravity: bool = True):
-    r"""Inverse dynamics: $\tau = H(q)\dot v + C(q, v) v + G(q)$ (recursive Newton-Euler),
-    with the spatial products by blocks (see `aba`)."""
-    S, poses = _transforms(tree, q)
-    n = tree.num_bodies
-    vel, acc, force = [None] * n, [None] * n, [None] * n
-    a0 = _base_acceleration(tree, q.dtype, gravity)
-    for i in range(n):
-        p = tree.parents[i]
-        E, r = poses[i][0].T, poses[i][1]
-        vJ = S[i] @ _velocity(tree, i, v)
-        vel[i] = (transform_motion(E, r, vel[p]) if p >= 0 else jnp.zeros(6, q.dtype)) + vJ
-        acc[i] = (transform_motion(E, r, acc[p] if p >= 0 else a0) + S[i] @ _velocity(tree, i, a)
-                  + motion_cross(vel[i], vJ))
-        I = _body_inertia(tree, i)
-        force[i] = I @ acc[i] + force_cross(vel[i], I @ vel[i])
-    tau = [None] * n
-    for i in reversed(range(n)):
-        tau[i] = S[i].T @ force[i]
-        p = tree.parents[i]
-        if p >= 0:
-            force[p] = force[p] + transform_force_back(poses[i][0].T, poses[i][1], force[i])
-    return jnp.concatenate(tau)
+    r"""Inverse dynamics $\tau = H(q)\dot v + C(q, v) v + G(q)$ (recursive Newton-Euler): the
+    body velocities and accelerations are ancestor sums, the joint forces subtree sums."""
+    L = tree.layout
+    R, p, S1, S0, joint, V = _velocities(tree, q, v)
+    joint_acc = _joint_velocity(L, S1, S0, a) + _motion_cross(V, joint)
+    A = _ancestor_sum(L, joint_acc) + _base_acceleration(tree, q.dtype, gravity)
+    inertia = _world_inertias(tree, R, p)
+    F = _subtree_sum(L, _apply_inertia(inertia, A) + _force_cross(V, _apply_inertia(inertia, V)))
+    return _project_forces(L, S1, S0, F)
+
+
+def _project_forces(L, S1, S0, F):
+    """tau = S^T F per joint, in the tree's coordinate order."""
+    f = int(L.floating)
+    tau = jnp.sum(S1 * F[f:], -1)
+    if S0 is not None:
+        tau = jnp.concatenate([S0.T @ F[0], tau])
+    return _from_level_order(L, tau)
 
 
 def mass_matrix(tree: KinematicTree, q):
-    """H(q) by the composite-rigid-body algorithm."""
-    S, poses = _transforms(tree, q)
-    n = tree.num_bodies
-    Ic = [_body_inertia(tree, i) for i in range(n)]
-    for i in reversed(range(n)):
-        p = tree.parents[i]
-        if p >= 0:
-            Ic[p] = Ic[p] + transform_inertia(poses[i][0].T, poses[i][1], Ic[i])
-    # blocks H_ij for j = i and its ancestors, then H assembled by concatenation (no scatters)
-    blocks = {}
-    for i in range(n):
-        F = Ic[i] @ S[i]
-        blocks[i, i] = S[i].T @ F
-        j = i
-        while tree.parents[j] >= 0:
-            E, r = poses[j][0].T, poses[j][1]
-            F = (transform_force_back(E, r, F[:, 0])[:, None] if F.shape[1] == 1
-                 else jnp.stack([transform_force_back(E, r, f) for f in F.T], axis=1))
-            j = tree.parents[j]
-            blocks[i, j] = F.T @ S[j]
-            blocks[j, i] = blocks[i, j].T
-    dofs = [S_i.shape[1] for S_i in S]
-    rows = [jnp.concatenate([blocks.get((i, j), jnp.zeros((dofs[i], dofs[j]), q.dtype)) for j in range(n)], axis=1)
-            for i in range(n)]
-    return jnp.concatenate(rows, axis=0)
+    r"""H(q) by composite rigid bodies: with $I^c_i$ the inertia of body i's subtree,
+    $H_{kl} = s_k^T I^c_{b(k)} s_l$ when coordinate l's body is an ancestor of (or is)
+    coordinate k's body $b(k)$, its transpose in the other case, and 0 otherwise."""
+    L = tree.layout
+    R, p, S1, S0 = _kinematics(tree, q)
+    composite = tuple(_subtree_sum(L, x) for x in _world_inertias(tree, R, p))
+    columns = _dof_columns(L, S1, S0)                                   # (nv, 6)
+    per_dof = tuple(x[L.dof_body] for x in composite)
+    F = _apply_inertia(per_dof, columns)                                # I^c_{b(k)} s_k
+    M = F @ columns.T
+    ancestor = jnp.asarray(L.ancestor, M.dtype)
+    same = jnp.asarray(L.ancestor * L.ancestor.T, M.dtype)
+    return ancestor * M + (ancestor.T - same) * M.T
 
 
 def bias_forces(tree: KinematicTree, q, v, *, gravity: bool = True):
@@ -127,71 +267,80 @@ def gravity_forces(tree: KinematicTree, q):
 
 
 def aba(tree: KinematicTree, q, v, tau, *, gravity: bool = True):
-    r"""Forward dynamics $\dot v = H^{-1}(\tau - C v - G)$ by the articulated-body algorithm, O(n).
+    r"""Forward dynamics $\dot v = H^{-1}(\tau - C v - G)$ by the articulated-body algorithm.
 
-    Spatial products are written by blocks ((E, r) transforms, cross products) rather than
-    as 6x6 matrices, and one-dof joints use a motion-subspace vector: the vmapped batch on
-    a CPU is about twice as fast as with dense 6x6 products."""
-    S, poses = _transforms(tree, q)
-    n = tree.num_bodies
-    E = [R.T for R, _ in poses]
-    r = [p for _, p in poses]
-    single = [S_i.shape[1] == 1 for S_i in S]
-    S = [S_i[:, 0] if one else S_i for S_i, one in zip(S, single)]
-    vel, c, IA, pA = [None] * n, [None] * n, [None] * n, [None] * n
-    for i in range(n):
-        p = tree.parents[i]
-        qd = _velocity(tree, i, v)
-        vJ = S[i] * qd[0] if single[i] else S[i] @ qd
-        vel[i] = (transform_motion(E[i], r[i], vel[p]) if p >= 0 else jnp.zeros(6, q.dtype)) + vJ
-        c[i] = motion_cross(vel[i], vJ)
-        IA[i] = _body_inertia(tree, i)
-        pA[i] = force_cross(vel[i], IA[i] @ vel[i])
-    U, D_inv, u = [None] * n, [None] * n, [None] * n
-    for i in reversed(range(n)):
-        if single[i]:
-            U[i] = IA[i] @ S[i]
-            D_inv[i] = 1.0 / (S[i] @ U[i])
-            u[i] = tau[tree.v_starts[i]] - S[i] @ pA[i]
-            Ia = IA[i] - D_inv[i] * jnp.outer(U[i], U[i])
-            pa_joint = U[i] * (D_inv[i] * u[i])
-        else:
-            U[i] = IA[i] @ S[i]
-            D_inv[i] = jnp.linalg.inv(S[i].T @ U[i])
-            u[i] = _velocity(tree, i, tau) - S[i].T @ pA[i]
-            Ia = IA[i] - U[i] @ D_inv[i] @ U[i].T
-            pa_joint = U[i] @ (D_inv[i] @ u[i])
-        p = tree.parents[i]
-        if p >= 0:
-            pa = pA[i] + Ia @ c[i] + pa_joint
-            IA[p] = IA[p] + transform_inertia(E[i], r[i], Ia)
-            pA[p] = pA[p] + transform_force_back(E[i], r[i], pa)
-    acc, qdd = [None] * n, [None] * n
-    a0 = _base_acceleration(tree, q.dtype, gravity)
-    for i in range(n):
-        p = tree.parents[i]
-        a = transform_motion(E[i], r[i], acc[p] if p >= 0 else a0) + c[i]
-        if single[i]:
-            qdd_i = D_inv[i] * (u[i] - U[i] @ a)
-            acc[i] = a + S[i] * qdd_i
-            qdd[i] = qdd_i[None]
-        else:
-            qdd[i] = D_inv[i] @ (u[i] - U[i].T @ a)
-            acc[i] = a + S[i] @ qdd[i]
-    return jnp.concatenate(qdd)
+    Backward over the depths (deepest first), for the one-dof bodies of a depth at once:
+    $U = I^A s$, $D = s^T U$, $u = \tau - s^T p^A$, and the parent receives
+    $I^A - U U^T / D$ and $p^A + I^a c + U u / D$ (no transforms: world coordinates).
+    Forward: $A = A_{\lambda} + c$, $\ddot q = (u - U^T A) / D$, $A \mathrel{+}= s \ddot q$.
+    A floating base's acceleration is $(I^A)^{-1}(S_0 \tau_0 - p^A)$."""
+    L = tree.layout
+    f = int(L.floating)
+    R, p, S1, S0, joint, V = _velocities(tree, q, v)
+    c = _motion_cross(V, joint)                       # s_dot qdot (zero for the floating base)
+    inertia = _world_inertias(tree, R, p)
+    I_A = _dense_inertia(inertia)
+    p_A = _force_cross(V, _apply_inertia(inertia, V))
+    tau_level = tau[L.level_dofs]
+
+    def backward(passed, depth):
+        """One depth, deepest first: the articulated inertia and bias of its bodies (their
+        own plus what their children passed up), and what they pass to their parents."""
+        (Ia_in, pa_in), (IA, pA, s, c, t, parent, valid) = passed, depth
+        IA, pA = IA + Ia_in, pA + pa_in
+        U = _mv(IA, s)
+        D_inv = 1.0 / jnp.sum(s * U, -1)
+        u = t - jnp.sum(s * pA, -1)
+        Ia = IA - D_inv[:, None, None] * U[:, :, None] * U[:, None, :]
+        pa = pA + _mv(Ia, c) + U * (D_inv * u)[:, None]
+        valid = valid.astype(IA.dtype)
+        up = (_to_parents(L, parent, Ia * valid[:, None, None]), _to_parents(L, parent, pa * valid[:, None]))
+        return up, (U, D_inv, u)
+
+    slots = lambda x, fill: _to_slots(L, x[f:], fill)
+    dtype, zero6 = q.dtype, jnp.zeros(6, q.dtype)
+    unit = jnp.zeros(6, dtype).at[0].set(1.0)  # empty slots: an identity inertia along e_1, D = 1
+    depths = (slots(I_A, jnp.eye(6, dtype=dtype)), slots(p_A, zero6), _to_slots(L, S1, unit),
+              slots(c, zero6), _to_slots(L, tau_level[6 * f:], jnp.zeros((), dtype)),
+              L.parent_of_slot, L.valid)
+    init = (jnp.zeros((L.width, 6, 6), dtype), jnp.zeros((L.width, 6), dtype))
+    (Ia_root, pa_root), (U, D_inv, u) = jax.lax.scan(backward, init, depths, reverse=True)
+
+    a0 = _base_acceleration(tree, dtype, gravity)
+    if f:
+        A_root = _solve_spd6(I_A[0] + Ia_root[0], S0 @ tau_level[:6] - p_A[0] - pa_root[0])
+        qdd_root = S0.T @ (A_root - a0)
+    else:
+        A_root = a0
+
+    def forward(A_above, depth):
+        """One depth, root first: joint accelerations and body accelerations."""
+        c, U, D_inv, u, s, parent = depth
+        A = _from_parents(L, parent, A_above) + c
+        qdd = D_inv * (u - jnp.sum(U * A, -1))
+        return A + s * qdd[:, None], qdd
+
+    _, qdd = jax.lax.scan(forward, jnp.broadcast_to(A_root, (L.width, 6)),
+                          (depths[3], U, D_inv, u, depths[2], L.parent_of_slot))
+    qdd = _from_slots(L, qdd)
+    if f:
+        qdd = jnp.concatenate([qdd_root, qdd])
+    return _from_level_order(L, qdd)
+
+
+# ----- frames -----------------------------------------------------------------------------------
+
+
+def _offset(tree, q):
+    """O in world coordinates: the floating base's position, else the world origin."""
+    return q[:3] if tree.layout.floating else jnp.zeros(3, q.dtype)
 
 
 def body_poses(tree: KinematicTree, q):
     """World rotation and position of every body frame: arrays (n, 3, 3) and (n, 3)."""
-    Rs, ps = [], []
-    for i in range(tree.num_bodies):
-        R, p, _ = _joint(tree, i, q)
-        parent = tree.parents[i]
-        if parent >= 0:
-            R, p = Rs[parent] @ R, Rs[parent] @ p + ps[parent]
-        Rs.append(R)
-        ps.append(p)
-    return jnp.stack(Rs), jnp.stack(ps)
+    R, p, _, _ = _kinematics(tree, q)
+    position = tree.layout.position
+    return R[position], p[position] + _offset(tree, q)
 
 
 def frame_pose(tree: KinematicTree, q, frame: str, *, poses=None):
@@ -209,29 +358,20 @@ def frame_pose(tree: KinematicTree, q, frame: str, *, poses=None):
 def frame_jacobian(tree: KinematicTree, q, frame: str, *, poses=None):
     r"""The 6 x nv Jacobian of a named frame, world-aligned: $[\omega; \dot p] = J(q)\, v$ with
     $\omega$ the frame's angular velocity and $\dot p$ the velocity of its origin, both in
-    world coordinates. `poses` as for `frame_pose`."""
+    world coordinates: the columns $[s_\omega; s_v + s_\omega \times p]$ of the frame body's
+    ancestors' joints. `poses` is accepted for symmetry with `frame_pose` (unused)."""
     k = _frame_index(tree, frame)
-    Rs, ps = body_poses(tree, q) if poses is None else poses
     body = tree.frame_bodies[k]
-    J = jnp.zeros((6, tree.nv), q.dtype)
     if body < 0:
-        return J
-    p_frame = Rs[body] @ tree.frame_translation[k] + ps[body]
-    j = body
-    while j >= 0:
-        s, R, p = tree.v_starts[j], Rs[j], ps[j]
-        kind = tree.joint_types[j]
-        if kind == "revolute":
-            w = R @ tree.axes[j]
-            J = J.at[:, s].set(jnp.concatenate([w, jnp.cross(w, p_frame - p)]))
-        elif kind == "prismatic":
-            J = J.at[3:, s].set(R @ tree.axes[j])
-        else:
-            J = J.at[3:, s: s + 3].set(R)
-            J = J.at[:3, s + 3: s + 6].set(R)
-            J = J.at[3:, s + 3: s + 6].set(-skew(p_frame - p) @ R)
-        j = tree.parents[j]
-    return J
+        return jnp.zeros((6, tree.nv), q.dtype)
+    L = tree.layout
+    R, p, S1, S0 = _kinematics(tree, q)
+    b = L.position[body]
+    point = R[b] @ tree.frame_translation[k] + p[b]
+    columns = _dof_columns(L, S1, S0)
+    columns = jnp.concatenate([columns[:, :3], columns[:, 3:] + jnp.cross(columns[:, :3], point)], 1)
+    moves = jnp.asarray(L.subtree[L.dof_body, b], q.dtype)   # coordinate's body is an ancestor
+    return (columns * moves[:, None]).T
 
 
 def _frame_index(tree, frame):
@@ -241,8 +381,13 @@ def _frame_index(tree, frame):
         raise KeyError(f"no frame {frame!r}; the frames are {list(tree.frame_names)}") from None
 
 
+# ----- energy and the configuration derivative ------------------------------------------------
+
+
 def kinetic_energy(tree: KinematicTree, q, v):
-    return 0.5 * v @ mass_matrix(tree, q) @ v
+    r"""$\tfrac12 \sum_i V_i^T I_i V_i$."""
+    R, p, _, _, _, V = _velocities(tree, q, v)
+    return 0.5 * jnp.sum(V * _apply_inertia(_world_inertias(tree, R, p), V))
 
 
 def potential_energy(tree: KinematicTree, q):
@@ -255,17 +400,10 @@ def potential_energy(tree: KinematicTree, q):
 def configuration_derivative(tree: KinematicTree, q, v):
     r"""$\dot q$ from v: the identity for revolute and prismatic joints; for a floating base
     $\dot p = R v_{lin}$ and $\dot{\mathbf q} = \tfrac12 \mathbf q \otimes (0, \omega)$."""
-    parts = []
-    for i, kind in enumerate(tree.joint_types):
-        s, sv = tree.q_starts[i], tree.v_starts[i]
-        if kind != "floating":
-            parts.append(v[sv: sv + 1])
-            continue
-        quat = q[s + 3: s + 7]
-        x, y, z, w = quat
-        R = quaternion_matrix(quat)
-        wx, wy, wz = v[sv + 3], v[sv + 4], v[sv + 5]
-        quat_dot = 0.5 * jnp.stack([w * wx + y * wz - z * wy, w * wy + z * wx - x * wz,
-                                    w * wz + x * wy - y * wx, -(x * wx + y * wy + z * wz)])
-        parts += [R @ v[sv: sv + 3], quat_dot]
-    return jnp.concatenate(parts)
+    if not tree.layout.floating:
+        return v
+    x, y, z, w = q[3], q[4], q[5], q[6]
+    wx, wy, wz = v[3], v[4], v[5]
+    quat_dot = 0.5 * jnp.stack([w * wx + y * wz - z * wy, w * wy + z * wx - x * wz,
+                                w * wz + x * wy - y * wx, -(x * wx + y * wy + z * wz)])
+    return jnp.concatenate([quaternion_matrix(q[3:7]) @ v[:3], quat_dot, v[6:]])

@@ -14,10 +14,11 @@ import jax.numpy as jnp
 
 
 def skew(w):
-    """[w]x, the matrix of w x (.)."""
-    z = jnp.zeros_like(w[0])
-    return jnp.stack([jnp.stack([z, -w[2], w[1]]), jnp.stack([w[2], z, -w[0]]),
-                      jnp.stack([-w[1], w[0], z])])
+    """[w]x, the matrix of w x (.); batched over leading axes of w (..., 3) -> (..., 3, 3)."""
+    x, y, z = w[..., 0], w[..., 1], w[..., 2]
+    o = jnp.zeros_like(x)
+    return jnp.stack([jnp.stack([o, -z, y], -1), jnp.stack([z, o, -x], -1),
+                      jnp.stack([-y, x, o], -1)], -2)
 
 
 def axis_angle(axis, angle):

@@ -1,9 +1,12 @@
 r"""The kinematic tree: a URDF (or a Pinocchio model) as arrays, a pytree.
 
-Bodies are numbered so that a parent comes before its children; body i hangs from body
-`parents[i]` (-1: the world) through joint i, placed at (`origin_rotation[i]`,
-`origin_translation[i]`) in the parent's frame. Links joined by `fixed` joints are merged
-into one body (their inertias added); every URDF link stays available as a named frame.
+Bodies are numbered depth first from the root, the children of a link in the order their
+joints are declared in the file (Drake's and MuJoCo's order; Pinocchio sorts siblings by
+joint name instead, see `docs/architecture.md`); body i hangs from body `parents[i]` (-1: the
+world) through joint i, placed at (`origin_rotation[i]`, `origin_translation[i]`) in the
+parent's frame. Links joined by `fixed` joints are merged into one body (their inertias
+added); every URDF link stays available as a named frame. A joint whose parent is an
+undeclared link named `world` hangs from the world (as Drake reads such files).
 
 Joint coordinates: revolute / continuous (one angle, rad), prismatic (one length, m), and a
 floating base with Pinocchio's parameterization: q = [x, y, z, qx, qy, qz, qw] (position of
@@ -19,6 +22,8 @@ from __future__ import annotations
 import pathlib
 import re
 import xml.etree.ElementTree as ET
+
+import functools
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -36,6 +41,22 @@ class URDFError(ValueError):
 
 
 class KinematicTree(eqx.Module):
+    """A tree of rigid bodies as arrays (body i's entries at index i; per-dof entries in
+    velocity-coordinate order, per-q entries in position-coordinate order).
+
+    Static: `robot_name`; `body_names[i]` (the URDF link of body i); `joint_names[i]` and
+    `joint_types[i]` ("revolute", "prismatic" or "floating": the joint from body i's parent);
+    `parents[i]` (index of the parent body, -1 the world; parents come first);
+    `frame_names[k]` (every URDF link) and `frame_bodies[k]` (the body frame k is fixed to).
+
+    Leaves: `axes[i]` (joint axis, unit, in body i's frame); `origin_rotation[i]`,
+    `origin_translation[i]` (body i's joint frame in its parent's frame at q = 0); `mass[i]`,
+    `com[i]` (body frame), `inertia[i]` (3x3, about the centre of mass, body axes);
+    `frame_rotation[k]`, `frame_translation[k]` (frame k in its body's frame); `damping`,
+    `friction`, `effort_limit` (per velocity coordinate); `position_lower`, `position_upper`
+    (per position coordinate); `gravity` (3, world).
+    """
+
     robot_name: str = eqx.field(static=True)
     body_names: tuple = eqx.field(static=True)
     joint_names: tuple = eqx.field(static=True)
@@ -98,11 +119,115 @@ class KinematicTree(eqx.Module):
 
     def neutral_configuration(self):
         """q with every joint at zero (the identity quaternion for a floating base)."""
-        q = jnp.zeros(self.nq)
-        for s, kind in zip(self.q_starts, self.joint_types):
-            if kind == "floating":
-                q = q.at[s + 6].set(1.0)
-        return q
+        q = np.zeros(self.nq)
+        if self.has_floating_base:
+            q[6] = 1.0
+        return jnp.asarray(q)
+
+    @property
+    def layout(self) -> "TreeLayout":
+        """The static index layout the algorithms use (cached per tree structure)."""
+        return tree_layout(self.parents, self.joint_types)
+
+
+class TreeLayout:
+    """The tree's structure as static index arrays, for the level-by-level algorithms.
+
+    The algorithms work in *level order* (breadth first: the bodies of tree depth 0, then
+    depth 1, ...), so that each depth is a contiguous slice and one batched operation.
+
+    - `order[k]`: the body (tree index) at level-order position k; `position[i]` its inverse.
+    - `levels[d]`: the slice of level-order positions at depth d.
+    - `parent_in_level[d]`: for depth d >= 1, the position of each body's parent inside the
+      slice of depth d - 1 (None when that is the identity, as along a chain).
+    - `subtree[j, i]`: 1 where body i (level order) is in the subtree of body j (itself included).
+    - `floating`: whether position 0 is a floating base (only a root may be one); the other
+      bodies have one degree of freedom each, `revolute[k]` (1.0) or prismatic (0.0), with
+      position coordinate `q_index[k]` (k over the one-dof bodies in level order).
+    - `dof_body[c]`: the level-order position of the body that velocity coordinate c
+      (the tree's own coordinate order) belongs to; `dof_level_order[c]`: c's place in the
+      level-ordered list of velocity coordinates (floating base first, then one per body);
+      `level_dofs` its inverse (the coordinate at each level-ordered place).
+    - `ancestor[c, c']`: 1 where coordinate c' belongs to an ancestor of (or the same body as)
+      coordinate c's body.
+
+    For the sweeps that recurse over depth (a `lax.scan`, one step per depth), the depths
+    from `first_scanned` on (1 with a floating base, which is handled on its own; else 0) are
+    padded to the widest, `width`: `slots[d, w]` is the level-order position in slot w of
+    scanned depth d (n: an empty slot), `valid[d, w]` whether it is a body, `parent_of_slot[d]`
+    the one-hot (width x width) matrix whose entry [j, w] is 1 where slot j of the depth above
+    holds the parent of slot w (depth 0's parent, the world or the floating base, is slot 0),
+    and `unslot[k]` the flat padded index of level-order position k >= `first_scanned`'s start.
+    """
+
+    def __init__(self, parents, joint_types):
+        n = len(parents)
+        if "floating" in joint_types[1:] or (joint_types and joint_types[0] == "floating" and parents[0] != -1):
+            raise ValueError("only the root body of a tree may have a floating joint")
+        depth = []
+        for i, p in enumerate(parents):
+            if not p < i:
+                raise ValueError(f"body {i}'s parent {p} does not come before it")
+            depth.append(0 if p < 0 else depth[p] + 1)
+        depth = np.asarray(depth, int)
+        self.order = np.argsort(depth, kind="stable")
+        self.position = np.empty(n, int)
+        self.position[self.order] = np.arange(n)
+        counts = np.bincount(depth) if n else np.zeros(0, int)
+        starts = np.concatenate([[0], np.cumsum(counts)])
+        self.levels = tuple(slice(int(a), int(b)) for a, b in zip(starts[:-1], starts[1:]))
+        parent_in_level = [None]
+        for d in range(1, len(self.levels)):
+            local = self.position[np.asarray(parents)[self.order[self.levels[d]]]] - self.levels[d - 1].start
+            identity = len(local) == counts[d - 1] and np.array_equal(local, np.arange(len(local)))
+            parent_in_level.append(None if identity else local)
+        self.parent_in_level = tuple(parent_in_level)
+        self.subtree = np.zeros((n, n))
+        for i in range(n):  # walk up from every body
+            j = i
+            while j >= 0:
+                self.subtree[self.position[j], self.position[i]] = 1.0
+                j = parents[j]
+        self.floating = bool(n and joint_types[0] == "floating")
+        one_dof = self.order[int(self.floating):]
+        dofs = [6 if k == "floating" else 1 for k in joint_types]
+        v_starts = np.concatenate([[0], np.cumsum(dofs)])[:-1].astype(int)
+        q_starts = np.concatenate([[0], np.cumsum([7 if k == "floating" else 1 for k in joint_types])])[:-1]
+        self.revolute = np.array([joint_types[i] == "revolute" for i in one_dof], float)
+        self.q_index = q_starts[one_dof].astype(int)
+        nv = int(sum(dofs))
+        self.dof_body = np.zeros(nv, int)
+        self.dof_level_order = np.zeros(nv, int)
+        for i in range(n):
+            self.dof_body[v_starts[i]: v_starts[i] + dofs[i]] = self.position[i]
+        level_dofs = ([np.arange(6)] if self.floating else []) + [[v_starts[i]] for i in one_dof]
+        level_dofs = np.concatenate(level_dofs).astype(int) if level_dofs else np.zeros(0, int)
+        self.dof_level_order[level_dofs] = np.arange(nv)
+        self.level_dofs = level_dofs
+        self.ancestor = self.subtree[self.dof_body[None, :], self.dof_body[:, None]]
+
+        self.first_scanned = int(self.floating)
+        scanned = self.levels[self.first_scanned:]
+        self.width = max((lv.stop - lv.start for lv in scanned), default=0)
+        self.slots = np.full((len(scanned), self.width), n, int)
+        self.parent_of_slot = np.zeros((len(scanned), self.width, self.width))
+        for d, level in enumerate(scanned):
+            count = level.stop - level.start
+            self.slots[d, :count] = np.arange(level.start, level.stop)
+            depth_above = d + self.first_scanned - 1
+            for w in range(count):
+                parent = parents[self.order[level.start + w]]
+                j = 0 if depth_above < 0 or parent < 0 else self.position[parent] - self.levels[depth_above].start
+                self.parent_of_slot[d, j, w] = 1.0
+        self.valid = self.slots < n
+        flat = np.full(n, -1, int)
+        flat[self.slots[self.valid]] = np.nonzero(self.valid.ravel())[0]
+        self.unslot = flat[self.levels[self.first_scanned].start:] if scanned else np.zeros(0, int)
+
+
+@functools.lru_cache(maxsize=256)
+def tree_layout(parents: tuple, joint_types: tuple) -> TreeLayout:
+    return TreeLayout(parents, joint_types)
 
 
 # ----- URDF ---------------------------------------------------------------------------------
@@ -124,9 +249,21 @@ def read_urdf_text(path) -> str:
     return data.decode("utf-8", errors="replace")
 
 
-def _float_attr(element, name, default=0.0):
-    value = element.get(name) if element is not None else None
-    return float(default if value is None else value)
+def _numbers(element, name, count, default, path, where):
+    """`count` floats from attribute `name` of `element` (`default` when absent), or a
+    URDFError naming the file, the element, the attribute and the text."""
+    text = element.get(name) if element is not None else None
+    if text is None:
+        return np.array(default, float)
+    try:
+        values = np.array([float(v) for v in text.split()], float)
+    except ValueError:
+        values = None
+    if values is None or values.size != count or not np.all(np.isfinite(values) | (values.size == 1)):
+        tag = element.tag
+        raise URDFError(f"{path}: {where}: <{tag} {name}={text!r}> is not {count} number"
+                        f"{'s' if count > 1 else ''}")
+    return values if count > 1 else values[0]
 
 
 def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.81), welded=()):
@@ -154,12 +291,15 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
     children = set()
     for joint in root.findall("joint"):
         name, kind = joint.get("name"), joint.get("type")
+        where = f"joint {name!r}"
         if kind not in _URDF_TYPES or kind == "floating":
             raise URDFError(f"{path}: joint {name!r} has type {kind!r}; supported: revolute, "
                             "continuous, prismatic, fixed (a floating base: from_urdf(..., floating_base=True))")
         parent, child = joint.find("parent"), joint.find("child")
         parent = parent.get("link") if parent is not None else None
         child = child.get("link") if child is not None else None
+        if parent == "world" and "world" not in links:  # Drake's convention: the world itself
+            links["world"] = (0.0, np.zeros(3), np.zeros((3, 3)))
         for role, link in (("parent", parent), ("child", child)):
             if link not in links:
                 raise URDFError(f"{path}: joint {name!r} names {role} link {link!r}, which is not defined")
@@ -167,23 +307,28 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
             raise URDFError(f"{path}: link {child!r} is the child of two joints (a kinematic loop; "
                             "declare loops as constraints instead)")
         children.add(child)
-        axis = np.array([float(a) for a in (joint.find("axis").get("xyz").split()
-                                            if joint.find("axis") is not None else "1 0 0".split())])
+        axis = _numbers(joint.find("axis"), "xyz", 3, [1.0, 0.0, 0.0], path, where)
         if _URDF_TYPES[kind] != "fixed" and not np.linalg.norm(axis) > 0:
             raise URDFError(f"{path}: joint {name!r} has a zero axis")
-        limit, dynamics = joint.find("limit"), joint.find("dynamics")
+        limit, dynamics, mimic = joint.find("limit"), joint.find("dynamics"), joint.find("mimic")
+        number = lambda element, attribute, default: _numbers(element, attribute, 1, default, path, where)
         joints.append(dict(
-            name=name, type="fixed" if name in welded else _URDF_TYPES[kind], continuous=kind == "continuous", parent=parent, child=child,
-            origin=_origin(joint.find("origin")), axis=axis / max(np.linalg.norm(axis), 1e-300),
-            lower=_float_attr(limit, "lower", -np.inf) if kind != "continuous" else -np.inf,
-            upper=_float_attr(limit, "upper", np.inf) if kind != "continuous" else np.inf,
-            effort=_float_attr(limit, "effort", np.inf),
-            damping=_float_attr(dynamics, "damping"), friction=_float_attr(dynamics, "friction")))
+            name=name, type="fixed" if name in welded else _URDF_TYPES[kind], parent=parent, child=child,
+            origin=_origin(joint.find("origin"), path, where), axis=axis / max(np.linalg.norm(axis), 1e-300),
+            lower=number(limit, "lower", -np.inf) if kind != "continuous" else -np.inf,
+            upper=number(limit, "upper", np.inf) if kind != "continuous" else np.inf,
+            effort=number(limit, "effort", np.inf),
+            damping=number(dynamics, "damping", 0.0), friction=number(dynamics, "friction", 0.0),
+            mimic=None if mimic is None else (mimic.get("joint"), number(mimic, "multiplier", 1.0),
+                                              number(mimic, "offset", 0.0))))
     roots = [name for name in links if name not in children]
     if len(roots) != 1:
         raise URDFError(f"{path}: a URDF tree has exactly one root link (a link that is no joint's "
                         f"child); found {roots or 'none (the joints form a cycle)'}")
-    known = {j["name"] for j in joints}
+    if floating_base and roots[0] == "world" and "world" not in {l.get("name") for l in root.findall("link")}:
+        raise URDFError(f"{path}: the tree hangs from the world (its root joints name the parent "
+                        "'world'), so it cannot have a floating base; load it without floating_base")
+    known = {j["name"]: j for j in joints}
     for name in welded:
         if name not in known:
             raise URDFError(f"{path}: cannot weld joint {name!r}: it is not defined")
@@ -200,9 +345,9 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
     return tree, tuple(actuated)
 
 
-def _origin(element):
-    xyz = np.array([float(v) for v in element.get("xyz", "0 0 0").split()]) if element is not None else np.zeros(3)
-    angles = np.array([float(v) for v in element.get("rpy", "0 0 0").split()]) if element is not None else np.zeros(3)
+def _origin(element, path, where):
+    xyz = _numbers(element, "xyz", 3, [0.0, 0.0, 0.0], path, where)
+    angles = _numbers(element, "rpy", 3, [0.0, 0.0, 0.0], path, where)
     return np.asarray(rpy(*angles)), xyz
 
 
@@ -210,13 +355,14 @@ def _inertial(link, path):
     inertial = link.find("inertial")
     if inertial is None:
         return 0.0, np.zeros(3), np.zeros((3, 3))
-    mass = _float_attr(inertial.find("mass"), "value")
-    R, com = _origin(inertial.find("origin"))
+    name = link.get("name")
+    where = f"link {name!r}"
+    mass = _numbers(inertial.find("mass"), "value", 1, 0.0, path, where)
+    R, com = _origin(inertial.find("origin"), path, where)
     i = inertial.find("inertia")
-    get = lambda k: _float_attr(i, k)
+    get = lambda k: _numbers(i, k, 1, 0.0, path, where)
     I = np.array([[get("ixx"), get("ixy"), get("ixz")], [get("ixy"), get("iyy"), get("iyz")],
                   [get("ixz"), get("iyz"), get("izz")]])
-    name = link.get("name")
     if not (mass >= 0 and np.isfinite(mass)):
         raise URDFError(f"{path}: link {name!r} has mass {mass}; it must be >= 0")
     eig = np.linalg.eigvalsh(I)
@@ -250,30 +396,30 @@ def _build_tree(robot_name, root, links, joints, floating_base, gravity, path):
         link_body[root] = (0, np.eye(3), np.zeros(3))
     else:
         link_body[root] = (-1, np.eye(3), np.zeros(3))
-    stack = [root]
-    while stack:  # depth first: parents before children
-        link = stack.pop()
-        body, R_lb, p_lb = link_body[link]
-        for j in reversed(by_parent.get(link, [])):
-            R_o, p_o = j["origin"]
-            R, p = R_lb @ R_o, R_lb @ p_o + p_lb  # the joint frame in the parent body's frame
-            if j["type"] == "fixed":
-                link_body[j["child"]] = (body, R, p)
-                if body >= 0:  # merge the child's inertia into the body
-                    m, c, I = links[j["child"]]
-                    bodies[body]["inertial"] = _combine(*bodies[body]["inertial"], m, R @ c + p, R @ I @ R.T)
-            else:
-                bodies.append(dict(link=j["child"], joint=j["name"], type=j["type"], parent=body, R=R, p=p,
-                                   axis=j["axis"], inertial=links[j["child"]], lower=j["lower"],
-                                   upper=j["upper"], effort=j["effort"], damping=j["damping"],
-                                   friction=j["friction"]))
-                link_body[j["child"]] = (len(bodies) - 1, np.eye(3), np.zeros(3))
-            stack.append(j["child"])
+    stack = list(reversed(by_parent.get(root, [])))
+    while stack:  # depth first, the children of a link in the order the file declares their joints
+        j = stack.pop()
+        body, R_lb, p_lb = link_body[j["parent"]]
+        R_o, p_o = j["origin"]
+        R, p = R_lb @ R_o, R_lb @ p_o + p_lb  # the joint frame in the parent body's frame
+        if j["type"] == "fixed":
+            link_body[j["child"]] = (body, R, p)
+            if body >= 0:  # merge the child's inertia into the body
+                m, c, I = links[j["child"]]
+                bodies[body]["inertial"] = _combine(*bodies[body]["inertial"], m, R @ c + p, R @ I @ R.T)
+        else:
+            bodies.append(dict(link=j["child"], joint=j["name"], type=j["type"], parent=body, R=R, p=p,
+                               axis=j["axis"], inertial=links[j["child"]], lower=j["lower"],
+                               upper=j["upper"], effort=j["effort"], damping=j["damping"],
+                               friction=j["friction"]))
+            link_body[j["child"]] = (len(bodies) - 1, np.eye(3), np.zeros(3))
+        stack.extend(reversed(by_parent.get(j["child"], [])))
     if len(link_body) != len(links):
         missing = sorted(set(links) - set(link_body))
         raise URDFError(f"{path}: links {missing} are not connected to the root {root!r}")
     if not bodies:
         raise URDFError(f"{path}: the URDF has no movable joint")
+    _check_every_joint_moves_mass(bodies, path)
     for name, (body, R, p) in link_body.items():
         frames.append((name, body, R, p))
     arr = lambda key: jnp.asarray(np.array([b[key] for b in bodies], float))
@@ -294,6 +440,20 @@ def _build_tree(robot_name, root, links, joints, floating_base, gravity, path):
         damping=per_dof("damping"), friction=per_dof("friction"),
         position_lower=per_q("lower"), position_upper=per_q("upper"), effort_limit=per_dof("effort"),
         gravity=jnp.asarray(gravity, float))
+
+
+def _check_every_joint_moves_mass(bodies, path):
+    """A joint whose body and everything beyond it carry no mass and no inertia makes H(q)
+    singular (the simulation would stop at t = 0 with a non-finite state): refuse it here."""
+    carried = [b["inertial"][0] + np.trace(b["inertial"][2]) for b in bodies]
+    for i in reversed(range(len(bodies))):
+        if bodies[i]["parent"] >= 0:
+            carried[bodies[i]["parent"]] += carried[i]
+    for b, amount in zip(bodies, carried):
+        if not amount > 0:
+            raise URDFError(f"{path}: joint {b['joint']!r} moves link {b['link']!r}, which has no mass "
+                            "or inertia, and neither has anything attached beyond it: the mass matrix "
+                            "would be singular. Give the link an <inertial>, or make the joint fixed")
 
 
 # ----- Pinocchio ---------------------------------------------------------------------------
