@@ -1,6 +1,10 @@
 """jaxdrake: Drake's ideas for modelling, simulating and controlling dynamical systems, in JAX."""
 
-from . import control, models, multibody, simulation, systems, trajectories
+from ._xla import prefer_fast_cpu_compilation
+
+prefer_fast_cpu_compilation()
+
+from . import control  # noqa: E402, models, multibody, simulation, systems, trajectories
 from .control import linearize
 from .multibody import LoopConstraint, RigidBodySystem
 from .simulation import SimulatedTrajectory, SimulationError, SimulationStatus, simulate

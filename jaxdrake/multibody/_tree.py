@@ -154,9 +154,9 @@ class TreeLayout:
     For the sweeps that recurse over depth (a `lax.scan`, one step per depth), the depths
     from `first_scanned` on (1 with a floating base, which is handled on its own; else 0) are
     padded to the widest, `width`: `slots[d, w]` is the level-order position in slot w of
-    scanned depth d (n: an empty slot), `valid[d, w]` whether it is a body, `parent_of_slot[d]`
-    the one-hot (width x width) matrix whose entry [j, w] is 1 where slot j of the depth above
-    holds the parent of slot w (depth 0's parent, the world or the floating base, is slot 0),
+    scanned depth d (n: an empty slot), `valid[d, w]` whether it is a body, `parent_of_slot[d, w]`
+    the slot of the depth above that holds its parent (depth 0's parent, the world or the
+    floating base, is slot 0; empty slots point at 0 too),
     and `unslot[k]` the flat padded index of level-order position k >= `first_scanned`'s start.
     """
 
@@ -210,7 +210,7 @@ class TreeLayout:
         scanned = self.levels[self.first_scanned:]
         self.width = max((lv.stop - lv.start for lv in scanned), default=0)
         self.slots = np.full((len(scanned), self.width), n, int)
-        self.parent_of_slot = np.zeros((len(scanned), self.width, self.width))
+        self.parent_of_slot = np.zeros((len(scanned), self.width), int)
         for d, level in enumerate(scanned):
             count = level.stop - level.start
             self.slots[d, :count] = np.arange(level.start, level.stop)
@@ -218,7 +218,7 @@ class TreeLayout:
             for w in range(count):
                 parent = parents[self.order[level.start + w]]
                 j = 0 if depth_above < 0 or parent < 0 else self.position[parent] - self.levels[depth_above].start
-                self.parent_of_slot[d, j, w] = 1.0
+                self.parent_of_slot[d, w] = j
         self.valid = self.slots < n
         flat = np.full(n, -1, int)
         flat[self.slots[self.valid]] = np.nonzero(self.valid.ravel())[0]
