@@ -40,8 +40,9 @@ def Acrobot(m1=1.0, m2=1.0, l1=1.0, l2=2.0, lc1=0.5, lc2=1.0, Ic1=0.083, Ic2=0.3
 def CartPole(mc=10.0, mp=1.0, l=0.5, g=9.81) -> RigidBodySystem:
     r"""The cart-pole (Underactuated ch. 3) from `cartpole.urdf`, with Drake's defaults: a cart
     of mass `mc` pushed along x, a pole with a point mass `mp` at distance `l`, theta from
-    hanging straight down. State $[x, \theta, \dot x, \dot\theta]$, input the force on the cart."""
-    plant = RigidBodySystem.from_urdf(URDF_DIR / "cartpole.urdf")
+    hanging straight down. State $[x, \theta, \dot x, \dot\theta]$, input the force on the cart
+    (unlimited, as in the notes: the URDF's effort limit is not applied)."""
+    plant = RigidBodySystem.from_urdf(URDF_DIR / "cartpole.urdf", effort_limits=False)
     tree = plant.tree
     tree = eqx.tree_at(lambda t: (t.mass, t.com, t.gravity, t.frame_translation), tree,
                        (jnp.stack([mc, mp]) * 1.0, jnp.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0]]) * l,

@@ -45,8 +45,11 @@ class RigidBodySystem(System):
       else every joint but a floating base; one input per actuated joint, in that order.
     - State frame: joint positions then velocities (`<joint>`, `<joint>dot`; a floating base
       has x, y, z, qx, qy, qz, qw and vx, vy, vz, wx, wy, wz, in its own frame).
+    - Input limits: the actuated joints' `<limit effort>` (|u_k| <= effort, as Drake's
+      parser makes actuator effort limits), unless `effort_limits=False`; the simulator
+      locates the saturation instants as events.
     - Limits, damping and friction of the URDF are on `tree`; damping acts in the dynamics,
-      Coulomb friction and position / effort limits are recorded, not applied.
+      Coulomb friction and position limits are recorded, not applied.
 
     The tree's masses, inertias, lengths and axes are pytree leaves: `jax.grad` with respect
     to a link mass works (system identification); build the system outside `jit`.
@@ -58,7 +61,7 @@ class RigidBodySystem(System):
     constraint_stiffness: float = 20.0
 
     def __init__(self, tree: KinematicTree, actuated_joints=None, *, loops=(),
-                 constraint_stiffness: float = 20.0):
+                 constraint_stiffness: float = 20.0, effort_limits: bool = True):
         names = tree.joint_names
         if actuated_joints is None:
             actuated_joints = [n for n, k in zip(names, tree.joint_types) if k != "floating"]
@@ -71,6 +74,8 @@ class RigidBodySystem(System):
                 raise ValueError(f"{tree.robot_name}: the floating base cannot be actuated by a joint input")
             B[tree.v_starts[i], col] = 1.0
         self.tree, self.B = tree, jnp.asarray(B)
+        effort = np.asarray(tree.effort_limit)[np.argmax(B, axis=0)] if B.size else np.zeros(0)
+        limits = (-effort, effort) if effort_limits and np.any(np.isfinite(effort)) else None
         self.loops = tuple(loops)
         for loop in self.loops:
             for frame in (loop.frame_a, loop.frame_b):
@@ -83,14 +88,15 @@ class RigidBodySystem(System):
         state = Frame(f"{tree.robot_name}State", tree.position_names() + tree.velocity_names())
         num_loop = sum(len(loop.axes) for loop in self.loops)
         super().__init__(num_continuous_states=tree.nq + tree.nv, num_inputs=len(actuated_joints),
-                         direct_feedthrough=False, time_invariant=True,
+                         direct_feedthrough=False, time_invariant=True, input_limits=limits,
                          num_state_constraints=2 * num_loop + tree.has_floating_base,
                          input_frame=Frame(f"{tree.robot_name}Input", tuple(actuated_joints)),
                          state_frame=state, output_frame=state)
 
     @classmethod
     def from_urdf(cls, path, *, floating_base: bool = False, actuated=None, gravity: bool = True,
-                  welded=(), loops=(), constraint_stiffness: float = 20.0) -> "RigidBodySystem":
+                  welded=(), loops=(), constraint_stiffness: float = 20.0,
+                  effort_limits: bool = True) -> "RigidBodySystem":
         """Load a URDF (local files only: `package://` mesh paths are never resolved); joints
         named in `welded` are fixed at zero."""
         with jax.ensure_compile_time_eval():  # parsing is host work, also inside jit / vmap
@@ -99,7 +105,8 @@ class RigidBodySystem(System):
                                                welded=tuple(welded))
         if actuated is None and transmitted:
             actuated = list(transmitted)
-        return cls(tree, actuated, loops=loops, constraint_stiffness=constraint_stiffness)
+        return cls(tree, actuated, loops=loops, constraint_stiffness=constraint_stiffness,
+                   effort_limits=effort_limits)
 
     @classmethod
     def from_pinocchio(cls, model, *, actuated=None, loops=(),
