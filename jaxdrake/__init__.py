@@ -4,7 +4,7 @@ from ._xla import prefer_fast_cpu_compilation
 
 prefer_fast_cpu_compilation()
 
-from . import control  # noqa: E402, models, multibody, simulation, systems, trajectories
+from . import control, models, multibody, simulation, systems, trajectories  # noqa: E402
 from .control import linearize
 from .multibody import LoopConstraint, RigidBodySystem
 from .simulation import SimulatedTrajectory, SimulationError, SimulationStatus, simulate
