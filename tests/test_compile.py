@@ -109,3 +109,24 @@ def test_discrete_step_is_the_rule_and_the_update():
     np.testing.assert_allclose(jd.simulation.discrete_step(sampled, 0.0, x, jnp.array([1.0]), 0.1), [2.0])
     with pytest.raises(ValueError, match="fixed-step rule"):
         jd.simulation.discrete_step(linear, 0.0, x, jnp.zeros(1), h, "dopri5")
+
+
+def test_xla_cpu_setting_respects_the_users_choice(monkeypatch):
+    """jaxdrake adds --xla_cpu_use_fusion_emitters=false on jaxlib 0.10 only, and never over a
+    choice already in XLA_FLAGS or with JAXDRAKE_KEEP_XLA_FLAGS set."""
+    import importlib.metadata
+
+    from jaxdrake._xla import prefer_fast_cpu_compilation
+
+    monkeypatch.delenv("JAXDRAKE_KEEP_XLA_FLAGS", raising=False)
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
+    assert not prefer_fast_cpu_compilation()
+    monkeypatch.setenv("XLA_FLAGS", "--xla_dump_to=/tmp/x")
+    added = prefer_fast_cpu_compilation()
+    assert added == importlib.metadata.version("jaxlib").startswith("0.10.")
+    import os
+    assert os.environ["XLA_FLAGS"] == ("--xla_dump_to=/tmp/x --xla_cpu_use_fusion_emitters=false" if added
+                                       else "--xla_dump_to=/tmp/x")
+    monkeypatch.setenv("XLA_FLAGS", "")
+    monkeypatch.setenv("JAXDRAKE_KEEP_XLA_FLAGS", "1")
+    assert not prefer_fast_cpu_compilation() and os.environ["XLA_FLAGS"] == ""
