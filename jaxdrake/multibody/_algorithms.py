@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._spatial import quaternion_matrix, skew
+from ._spatial import force_cross, motion_cross, quaternion_matrix, skew
 from ._tree import KinematicTree
 
 # ----- kinematics -----------------------------------------------------------------------------
@@ -162,18 +162,6 @@ def _base_acceleration(tree, dtype, gravity: bool):
 # ----- spatial algebra, batched over the leading axis ----------------------------------------
 
 
-def _motion_cross(v, m):
-    """v x m for motion vectors (..., 6)."""
-    w, u = v[..., :3], v[..., 3:]
-    return jnp.concatenate([jnp.cross(w, m[..., :3]), jnp.cross(u, m[..., :3]) + jnp.cross(w, m[..., 3:])], -1)
-
-
-def _force_cross(v, f):
-    """v x* f for a motion vector v and a force f (..., 6)."""
-    w, u = v[..., :3], v[..., 3:]
-    return jnp.concatenate([jnp.cross(w, f[..., :3]) + jnp.cross(u, f[..., 3:]), jnp.cross(w, f[..., 3:])], -1)
-
-
 def _world_inertias(tree, R, p):
     """Every body's spatial inertia about O, world axes, as (m, h = m c, I_bar) in level order:
     $I\\,[\\omega; v] = [\\bar I \\omega + h \\times v;\\ m v - h \\times \\omega]$."""
@@ -238,10 +226,10 @@ def rnea(tree: KinematicTree, q, v, a, *, gravity: bool = True):
     body velocities and accelerations are ancestor sums, the joint forces subtree sums."""
     L = tree.layout
     R, p, S1, S0, joint, V = _velocities(tree, q, v)
-    joint_acc = _joint_velocity(L, S1, S0, a) + _motion_cross(V, joint)
+    joint_acc = _joint_velocity(L, S1, S0, a) + motion_cross(V, joint)
     A = _ancestor_sum(L, joint_acc) + _base_acceleration(tree, q.dtype, gravity)
     inertia = _world_inertias(tree, R, p)
-    F = _subtree_sum(L, _apply_inertia(inertia, A) + _force_cross(V, _apply_inertia(inertia, V)))
+    F = _subtree_sum(L, _apply_inertia(inertia, A) + force_cross(V, _apply_inertia(inertia, V)))
     return _project_forces(L, S1, S0, F)
 
 
@@ -291,10 +279,10 @@ def aba(tree: KinematicTree, q, v, tau, *, gravity: bool = True):
     L = tree.layout
     f = int(L.floating)
     R, p, S1, S0, joint, V = _velocities(tree, q, v)
-    c = _motion_cross(V, joint)                       # s_dot qdot (zero for the floating base)
+    c = motion_cross(V, joint)                       # s_dot qdot (zero for the floating base)
     inertia = _world_inertias(tree, R, p)
     I_A = _dense_inertia(inertia)
-    p_A = _force_cross(V, _apply_inertia(inertia, V))
+    p_A = force_cross(V, _apply_inertia(inertia, V))
     tau_level = tau[L.level_dofs]
 
     def backward(passed, depth):
