@@ -357,11 +357,11 @@ def frame_pose(tree: KinematicTree, q, frame: str, *, poses=None):
     return Rs[body] @ R_f, Rs[body] @ p_f + ps[body]
 
 
-def frame_jacobian(tree: KinematicTree, q, frame: str, *, poses=None):
+def frame_jacobian(tree: KinematicTree, q, frame: str):
     r"""The 6 x nv Jacobian of a named frame, world-aligned: $[\omega; \dot p] = J(q)\, v$ with
     $\omega$ the frame's angular velocity and $\dot p$ the velocity of its origin, both in
     world coordinates: the columns $[s_\omega; s_v + s_\omega \times p]$ of the frame body's
-    ancestors' joints. `poses` is accepted for symmetry with `frame_pose` (unused)."""
+    ancestors' joints."""
     k = _frame_index(tree, frame)
     body = tree.frame_bodies[k]
     if body < 0:

@@ -178,11 +178,11 @@ class RigidBodySystem(System):
 
     def loop_jacobian(self, q):
         """d phi / d q in velocity coordinates: phi_dot = J(q) v."""
-        parts, poses = [], alg.body_poses(self.tree, q)
+        parts = []
         for loop in self.loops:
             idx = 3 + np.array([_AXES[a] for a in loop.axes])
-            parts.append((alg.frame_jacobian(self.tree, q, loop.frame_a, poses=poses)
-                          - alg.frame_jacobian(self.tree, q, loop.frame_b, poses=poses))[idx])
+            parts.append((alg.frame_jacobian(self.tree, q, loop.frame_a)
+                          - alg.frame_jacobian(self.tree, q, loop.frame_b))[idx])
         return jnp.concatenate(parts) if parts else jnp.zeros((0, self.tree.nv), q.dtype)
 
     def state_constraints(self, x):

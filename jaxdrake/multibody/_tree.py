@@ -310,7 +310,7 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
         axis = _numbers(joint.find("axis"), "xyz", 3, [1.0, 0.0, 0.0], path, where)
         if _URDF_TYPES[kind] != "fixed" and not np.linalg.norm(axis) > 0:
             raise URDFError(f"{path}: joint {name!r} has a zero axis")
-        limit, dynamics, mimic = joint.find("limit"), joint.find("dynamics"), joint.find("mimic")
+        limit, dynamics = joint.find("limit"), joint.find("dynamics")
         number = lambda element, attribute, default: _numbers(element, attribute, 1, default, path, where)
         joints.append(dict(
             name=name, type="fixed" if name in welded else _URDF_TYPES[kind], parent=parent, child=child,
@@ -318,9 +318,7 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
             lower=number(limit, "lower", -np.inf) if kind != "continuous" else -np.inf,
             upper=number(limit, "upper", np.inf) if kind != "continuous" else np.inf,
             effort=number(limit, "effort", np.inf),
-            damping=number(dynamics, "damping", 0.0), friction=number(dynamics, "friction", 0.0),
-            mimic=None if mimic is None else (mimic.get("joint"), number(mimic, "multiplier", 1.0),
-                                              number(mimic, "offset", 0.0))))
+            damping=number(dynamics, "damping", 0.0), friction=number(dynamics, "friction", 0.0)))
     roots = [name for name in links if name not in children]
     if len(roots) != 1:
         raise URDFError(f"{path}: a URDF tree has exactly one root link (a link that is no joint's "
