@@ -130,3 +130,20 @@ def test_xla_cpu_setting_respects_the_users_choice(monkeypatch):
     monkeypatch.setenv("XLA_FLAGS", "")
     monkeypatch.setenv("JAXDRAKE_KEEP_XLA_FLAGS", "1")
     assert not prefer_fast_cpu_compilation() and os.environ["XLA_FLAGS"] == ""
+
+
+def test_lqr_linearize_and_tvlqr_called_outside_jit_trace_the_plant_once():
+    """Un-jitted design calls keep their compiled programs: a second call (new Q, R, new
+    parameter values) traces the plant's dynamics no more."""
+    counter = Counter()
+    plant = counted_oscillator(counter)
+    first = jd.control.lqr(plant, jnp.eye(2), jnp.eye(1))
+    after_first = counter.traces
+    second = jd.control.lqr(plant, 3 * jnp.eye(2), 2 * jnp.eye(1))
+    jd.control.linearize(plant, jnp.array([0.0, 0.0]))
+    assert counter.traces == after_first
+    assert not np.allclose(first.K, second.K)
+    jd.control.finite_horizon_lqr(plant, jnp.eye(2), jnp.eye(1), (0.0, 1.0))
+    after_tvlqr = counter.traces
+    jd.control.finite_horizon_lqr(plant, 2 * jnp.eye(2), jnp.eye(1), (0.0, 1.0), Qf=jnp.eye(2))
+    assert counter.traces == after_tvlqr

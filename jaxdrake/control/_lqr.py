@@ -12,8 +12,10 @@ $u = u_0 - K (x - x_0)$ as a system ready for `feedback`.
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -21,6 +23,17 @@ import numpy as np
 from ..systems import LinearSystem, System
 from ..systems._system import require_plain_system
 from ._riccati import solve_continuous_are, solve_discrete_are
+
+
+@eqx.filter_jit  # compiled once per system structure: a second call costs milliseconds
+def _linearization(system: System, t, x0, u0):
+    """(f(x0, u0) - [x0 if discrete], A, B, C, D) at the operating point."""
+    discrete = system.has_discrete_state
+    f = system.update if discrete else system.dynamics
+    residual = f(t, x0, u0) - (x0 if discrete else 0.0)
+    A, B = jax.jacfwd(f, argnums=(1, 2))(t, x0, u0)
+    C, D = jax.jacfwd(system.output, argnums=(1, 2))(t, x0, u0)
+    return residual, A, B, C, D
 
 
 def linearize(system: System, x0, u0=None, *, t=0.0, check_equilibrium: bool = True,
@@ -33,17 +46,13 @@ def linearize(system: System, x0, u0=None, *, t=0.0, check_equilibrium: bool = T
     x0 = jnp.asarray(x0, dtype=float).reshape(system.num_states)
     u0 = jnp.zeros(system.num_inputs) if u0 is None else jnp.asarray(u0, dtype=float).reshape(system.num_inputs)
     discrete = system.has_discrete_state
-    f = system.update if discrete else system.dynamics
-    if check_equilibrium:
-        residual = f(t, x0, u0) - (x0 if discrete else 0.0)
-        if not isinstance(residual, jax.core.Tracer):
-            worst = float(jnp.max(jnp.abs(residual))) if residual.size else 0.0
-            if worst > tolerance:
-                raise ValueError(f"linearize: ({x0}, {u0}) is not an equilibrium of {system.name}: "
-                                 f"the {'update moves x by' if discrete else 'derivative is'} up to {worst:.3g} "
-                                 "(pass check_equilibrium=False to linearize anyway)")
-    A, B = jax.jacfwd(f, argnums=(1, 2))(t, x0, u0)
-    C, D = jax.jacfwd(system.output, argnums=(1, 2))(t, x0, u0)
+    residual, A, B, C, D = _linearization(system, jnp.asarray(t, float), x0, u0)
+    if check_equilibrium and not isinstance(residual, jax.core.Tracer):
+        worst = float(jnp.max(jnp.abs(residual))) if residual.size else 0.0
+        if worst > tolerance:
+            raise ValueError(f"linearize: ({x0}, {u0}) is not an equilibrium of {system.name}: "
+                             f"the {'update moves x by' if discrete else 'derivative is'} up to {worst:.3g} "
+                             "(pass check_equilibrium=False to linearize anyway)")
     return LinearSystem(A, B.reshape(system.num_states, system.num_inputs), C,
                         D.reshape(system.num_outputs, system.num_inputs),
                         sample_time=system.sample_time if discrete else None,
@@ -66,6 +75,17 @@ def _affine_gain(t, x, y, params):
     return u0 - K @ (y - x0)
 
 
+@functools.partial(jax.jit, static_argnums=5)
+def _lqr_gain(A, B, Q, R, N, discrete: bool):
+    """(K, S) from the Riccati equation of (A, B, Q, R, N)."""
+    if discrete:
+        S = solve_discrete_are(A, B, Q, R, N)
+        cross = B.T @ S @ A + (0.0 if N is None else N.T)
+        return jnp.linalg.solve(R + B.T @ S @ B, cross), S
+    S = solve_continuous_are(A, B, Q, R, N)
+    return jnp.linalg.solve(R, B.T @ S + (0.0 if N is None else N.T)), S
+
+
 def lqr(system: System, Q, R, x0=None, u0=None, *, N=None, check_equilibrium: bool = True) -> LQRResult:
     """The infinite-horizon LQR of `system` about (x0, u0) (default: the origin, u = 0):
     continuous or discrete to match the system; `N` the cross term. Differentiable with
@@ -82,14 +102,7 @@ def lqr(system: System, Q, R, x0=None, u0=None, *, N=None, check_equilibrium: bo
     if not isinstance(R, jax.core.Tracer) and np.min(np.linalg.eigvalsh(np.asarray(R))) <= 0:
         raise ValueError("lqr: R must be positive definite")
     lin = linearize(system, x0, u0, check_equilibrium=check_equilibrium)
-    A, B = lin.A, lin.B
-    if lin.is_discrete:
-        S = solve_discrete_are(A, B, Q, R, N)
-        cross = B.T @ S @ A + (0.0 if N is None else N.T)
-        K = jnp.linalg.solve(R + B.T @ S @ B, cross)
-    else:
-        S = solve_continuous_are(A, B, Q, R, N)
-        K = jnp.linalg.solve(R, B.T @ S + (0.0 if N is None else N.T))
+    K, S = _lqr_gain(lin.A, lin.B, Q, R, N, lin.is_discrete)
     controller = System.from_functions(
         output=_affine_gain, num_states=0, num_inputs=n, num_outputs=m, params=(K, x0, u0),
         input_frame=system.state_frame, output_frame=system.input_frame)

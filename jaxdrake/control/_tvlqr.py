@@ -70,6 +70,20 @@ class FiniteHorizonLQRResult(eqx.Module):
         return self.K_trajectory.state(t).reshape(jnp.shape(t) + (-1, n))
 
 
+@eqx.filter_jit  # compiled once per structure: a second call costs milliseconds
+def _cost_to_go_and_gain(backward, system, x_nominal, u_nominal, R, N, tf):
+    """S(t) from the backward solution of tau = tf - t, and K(t) = R^-1 (B^T S + N^T) as
+    quartic pieces through the exact gain (K(t) is not polynomial)."""
+    S = backward.reversed_in_time(tf)
+    n = system.num_states
+
+    def gain_at(t, s):
+        _, B = _jacobians(system, t, x_nominal, u_nominal)
+        return jnp.linalg.solve(R, B.T @ s.reshape(n, n) + N.T).reshape(-1)
+
+    return S, S.interpolate(gain_at)
+
+
 def _as_nominal(value, size, label, name):
     if isinstance(value, (Trajectory, SimulatedTrajectory)):
         if value.num_states != size:
@@ -109,14 +123,7 @@ def finite_horizon_lqr(system: System, Q, R, tspan, *, Qf=None, x_nominal=None, 
                                     time_invariant=False)
     backward = simulate(riccati, (0.0, tf - t0), ((Qf + Qf.T) / 2).reshape(-1),
                         rtol=rtol, atol=atol, max_steps=max_steps)
-    S = backward.state_trajectory.reversed_in_time(tf)  # a trajectory of t
-
-    def gain_at(t, s):
-        _, B = _jacobians(system, t, x_nominal, u_nominal)
-        S_t = s.reshape(n, n)
-        return jnp.linalg.solve(R, B.T @ S_t + N.T).reshape(-1)
-
-    K = S.interpolate(gain_at)  # K(t) is not polynomial: quartic pieces through the exact gain
+    S, K = _cost_to_go_and_gain(backward.state_trajectory, system, x_nominal, u_nominal, R, N, tf)
     controller = System.from_functions(
         output=_tracking_output, num_states=0, num_inputs=n, num_outputs=m,
         params=(K, x_nominal, u_nominal), time_invariant=False,
