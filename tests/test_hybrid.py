@@ -157,6 +157,22 @@ def test_vmap_over_drop_heights_matches_single_runs_in_one_program():
     np.testing.assert_allclose(traj.event_times[-1, : len(times)], times, atol=1e-9)
 
 
+def test_a_batch_whose_members_all_have_events_at_once_matches_single_runs():
+    """Under vmap the root finder runs over the members with a crossing, gathered in chunks of
+    an eighth of the batch: 16 balls with the same bounces need 8 chunks in every event step."""
+    heights = jnp.full(16, 5.0).at[::2].set(3.0)
+    run = lambda h: jd.simulate(BouncingBall(), (0.0, 3.0), jnp.stack([h, 0.0]), dense=False,
+                                throw=False, **TIGHT)
+    batched = jax.jit(jax.vmap(run))(heights)
+    for i in (0, 1):
+        single = run(heights[i])
+        n = int(single.num_events)
+        assert n >= 2 and int(batched.num_events[i]) == n
+        np.testing.assert_allclose(batched.event_times[i, :n], single.event_times[:n], rtol=1e-14)
+    times, _, _ = ball_closed_form(h0=5.0, bounces=int(batched.num_events[1]))
+    np.testing.assert_allclose(batched.event_times[1, : len(times)], times, atol=1e-9)
+
+
 def test_chattering_on_the_boundary_ends_with_a_status():
     # cor = 1 and the ball at rest on the ground: the guard holds after every reset
     ball = BouncingBall(cor=1.0, stop_speed=-1.0)

@@ -8,7 +8,10 @@ then one per transition out of the active mode, -phi_k (phi_k <= 0 triggers tran
 
 from __future__ import annotations
 
+import functools
+
 import jax
+import jax.extend
 import jax.numpy as jnp
 import numpy as np
 
@@ -73,11 +76,29 @@ def locate_first_crossing(guard_fn, crossed, g_start, g_end, h, tol):
     1; `g_start`, `g_end` are the guards there), found by Newton's method safeguarded with
     bisection: the bracket [lo, hi] keeps G(lo) < 0 <= G(hi), and a Newton iterate outside it
     is replaced by the midpoint. It stops when the last update or the bracket is below `tol`
-    in time: a few iterations for smooth guards, where bisection alone needs ~30 (which under
-    vmap every member pays whenever any member has an event). Ties go to the lowest index.
-    `guard_fn(theta)` gives all guards (of frozen coefficients); its values and theta-derivatives
-    are not differentiated further (see the differentiable Newton step in the loop).
+    in time: a few iterations for smooth guards, where bisection alone needs ~30. Ties go to
+    the lowest index. `guard_fn(theta)` gives all guards (of frozen coefficients); nothing here
+    is differentiated (see the differentiable Newton step in the loop).
+
+    Under `vmap` only the members with a crossing are searched: they are gathered into chunks
+    of an eighth of the batch (`_search_compacted`), so a batch in which a few members have an
+    event in a step pays for those few, not for all.
     """
+    # every value guard_fn closes over made an explicit argument (custom_vmap needs its
+    # batched inputs as arguments); none is differentiated here
+    traced = jax.make_jaxpr(guard_fn)(jnp.zeros((), g_start.dtype))
+    consts = jax.lax.stop_gradient(traced.consts)
+
+    def converted(theta, *consts):
+        return jax.extend.core.jaxpr_as_fun(jax.extend.core.ClosedJaxpr(traced.jaxpr, consts))(theta)[0]
+
+    search = jax.custom_batching.custom_vmap(functools.partial(_search, converted))
+    search.def_vmap(functools.partial(_search_compacted, functools.partial(_search, converted)))
+    return search(crossed, g_start, g_end, jax.lax.stop_gradient(h), tol, *consts)
+
+
+def _search(guard_fn, crossed, g_start, g_end, h, tol, *consts):
+    """The safeguarded Newton search of `locate_first_crossing` for one member."""
     def G(g):
         return jnp.max(jnp.where(crossed, g, -jnp.inf))
 
@@ -86,7 +107,7 @@ def locate_first_crossing(guard_fn, crossed, g_start, g_end, h, tol):
 
     def iterate(state):
         lo, hi, theta, which, done = state
-        gs, dgs = jax.lax.stop_gradient(jax.jvp(guard_fn, (theta,), (jnp.ones_like(theta),)))
+        gs, dgs = jax.jvp(lambda th: guard_fn(th, *consts), (theta,), (jnp.ones_like(theta),))
         masked = jnp.where(crossed, gs, -jnp.inf)
         k = jnp.argmax(masked).astype(jnp.int32)
         g, dg = masked[k], dgs[k]
@@ -104,3 +125,26 @@ def locate_first_crossing(guard_fn, crossed, g_start, g_end, h, tol):
     state = jax.lax.fori_loop(0, _ROOT_ITERATIONS, lambda i, s: iterate(s), state, unroll=True)
     state = jax.lax.while_loop(lambda s: ~s[4] & (s[1] - s[0] > 0), iterate, state)
     return state[2], state[3]
+
+
+def _search_compacted(search, axis_size, in_batched, crossed, *args):
+    """The batched search over the members with a crossing only: their indices gathered in
+    chunks of ceil(batch / 8) (one chunk in the usual case), searched, scattered back; the
+    other members get theta = 1 and guard 0 (unused: they have no event)."""
+    args = (crossed, *args)
+    need = jnp.any(crossed, axis=-1) if in_batched[0] else jnp.broadcast_to(jnp.any(crossed), (axis_size,))
+    chunk = -(-axis_size // 8)
+    searched = jax.vmap(search, in_axes=[0 if b else None for b in in_batched])
+    dtype = args[1].dtype
+
+    def one_chunk(state):
+        remaining, theta, which = state
+        index = jnp.nonzero(remaining, size=chunk, fill_value=axis_size)[0]  # past the end: dropped
+        members = [jnp.take(a, index, axis=0, mode="clip") if b else a for a, b in zip(args, in_batched)]
+        theta_k, which_k = searched(*members)
+        return (remaining.at[index].set(False, mode="drop"), theta.at[index].set(theta_k, mode="drop"),
+                which.at[index].set(which_k, mode="drop"))
+
+    state = (need, jnp.ones(axis_size, dtype), jnp.zeros(axis_size, jnp.int32))
+    _, theta, which = jax.lax.while_loop(lambda s: jnp.any(s[0]), one_chunk, state)
+    return (theta, which), (True, True)
