@@ -1,5 +1,6 @@
 """Every example script and notebook runs end to end (they are products, not decoration)."""
 
+import os
 import pathlib
 import subprocess
 import sys
@@ -12,6 +13,23 @@ EXAMPLES = sorted(p for p in (ROOT / "examples").glob("*.py") if not p.name.star
 SLOW = {"swing_up.ipynb"}
 NOTEBOOKS = [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW else p
              for p in sorted((ROOT / "notebooks").glob("*.ipynb"))]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _shared_compilation_cache(tmp_path_factory):
+    """Scripts and notebook kernels share JAX's persistent compilation cache (a fresh one per
+    run): a notebook that repeats its script's computations loads those programs instead of
+    compiling them again, as a user's second session would."""
+    settings = {"JAX_COMPILATION_CACHE_DIR": str(tmp_path_factory.mktemp("jax-cache")),
+                "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
+    saved = {k: os.environ.get(k) for k in settings}
+    os.environ.update(settings)
+    yield
+    for k, v in saved.items():
+        if v is None:
+            os.environ.pop(k)
+        else:
+            os.environ[k] = v
 
 
 @pytest.mark.notebook
