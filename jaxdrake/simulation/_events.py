@@ -76,13 +76,13 @@ def locate_first_crossing(guard_fn, crossed, g_start, g_end, h, tol):
     1; `g_start`, `g_end` are the guards there), found by Newton's method safeguarded with
     bisection: the bracket [lo, hi] keeps G(lo) < 0 <= G(hi), and a Newton iterate outside it
     is replaced by the midpoint. It stops when the last update or the bracket is below `tol`
-    in time: a few iterations for smooth guards, where bisection alone needs ~30. Ties go to
-    the lowest index. `guard_fn(theta)` gives all guards (of frozen coefficients); nothing here
-    is differentiated (see the differentiable Newton step in the loop).
+    in time, or G is exactly 0: a few iterations for smooth guards, where bisection alone
+    needs ~30. Ties go to the lowest index. `guard_fn(theta)` gives all guards (of frozen
+    coefficients); nothing here is differentiated (see the differentiable Newton step in the loop).
 
-    Under `vmap` only the members with a crossing are searched: they are gathered into chunks
-    of an eighth of the batch (`_search_compacted`), so a batch in which a few members have an
-    event in a step pays for those few, not for all.
+    Under `vmap` on the CPU only the members with a crossing are searched: they are gathered
+    into chunks of an eighth of the batch (`_search_compacted`), so a batch in which a few
+    members have an event in a step pays for those few, not for all.
     """
     # every value guard_fn closes over made an explicit argument (custom_vmap needs its
     # batched inputs as arguments); none is differentiated here
@@ -113,8 +113,12 @@ def _search(guard_fn, crossed, g_start, g_end, h, tol, *consts):
         g, dg = masked[k], dgs[k]
         lo, hi = jnp.where(g >= 0, lo, theta), jnp.where(g >= 0, theta, hi)
         newton = theta - g / jnp.where(dg != 0, dg, 1.0)
-        new = jnp.where((dg != 0) & (newton > lo) & (newton < hi), newton, (lo + hi) / 2)
-        converged = done | (jnp.abs(new - theta) * h <= tol) | ((hi - lo) * h <= tol)
+        # g == 0: theta is the root (it has just become hi, so the Newton iterate, theta
+        # itself, is not inside the bracket: taking the midpoint instead had cost ~20
+        # bisections at most events)
+        exact = g == 0
+        new = jnp.where(exact, theta, jnp.where((dg != 0) & (newton > lo) & (newton < hi), newton, (lo + hi) / 2))
+        converged = done | exact | (jnp.abs(new - theta) * h <= tol) | ((hi - lo) * h <= tol)
         return lo, hi, jnp.where(done, theta, new), jnp.where(done, which, k), converged
 
     which0 = jnp.argmax(jnp.where(crossed, g_end, -jnp.inf)).astype(jnp.int32)
@@ -128,23 +132,30 @@ def _search(guard_fn, crossed, g_start, g_end, h, tol, *consts):
 
 
 def _search_compacted(search, axis_size, in_batched, crossed, *args):
-    """The batched search over the members with a crossing only: their indices gathered in
-    chunks of ceil(batch / 8) (one chunk in the usual case), searched, scattered back; the
-    other members get theta = 1 and guard 0 (unused: they have no event)."""
+    """The batched search. On the CPU over the members with a crossing only: their indices
+    gathered in chunks of ceil(batch / 8) (one chunk in the usual case), searched, scattered
+    back; the other members get theta = 1 and guard 0 (unused: they have no event). On an
+    accelerator every member is searched, as the gathering loop's device-host round trips cost
+    more there than the search (H100, bouncing-ball batch of 10^4: 32 ms compacted, 12 ms not,
+    measured before the exact-root fix; CPU, rimless wheel: ~20% faster compacted)."""
     args = (crossed, *args)
+    searched = jax.vmap(search, in_axes=[0 if b else None for b in in_batched])
     need = jnp.any(crossed, axis=-1) if in_batched[0] else jnp.broadcast_to(jnp.any(crossed), (axis_size,))
     chunk = -(-axis_size // 8)
-    searched = jax.vmap(search, in_axes=[0 if b else None for b in in_batched])
-    dtype = args[1].dtype
 
-    def one_chunk(state):
-        remaining, theta, which = state
-        index = jnp.nonzero(remaining, size=chunk, fill_value=axis_size)[0]  # past the end: dropped
-        members = [jnp.take(a, index, axis=0, mode="clip") if b else a for a, b in zip(args, in_batched)]
-        theta_k, which_k = searched(*members)
-        return (remaining.at[index].set(False, mode="drop"), theta.at[index].set(theta_k, mode="drop"),
-                which.at[index].set(which_k, mode="drop"))
+    def compacted(args, need):
+        def one_chunk(state):
+            remaining, theta, which = state
+            index = jnp.nonzero(remaining, size=chunk, fill_value=axis_size)[0]  # past the end: dropped
+            members = [jnp.take(a, index, axis=0, mode="clip") if b else a for a, b in zip(args, in_batched)]
+            theta_k, which_k = searched(*members)
+            return (remaining.at[index].set(False, mode="drop"), theta.at[index].set(theta_k, mode="drop"),
+                    which.at[index].set(which_k, mode="drop"))
 
-    state = (need, jnp.ones(axis_size, dtype), jnp.zeros(axis_size, jnp.int32))
-    _, theta, which = jax.lax.while_loop(lambda s: jnp.any(s[0]), one_chunk, state)
-    return (theta, which), (True, True)
+        state = (need, jnp.ones(axis_size, args[1].dtype), jnp.zeros(axis_size, jnp.int32))
+        return jax.lax.while_loop(lambda s: jnp.any(s[0]), one_chunk, state)[1:]
+
+    def everyone(args, need):
+        return searched(*args)
+
+    return jax.lax.platform_dependent(args, need, cpu=compacted, default=everyone), (True, True)
