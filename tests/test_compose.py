@@ -370,3 +370,40 @@ def test_gradient_through_each_combinator_matches_finite_differences(combinator,
     k = 0.7
     fd = (final(k + 1e-5) - final(k - 1e-5)) / 2e-5
     np.testing.assert_allclose(jax.grad(final)(k), fd, rtol=1e-6)
+
+
+def test_direct_feedthrough_is_inferred_from_the_output():
+    """A plant without `output` (y = x) has no direct feedthrough, so the most common loop,
+    feedback(plant, lqr(...).controller), is no algebraic loop; it matches exp((A - BK) t)."""
+    plant = jd.System.from_functions(dynamics=lambda t, x, u: jnp.stack([x[1], u[0]]), num_states=2, num_inputs=1)
+    assert not plant.direct_feedthrough
+    result = jd.control.lqr(plant, jnp.eye(2), jnp.eye(1))
+    x0 = jnp.array([1.0, -0.5])
+    final = jd.simulate(jd.feedback(plant, result.controller), (0.0, 2.0), x0, rtol=1e-10, atol=1e-12).final_state
+    A, B = np.array([[0.0, 1.0], [0.0, 0.0]]), np.array([[0.0], [1.0]])
+    np.testing.assert_allclose(final, scipy.linalg.expm(2.0 * (A - B @ np.asarray(result.K))) @ np.asarray(x0),
+                               rtol=1e-8, atol=1e-10)
+
+    class Subclassed(jd.System):
+        def __init__(self):
+            super().__init__(num_continuous_states=2, num_inputs=1)
+
+        def dynamics(self, t, x, u):
+            return jnp.stack([x[1], u[0]])
+
+    class ReadsInput(Subclassed):
+        def output(self, t, x, u):
+            return x + jnp.concatenate([u, u])
+
+    discrete = jd.System.from_functions(update=lambda t, x, u: 0.5 * x + u, num_states=1, num_inputs=1,
+                                        sample_time=0.1)
+    gain = jd.System.from_functions(output=lambda t, x, u: -2.0 * u, num_states=0, num_inputs=1, num_outputs=1)
+    unused = jd.System.from_functions(output=lambda t, x, u: jnp.ones(1) + 0.0 * x.sum(), num_states=0,
+                                      num_inputs=1, num_outputs=1)
+    declared = jd.System.from_functions(dynamics=lambda t, x, u: -x + u, num_states=1, num_inputs=1,
+                                        direct_feedthrough=True)
+    assert not Subclassed().direct_feedthrough and not discrete.direct_feedthrough
+    assert ReadsInput().direct_feedthrough and gain.direct_feedthrough and declared.direct_feedthrough
+    assert not unused.direct_feedthrough
+    with pytest.raises(ValueError, match="direct_feedthrough=False"):
+        jd.feedback(gain, gain)

@@ -95,8 +95,10 @@ def feedback(a: System, b: System, sign: float = 1.0) -> System:
     _check_systems(a, b)
     if a.direct_feedthrough and b.direct_feedthrough:
         raise ValueError(f"algebraic loop: feedback of {a.name} and {b.name}, which are both direct "
-                         "feedthrough (each output depends on its input at the same instant). "
-                         "Break it with a system without direct feedthrough.")
+                         "feedthrough (each output depends on its input at the same instant). Break it "
+                         "with a system without direct feedthrough; if one of them does not read u in "
+                         "its output, declare it with direct_feedthrough=False (to System.__init__ or "
+                         "from_functions) or leave it undeclared to have it inferred from output().")
     forward = frame_conversion(a.output_frame, b.input_frame)
     back = frame_conversion(b.output_frame, a.input_frame)
     s = float(sign)

@@ -14,6 +14,7 @@ from typing import Any
 
 import equinox as eqx
 import jax
+import jax.extend
 import jax.numpy as jnp
 import numpy as np
 
@@ -48,7 +49,8 @@ class System(eqx.Module):
     - `sample_time`: $\Delta t$ of the discrete state; defaults to 1 when there is one. A
       diagram mixing several rates has a tuple of them (`sample_times`); its
       `discrete_update` is told which are due.
-    - `direct_feedthrough`: whether the output depends on u (default: conservatively True).
+    - `direct_feedthrough`: whether the output depends on u at the same instant; by default
+      inferred from `output` (see the `direct_feedthrough` property).
     - `time_invariant`: whether dynamics, update and output ignore t (default False).
     - `num_state_constraints`: the size of $\phi(x)$ returned by `state_constraints`.
     - `input_limits`: `(u_min, u_max)`, each a vector of size `num_inputs` (±inf allowed).
@@ -60,7 +62,7 @@ class System(eqx.Module):
     num_inputs: int = _static(default=0)
     num_outputs: int = _static(default=None)
     sample_times: tuple[float, ...] = _static(default=())
-    direct_feedthrough: bool = _static(default=True)
+    declared_feedthrough: bool | None = _static(default=None)
     time_invariant: bool = _static(default=False)
     num_state_constraints: int = _static(default=0)
     input_frame: Frame = _static(default=None)
@@ -71,7 +73,7 @@ class System(eqx.Module):
 
     def __init__(self, *, num_continuous_states: int = 0, num_discrete_states: int = 0,
                  num_inputs: int = 0, num_outputs: int | None = None,
-                 sample_time: float | tuple[float, ...] | None = None, direct_feedthrough: bool = True,
+                 sample_time: float | tuple[float, ...] | None = None, direct_feedthrough: bool | None = None,
                  time_invariant: bool = False, num_state_constraints: int = 0,
                  input_limits: tuple[Any, Any] | None = None, input_frame: Frame | None = None,
                  state_frame: Frame | None = None, output_frame: Frame | None = None,
@@ -98,7 +100,7 @@ class System(eqx.Module):
         self.num_discrete_states = int(num_discrete_states)
         self.num_inputs = int(num_inputs)
         self.num_outputs = int(num_outputs)
-        self.direct_feedthrough = bool(direct_feedthrough)
+        self.declared_feedthrough = None if direct_feedthrough is None else bool(direct_feedthrough)
         self.time_invariant = bool(time_invariant)
         self.num_state_constraints = int(num_state_constraints)
         self.input_frame = _check_frame(input_frame, name, "input", self.num_inputs, "u")
@@ -170,6 +172,22 @@ class System(eqx.Module):
     @property
     def name(self) -> str:
         return type(self).__name__
+
+    @property
+    def direct_feedthrough(self) -> bool:
+        """Whether y = g(t, x, u) reads u at the same instant (Drake's direct feedthrough): as
+        declared to `__init__`, else inferred from `output`'s jaxpr — does any output variable
+        depend on the input variable? — once per system structure. An output that cannot be
+        traced alone counts as reading u (the safe answer)."""
+        if self.declared_feedthrough is not None:
+            return self.declared_feedthrough
+        key = jax.tree_util.tree_structure(self)  # class and static fields: the structure
+        try:
+            return _INFERRED_FEEDTHROUGH[key]
+        except TypeError:  # an unhashable static field: infer without remembering
+            return _output_reads_input(self)
+        except KeyError:
+            return _INFERRED_FEEDTHROUGH.setdefault(key, _output_reads_input(self))
 
     @property
     def num_states(self) -> int:
@@ -289,6 +307,28 @@ class FunctionSystem(System):
 
     def initial_state(self):
         return super().initial_state() if self.functions.x0 is None else self.functions.x0
+
+
+_INFERRED_FEEDTHROUGH: dict = {}
+
+
+def _output_reads_input(system: System) -> bool:
+    """Whether an output variable of `system.output`'s jaxpr depends on its input variable u
+    (dependencies followed equation by equation; a sub-program counts as one equation)."""
+    if system.num_inputs == 0:
+        return False
+    dtype = jnp.zeros(()).dtype
+    shapes = (jax.ShapeDtypeStruct((), dtype), jax.ShapeDtypeStruct((system.num_states,), dtype),
+              jax.ShapeDtypeStruct((system.num_inputs + system.num_noise_inputs,), dtype))
+    try:
+        jaxpr = jax.make_jaxpr(system.output)(*shapes).jaxpr
+    except Exception:  # noqa: BLE001 -- not traceable on its own: assume it reads u
+        return True
+    reads_u = {jaxpr.invars[2]}
+    for eqn in jaxpr.eqns:
+        if any(not isinstance(v, jax.extend.core.Literal) and v in reads_u for v in eqn.invars):
+            reads_u.update(eqn.outvars)
+    return any(not isinstance(v, jax.extend.core.Literal) and v in reads_u for v in jaxpr.outvars)
 
 
 def require_plain_system(system, caller: str, advice: str):
