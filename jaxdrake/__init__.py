@@ -10,14 +10,14 @@ from .multibody import LoopConstraint, RigidBodySystem
 from .simulation import SimulatedTrajectory, SimulationError, SimulationStatus, simulate
 from .systems import (Diagram, DiagramBuilder, Frame, HybridSystem, LinearSystem, Polynomial,
                       PolynomialSystem, StochasticSystem,
-                      System, Transition, add_frame_conversion, and_guards, cascade, feedback,
+                      System, TrajectorySource, Transition, add_frame_conversion, and_guards, cascade, feedback,
                       not_guard, parallel)
 from .trajectories import Trajectory
 
 __version__ = "0.1.0"
 
 __all__ = ["Diagram", "DiagramBuilder", "Frame", "HybridSystem", "LinearSystem", "SimulationError",
-           "LoopConstraint", "Polynomial", "PolynomialSystem", "RigidBodySystem", "SimulatedTrajectory", "SimulationStatus", "StochasticSystem", "System", "Trajectory", "Transition",
+           "LoopConstraint", "Polynomial", "PolynomialSystem", "RigidBodySystem", "SimulatedTrajectory", "SimulationStatus", "StochasticSystem", "System", "Trajectory", "TrajectorySource", "Transition",
            "add_frame_conversion", "and_guards", "cascade", "control", "feedback", "linearize", "models", "multibody", "not_guard",
            "parallel", "simulate", "simulation", "systems", "trajectories"]
 

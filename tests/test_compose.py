@@ -407,3 +407,18 @@ def test_direct_feedthrough_is_inferred_from_the_output():
     assert not unused.direct_feedthrough
     with pytest.raises(ValueError, match="direct_feedthrough=False"):
         jd.feedback(gain, gain)
+
+
+def test_cascading_an_input_tape_with_a_system():
+    """The notes' D.3.6 idiom: cascade(trajectory, system) simulates x' = -x + u(t) with a ramp
+    tape u = t on [0, 1], then 1: x(2) = 1 + (e^-1 - 1) e^-1 from x(0) = 0."""
+    tape = jd.Trajectory.from_samples(jnp.array([0.0, 1.0, 2.0]), jnp.array([[0.0], [1.0], [1.0]]))
+    plant = jd.System.from_functions(dynamics=lambda t, x, u: -x + u, num_states=1, num_inputs=1)
+    driven = jd.cascade(tape, plant)
+    assert driven.num_inputs == 0 and driven.num_states == 1
+    final = jd.simulate(driven, (0.0, 2.0), jnp.zeros(1), rtol=1e-10, atol=1e-12).final_state
+    np.testing.assert_allclose(final, [1 + (np.exp(-1.0) - 1) * np.exp(-1.0)], rtol=1e-8)
+    with pytest.raises(TypeError, match="can only come first"):
+        jd.cascade(plant, tape)
+    with pytest.raises(ValueError, match="2 coordinates"):
+        jd.cascade(jd.Trajectory.from_samples(jnp.array([0.0, 1.0]), jnp.zeros((2, 2))), plant)

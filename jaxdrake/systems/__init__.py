@@ -7,10 +7,11 @@ from ._frame import Frame, add_frame_conversion
 from ._hybrid import HybridSystem, Transition, and_guards, not_guard
 from ._linear import LinearSystem
 from ._polynomial import Polynomial, PolynomialSystem, monomial_basis, taylor_polynomial
+from ._source import TrajectorySource
 from ._stochastic import StochasticSystem
 from ._system import FunctionSystem, System
 
 __all__ = ["Diagram", "DiagramBuilder", "Frame", "FunctionSystem", "HybridSystem", "LinearSystem",
            "Polynomial", "PolynomialSystem", "monomial_basis", "taylor_polynomial",
-           "StochasticSystem", "System", "Transition", "add_frame_conversion", "and_guards",
+           "StochasticSystem", "System", "TrajectorySource", "Transition", "add_frame_conversion", "and_guards",
            "cascade", "feedback", "not_guard", "parallel"]

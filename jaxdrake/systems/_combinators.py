@@ -10,17 +10,21 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from ..trajectories import Trajectory
 from ._diagram import DiagramBuilder
 from ._frame import Frame, frame_conversion
 from ._linear import LinearSystem
 from ._polynomial import PolynomialSystem, combine_polynomial_systems
+from ._source import TrajectorySource
 from ._system import System
 
 
 def _check_systems(*systems):
     for s in systems:
         if not isinstance(s, System):
-            raise TypeError(f"combinators take jaxdrake.Systems, got {type(s).__name__}")
+            hint = (" (a Trajectory can only come first, as cascade(trajectory, system)'s input tape)"
+                    if isinstance(s, Trajectory) else "")
+            raise TypeError(f"combinators take jaxdrake.Systems, got {type(s).__name__}{hint}")
 
 
 def _both_linear(a, b):
@@ -51,14 +55,21 @@ def _block(rows):
     return jnp.block([[jnp.asarray(m) for m in row] for row in rows])
 
 
-def cascade(a: System, b: System) -> System:
-    r"""a's output into b's input (the notes' figure D.2): u -> a -> b -> y.
+def cascade(a: System | Trajectory, b: System) -> System:
+    r"""a's output into b's input (the notes' figure D.2): u -> a -> b -> y. A `Trajectory`
+    as `a` is an input tape: a `TrajectorySource` whose output u(t) drives b (its coordinates
+    take b's input names).
 
     Polynomial (or LTI) with polynomial: a `PolynomialSystem` (b's inputs replaced by a's
     output polynomial). LTI with LTI: $A = \begin{bmatrix} A_a & 0 \\ B_b C_a & A_b \end{bmatrix}$,
     $B = \begin{bmatrix} B_a \\ B_b D_a \end{bmatrix}$, $C = [D_b C_a \;\; C_b]$,
     $D = D_b D_a$, state $[x_a; x_b]$.
     """
+    if isinstance(a, Trajectory) and isinstance(b, System):
+        if a.num_states != b.num_inputs:
+            raise ValueError(f"cascade: the input tape has {a.num_states} coordinates, {b.name} has "
+                             f"{b.num_inputs} inputs")
+        a = TrajectorySource(a, output_frame=b.input_frame)
     _check_systems(a, b)
     conversion = frame_conversion(a.output_frame, b.input_frame)
     if _both_linear(a, b) and conversion is None and b.input_limits is None:
