@@ -87,3 +87,49 @@ def test_missing_methods_are_named():
 
     with pytest.raises(NotImplementedError, match="NoDynamics has continuous states but does not define dynamics"):
         jd.simulate(NoDynamics(), (0.0, 1.0))
+
+
+def test_an_undeclared_parameter_and_a_missing_super_init_are_named():
+    class Undeclared(jd.System):
+        def __init__(self, k=1.0):
+            self.k = k  # the notes' style, without the class annotation `k: float`
+            super().__init__(num_continuous_states=1)
+
+    with pytest.raises(AttributeError, match=r"cannot set 'k'.*declare each parameter.*`k: float`"):
+        Undeclared()
+
+    class NoSuperInit(jd.System):
+        def __init__(self):
+            pass
+
+        def dynamics(self, t, x, u):
+            return -x
+
+    with pytest.raises(TypeError, match=r"NoSuperInit was not initialised.*super\(\).__init__"):
+        jd.simulate(NoSuperInit(), (0.0, 1.0), jnp.ones(1))
+    with pytest.raises(TypeError, match="not initialised"):
+        jd.cascade(NoSuperInit(), Pendulum())
+
+
+def test_forward_mode_through_the_default_simulate_names_the_option():
+    import jax
+
+    final = lambda x0, **kw: jd.simulate(Pendulum(), (0.0, 1.0), x0, **kw).final_state  # noqa: E731
+    with pytest.raises(TypeError, match="autodiff='forward'"):
+        jax.jacfwd(final)(jnp.array([1.0, 0.0]))
+    forward = jax.jacfwd(lambda x0: final(x0, autodiff="forward"))(jnp.array([1.0, 0.0]))
+    reverse = jax.jacrev(final)(jnp.array([1.0, 0.0]))
+    assert jnp.allclose(forward, reverse, rtol=1e-6)
+
+
+def test_a_nan_parameter_is_named():
+    with pytest.raises(ValueError, match=r"parameter Pendulum.b is NaN"):
+        jd.simulate(Pendulum(b=float("nan")), (0.0, 1.0), jnp.array([1.0, 0.0]))
+
+
+def test_a_finite_time_blow_up_says_so():
+    # xdot = x^2 from x(0) = 1: x = 1 / (1 - t) escapes at t = 1
+    blow_up = jd.System.from_functions(dynamics=lambda t, x, u: x ** 2, num_states=1)
+    with pytest.raises(jd.SimulationError, match="blow-up") as info:
+        jd.simulate(blow_up, (0.0, 2.0), 1.0)
+    assert abs(float(str(info.value).split("t = ")[1].split(" ")[0]) - 1.0) < 1e-3

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..systems import Diagram, HybridSystem, System
+from ..systems._system import check_initialised
 from ._controller import ConstantStepSize, IController
 from ._inputs import NoisyInput, leaves_to_arrays, make_source
 from ._loop import run_simulation
@@ -68,6 +69,8 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     """
     if not isinstance(system, System):
         raise TypeError(f"simulate needs a jaxdrake.System, got {type(system).__name__}")
+    check_initialised(system)
+    _check_no_nan_parameters(system)
     solver = make_solver(solver)
     try:
         t0, tf = tspan
@@ -123,15 +126,34 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     else:
         controller = ConstantStepSize(arr(dt))
         h0 = dt
-    traj = _run_simulation(system, solver, controller, source, t0, tf, x0, arr(h0),
-                           arr(jnp.inf if max_step_size is None else max_step_size), arr(event_tol),
-                           max_steps, max_events, dense, constraint_projection, autodiff)
+    try:
+        traj = _run_simulation(system, solver, controller, source, t0, tf, x0, arr(h0),
+                               arr(jnp.inf if max_step_size is None else max_step_size), arr(event_tol),
+                               max_steps, max_events, dense, constraint_projection, autodiff)
+    except TypeError as error:
+        if "forward-mode autodiff" not in str(error):
+            raise
+        raise TypeError("simulate: forward-mode differentiation (jax.jvp, jax.jacfwd, jax.hessian) needs "
+                        "simulate(..., autodiff='forward'); the default autodiff='reverse' is for "
+                        "jax.grad / jax.vjp") from error
     if throw and _concrete(traj.status):
         status = SimulationStatus(int(traj.status))
         if not SimulationStatus.is_success(status):
+            size = float(jnp.max(jnp.abs(traj.final_state))) if traj.final_state.size else 0.0
             raise SimulationError(status, f"simulating {system.name} over [{float(t0)}, {float(tf)}] "
-                                          f"stopped at t = {float(traj.t_final)!r}: {status.message}")
+                                          f"stopped at t = {float(traj.t_final)!r} with max |x| = {size:.3g}: "
+                                          f"{status.message}")
     return traj
+
+
+def _check_no_nan_parameters(system):
+    """A NaN among a system's (concrete) parameters, named by its path, before it becomes a
+    'non-finite state' at t0."""
+    for path, leaf in jax.tree_util.tree_leaves_with_path(system):
+        if (isinstance(leaf, (float, np.ndarray, jax.Array)) and _concrete(leaf)
+                and jnp.issubdtype(jnp.asarray(leaf).dtype, jnp.inexact) and np.any(np.isnan(np.asarray(leaf)))):
+            raise ValueError(f"{system.name}: the parameter {system.name}{jax.tree_util.keystr(path)} is NaN "
+                             f"({np.asarray(leaf)})")
 
 
 def _concrete(*values) -> bool:

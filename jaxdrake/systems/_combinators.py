@@ -16,7 +16,7 @@ from ._frame import Frame, frame_conversion
 from ._linear import LinearSystem
 from ._polynomial import PolynomialSystem, combine_polynomial_systems
 from ._source import TrajectorySource
-from ._system import System
+from ._system import System, check_initialised
 
 
 def _check_systems(*systems):
@@ -25,6 +25,7 @@ def _check_systems(*systems):
             hint = (" (a Trajectory can only come first, as cascade(trajectory, system)'s input tape)"
                     if isinstance(s, Trajectory) else "")
             raise TypeError(f"combinators take jaxdrake.Systems, got {type(s).__name__}{hint}")
+        check_initialised(s)
 
 
 def _both_linear(a, b):

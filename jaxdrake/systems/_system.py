@@ -9,6 +9,8 @@ The state vector is laid out as in the notes, discrete part first: x = [x_d; x_c
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from collections.abc import Callable
 from typing import Any
 
@@ -23,6 +25,22 @@ from ._frame import Frame
 
 def _static(**kwargs):
     return eqx.field(static=True, **kwargs)
+
+
+def _explain_undeclared_fields(init):
+    """A subclass's __init__ whose assignment to an undeclared field names the remedy (a
+    system is a frozen dataclass: its fields are its class annotations)."""
+    @functools.wraps(init)
+    def checked_init(self, *args, **kwargs):
+        try:
+            init(self, *args, **kwargs)
+        except dataclasses.FrozenInstanceError as error:
+            name = str(error).rpartition(" ")[2].strip("'")
+            raise AttributeError(
+                f"{type(self).__name__}: cannot set {name!r}, which is not a declared field. A jaxdrake "
+                f"System is a frozen dataclass (an equinox Module): declare each parameter in the class "
+                f"body, e.g. `{name}: float` (or `{name}: jax.Array`), then assign it in __init__") from None
+    return checked_init
 
 
 class System(eqx.Module):
@@ -107,6 +125,11 @@ class System(eqx.Module):
         self.state_frame = _check_frame(state_frame, name, "state", num_states, "x")
         self.output_frame = _check_frame(output_frame, name, "output", self.num_outputs, "y")
         self.input_limits = _check_limits(input_limits, name, self.num_inputs)
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if "__init__" in cls.__dict__:
+            cls.__init__ = _explain_undeclared_fields(cls.__dict__["__init__"])
 
     # ----- the methods a system writer overrides -------------------------------------------
 
@@ -331,11 +354,20 @@ def _output_reads_input(system: System) -> bool:
     return any(not isinstance(v, jax.extend.core.Literal) and v in reads_u for v in jaxpr.outvars)
 
 
+def check_initialised(system: System):
+    """A named error for a subclass whose __init__ did not call `super().__init__(...)` (its
+    sizes and frames were never declared)."""
+    if system.state_frame is None:
+        raise TypeError(f"{system.name} was not initialised as a System: its __init__ must call "
+                        "super().__init__(num_continuous_states=..., num_inputs=..., ...) to declare its sizes")
+
+
 def require_plain_system(system, caller: str, advice: str):
     """Raise a named error unless `system` is a deterministic, non-hybrid `System` whose states
     are all continuous or all discrete (what linearization and trajectory optimization take)."""
     if not isinstance(system, System):
         raise TypeError(f"{caller} needs a jaxdrake.System, got {type(system).__name__}")
+    check_initialised(system)
     if system.is_hybrid or system.is_stochastic:
         raise ValueError(f"{caller}: {system.name} is hybrid or stochastic; {advice}")
     if system.has_continuous_state and system.has_discrete_state:
