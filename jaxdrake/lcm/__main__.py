@@ -43,7 +43,7 @@ def load_system(spec: str):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m jaxdrake.lcm", description=__doc__.splitlines()[0])
     parser.add_argument("system")
     parser.add_argument("--url", default=None, help="LCM URL (default: the multicast group with ttl=0, host only)")
     parser.add_argument("--rate", type=float)
@@ -58,7 +58,9 @@ def main(argv=None):
     parser.add_argument("--log")
     parser.add_argument("--x64", action="store_true", help="run the system in float64")
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    # the node's own messages at INFO; JAX's (e.g. its probe for a TPU backend) only if they warn
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
+    logging.getLogger("jaxdrake").setLevel(logging.INFO)
     import jax
 
     if args.x64:
