@@ -35,7 +35,7 @@ def _wrap(angle):
     return jnp.mod(angle + jnp.pi, 2 * jnp.pi) - jnp.pi
 
 
-def actuated_joint(plant: RigidBodySystem) -> int:
+def _actuated_joint(plant: RigidBodySystem) -> int:
     """The index of the one joint that the one input drives directly (B a unit column)."""
     B = np.asarray(plant.B)
     if B.shape[1] != 1 or plant.tree.nq != plant.tree.nv or np.sum(B != 0) != 1 or B.max() != 1.0:
@@ -51,7 +51,7 @@ def collocated_pfl(plant: RigidBodySystem, x, qdd_actuated, actuated: int | None
     ($H_{pp}$ symmetric positive definite, solved by an unrolled Cholesky factorization), then
     $u = H_{ap}\ddot q_p + H_{aa}\ddot q_a^d + \phi_a$. `actuated`: a's index, found from B
     when not given (B must then be concrete: pass it inside a traced function)."""
-    a = actuated_joint(plant) if actuated is None else actuated
+    a = _actuated_joint(plant) if actuated is None else actuated
     nq = plant.tree.nq
     q, v = x[:nq], x[nq:]
     H, Cv, G, _ = plant.manipulator_dynamics(q, v)
@@ -103,7 +103,7 @@ def acrobot_spong_controller(acrobot: RigidBodySystem, k_e=5.0, k_p=50.0, k_d=5.
     and its saturation at +-20 N m): a static system from the acrobot's state to the elbow
     torque $u = \mathrm{sat}(u_p - k_e\tilde E\dot q_2)$, $u_p$ the collocated PFL of
     $\ddot q_2 = -k_p q_2 - k_d\dot q_2$; then $\dot E = -k_e\tilde E\dot q_2^2 + \dots$."""
-    actuated = actuated_joint(acrobot)
+    actuated = _actuated_joint(acrobot)
     energy_up = acrobot.energy(jnp.array([jnp.pi, 0.0, 0.0, 0.0]))
     return System.from_functions(output=_with_actuated(_acrobot_spong, actuated), num_states=0, num_inputs=4,
                                  num_outputs=1, params=(acrobot, k_e, k_p, k_d, energy_up, torque_limit),
@@ -121,7 +121,7 @@ def _cart_pole_energy_shaping(t, _, x, params, actuated):
 def cart_pole_swing_up_controller(cart_pole: RigidBodySystem, k_e=0.5, k_p=1.0, k_d=1.0) -> System:
     """Energy shaping of the pole with PD on the cart, through collocated PFL, for
     `models.CartPole` (the pole a point mass at its tip)."""
-    actuated = actuated_joint(cart_pole)
+    actuated = _actuated_joint(cart_pole)
     tree = cart_pole.tree
     m_p, length = tree.mass[1], -tree.com[1, 2]
     g = -tree.gravity[2]

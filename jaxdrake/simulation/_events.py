@@ -92,8 +92,9 @@ def locate_first_crossing(guard_fn, crossed, g_start, g_end, h, tol):
     def converted(theta, *consts):
         return jax.extend.core.jaxpr_as_fun(jax.extend.core.ClosedJaxpr(traced.jaxpr, consts))(theta)[0]
 
-    search = jax.custom_batching.custom_vmap(functools.partial(_search, converted))
-    search.def_vmap(functools.partial(_search_compacted, functools.partial(_search, converted)))
+    one_member = functools.partial(_search, converted)
+    search = jax.custom_batching.custom_vmap(one_member)
+    search.def_vmap(functools.partial(_search_compacted, one_member))
     return search(crossed, g_start, g_end, jax.lax.stop_gradient(h), tol, *consts)
 
 

@@ -150,10 +150,12 @@ def _check_no_nan_parameters(system):
     """A NaN among a system's (concrete) parameters, named by its path, before it becomes a
     'non-finite state' at t0."""
     for path, leaf in jax.tree_util.tree_leaves_with_path(system):
-        if (isinstance(leaf, (float, np.ndarray, jax.Array)) and _concrete(leaf)
-                and jnp.issubdtype(jnp.asarray(leaf).dtype, jnp.inexact) and np.any(np.isnan(np.asarray(leaf)))):
+        if not isinstance(leaf, (float, np.ndarray, jax.Array)) or not _concrete(leaf):
+            continue
+        value = np.asarray(leaf)  # host values as they are; no device array is made
+        if np.issubdtype(value.dtype, np.inexact) and np.isnan(value).any():
             raise ValueError(f"{system.name}: the parameter {system.name}{jax.tree_util.keystr(path)} is NaN "
-                             f"({np.asarray(leaf)})")
+                             f"({value})")
 
 
 def _concrete(*values) -> bool:

@@ -66,7 +66,8 @@ def cascade(a: System | Trajectory, b: System) -> System:
     $B = \begin{bmatrix} B_a \\ B_b D_a \end{bmatrix}$, $C = [D_b C_a \;\; C_b]$,
     $D = D_b D_a$, state $[x_a; x_b]$.
     """
-    if isinstance(a, Trajectory) and isinstance(b, System):
+    if isinstance(a, Trajectory):
+        _check_systems(b)
         if a.num_states != b.num_inputs:
             raise ValueError(f"cascade: the input tape has {a.num_states} coordinates, {b.name} has "
                              f"{b.num_inputs} inputs")
