@@ -6,7 +6,7 @@ prefer_fast_cpu_compilation()
 
 from . import control, models, multibody, simulation, systems, trajectories  # noqa: E402
 from .control import linearize
-from .multibody import LoopConstraint, RigidBodySystem
+from .multibody import CouplerConstraint, LoopConstraint, RigidBodySystem
 from .simulation import SimulatedTrajectory, SimulationError, SimulationStatus, simulate
 from .systems import (Diagram, DiagramBuilder, Frame, HybridSystem, LinearSystem, Polynomial,
                       PolynomialSystem, StochasticSystem,
@@ -17,7 +17,7 @@ from .trajectories import Trajectory
 __version__ = "0.1.0"
 
 __all__ = ["Diagram", "DiagramBuilder", "Frame", "HybridSystem", "LinearSystem", "SimulationError",
-           "LoopConstraint", "Polynomial", "PolynomialSystem", "RigidBodySystem", "SimulatedTrajectory", "SimulationStatus", "StochasticSystem", "System", "Trajectory", "TrajectorySource", "Transition",
+           "CouplerConstraint", "LoopConstraint", "Polynomial", "PolynomialSystem", "RigidBodySystem", "SimulatedTrajectory", "SimulationStatus", "StochasticSystem", "System", "Trajectory", "TrajectorySource", "Transition",
            "add_frame_conversion", "and_guards", "cascade", "control", "feedback", "linearize", "models", "multibody", "not_guard",
            "parallel", "simulate", "simulation", "systems", "trajectories"]
 

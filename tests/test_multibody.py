@@ -249,7 +249,8 @@ def test_double_pendulum_conserves_energy():
 
 def test_floating_base_robot_in_zero_gravity_conserves_energy_and_momentum_direction():
     path = example_robot("solo_description/robots/solo12.urdf")
-    plant = jd.RigidBodySystem.from_urdf(path, floating_base=True, gravity=False)
+    # free motion: the joints would reach their limits, whose compliant stops dissipate
+    plant = jd.RigidBodySystem.from_urdf(path, floating_base=True, gravity=False, joint_limits=False)
     assert plant.num_positions == 19 and plant.num_velocities == 18
     q0 = plant.tree.neutral_configuration()
     rng = np.random.default_rng(0)
@@ -525,3 +526,131 @@ def test_effort_limits_become_input_limits_that_saturate_the_inputs():
     qdd_limited = panda.forward_dynamics(x[:7], x[7:], panda.saturate(u))
     np.testing.assert_allclose(qdd_limited, panda.forward_dynamics(x[:7], x[7:], panda.input_limits[1]))
     assert not np.allclose(qdd_limited, panda.forward_dynamics(x[:7], x[7:], u))
+
+
+@pytest.mark.parametrize("relative", ["panda_description/urdf/panda.urdf",
+                                      pytest.param("baxter_description/urdf/baxter.urdf", marks=pytest.mark.slow)])
+def test_mimic_joints_as_coupler_constraints_agree_with_pinocchios_reduced_model(relative):
+    """`from_urdf(..., mimic=True)` keeps each <mimic> joint as a coordinate coupled to its
+    leader by a constraint; on a consistent state the accelerations equal those of Pinocchio's
+    mimic model (which removes the followers): qdd = G H_r^{-1} (G^T tau - nle_r), G the
+    coupling map from Pinocchio's coordinates to ours. Baxter: 2 gripper followers, ratio -1.
+    (Pinocchio refuses Talos' grippers, whose followers come before their leader; we take them.)"""
+    path = example_robot(relative)
+    ours = jd.RigidBodySystem.from_urdf(path, mimic=True)
+    model = pin.buildModelFromUrdf(str(path), mimic=True)
+    data = model.createData()
+    tree, leader = ours.tree, {c.joint: (c.leader, c.gear_ratio) for c in ours.couplers}
+    assert len(ours.couplers) == tree.nv - model.nv > 0
+    G = np.zeros((tree.nv, model.nv))
+    for name, start in zip(tree.joint_names, tree.v_starts):
+        source, ratio = leader.get(name, (name, 1.0))
+        G[start, model.joints[model.getJointId(source)].idx_v] = ratio
+    rng = np.random.default_rng(1)
+    lower, upper = np.asarray(tree.position_lower), np.asarray(tree.position_upper)
+    independent = [j for j in range(1, model.njoints) if model.joints[j].nv]
+    for _ in range(3):
+        q = rng.uniform(np.maximum(lower, -1.0), np.minimum(upper, 1.0))
+        for c in ours.couplers:
+            q[tree.q_starts[tree.joint_names.index(c.joint)]] = (
+                c.gear_ratio * q[tree.q_starts[tree.joint_names.index(c.leader)]] + c.offset)
+        q_r = np.zeros(model.nq)
+        for j in independent:
+            value, i = q[tree.q_starts[tree.joint_names.index(model.names[j])]], model.joints[j].idx_q
+            q_r[i: i + model.joints[j].nq] = (np.cos(value), np.sin(value)) if model.joints[j].nq == 2 else value
+        v_r = rng.uniform(-1, 1, model.nv)
+        v, u = G @ v_r, rng.uniform(-1, 1, ours.num_inputs)
+        qdd = np.asarray(ours.forward_dynamics(jnp.asarray(q), jnp.asarray(v), jnp.asarray(u)))
+        np.testing.assert_allclose(qdd, xdot[drake_plant.num_positions():][order], rtol=0, atol=1e-9)
+
+
+def test_effort_limits_become_input_limits_that_saturate_the_inputs():
+    """The Panda's <limit effort> (87 N m for joints 1-4, 12 N m for 5-7) saturates its inputs."""
+    panda = jd.RigidBodySystem.from_urdf(example_robot("panda_description/urdf/panda.urdf"),
+                                         welded=["panda_finger_joint1", "panda_finger_joint2"])
+    np.testing.assert_array_equal(panda.input_limits[1], [87, 87, 87, 87, 12, 12, 12])
+    np.testing.assert_array_equal(panda.input_limits[0], -panda.input_limits[1])
+    assert jd.RigidBodySystem.from_urdf(example_robot("panda_description/urdf/panda.urdf"),
+                                        effort_limits=False).input_limits is None
+    x = panda.initial_state()
+    u = jnp.full(7, 500.0)
+    qdd_limited = panda.forward_dynamics(x[:7], x[7:], panda.saturate(u))
+    np.testing.assert_allclose(qdd_limited, panda.forward_dynamics(x[:7], x[7:], panda.input_limits[1]))
+    assert not np.allclose(qdd_limited, panda.forward_dynamics(x[:7], x[7:], u))
+
+
+@pytest.mark.parametrize("relative", ["panda_description/urdf/panda.urdf",
+                                      pytest.param("baxter_description/urdf/baxter.urdf", marks=pytest.mark.slow)])
+def test_mimic_joints_as_coupler_constraints_agree_with_pinocchios_reduced_model(relative):
+    """`from_urdf(..., mimic=True)` keeps each <mimic> joint as a coordinate coupled to its
+    leader by a constraint; on a consistent state the accelerations equal those of Pinocchio's
+    mimic model (which removes the followers): qdd = G H_r^{-1} (G^T tau - nle_r), G the
+    coupling map from Pinocchio's coordinates to ours. Baxter: 2 gripper followers, ratio -1.
+    (Pinocchio refuses Talos' grippers, whose followers come before their leader; we take them.)"""
+    path = example_robot(relative)
+    ours = jd.RigidBodySystem.from_urdf(path, mimic=True)
+    model = pin.buildModelFromUrdf(str(path), mimic=True)
+    data = model.createData()
+    tree, leader = ours.tree, {c.joint: (c.leader, c.gear_ratio) for c in ours.couplers}
+    assert len(ours.couplers) == tree.nv - model.nv > 0
+    G = np.zeros((tree.nv, model.nv))
+    for name, start in zip(tree.joint_names, tree.v_starts):
+        source, ratio = leader.get(name, (name, 1.0))
+        G[start, model.joints[model.getJointId(source)].idx_v] = ratio
+    rng = np.random.default_rng(1)
+    lower, upper = np.asarray(tree.position_lower), np.asarray(tree.position_upper)
+    for _ in range(3):
+        q_r = rng.uniform(np.maximum(lower, -1.0), np.minimum(upper, 1.0))[[  # a leader's own range
+            tree.joint_names.index(model.names[j]) for j in range(1, model.njoints) if model.joints[j].nv]]
+        q_r = np.array([q_r[k] for k in np.argsort([model.joints[j].idx_v for j in range(1, model.njoints)
+                                                     if model.joints[j].nv])])
+        q, v_r = G @ q_r, rng.uniform(-1, 1, model.nv)
+        v, u = G @ v_r, rng.uniform(-1, 1, ours.num_inputs)
+        qdd = np.asarray(ours.forward_dynamics(jnp.asarray(q), jnp.asarray(v), jnp.asarray(u)))
+        tau = np.asarray(ours.B @ u - tree.damping * v + ours.joint_limit_torque(jnp.asarray(q), jnp.asarray(v)))
+        H_r = pin.crba(model, data, q_r)
+        H_r = np.triu(H_r) + np.triu(H_r, 1).T
+        expected = G @ np.linalg.solve(H_r, G.T @ tau - pin.nonLinearEffects(model, data, q_r, v_r))
+        np.testing.assert_allclose(qdd, expected, rtol=0, atol=1e-8 * max(1.0, np.max(np.abs(expected))))
+        np.testing.assert_allclose(np.asarray(ours.state_constraints(jnp.concatenate([q, v]))), 0.0, atol=1e-12)
+
+
+SLIDER = """<robot name="slider"><link name="rail"/>
+<link name="carriage"><inertial><mass value="2"/><inertia ixx="1" ixy="0" ixz="0" iyy="1" iyz="0" izz="1"/></inertial></link>
+<joint name="x" type="prismatic"><parent link="rail"/><child link="carriage"/><axis xyz="1 0 0"/>
+<limit lower="-1" upper="0.5" effort="10" velocity="10"/></joint></robot>"""
+
+
+def test_a_joint_limit_stops_a_slider_as_the_critically_damped_closed_form_says(tmp_path):
+    """A free 2 kg carriage at v0 = 1 m/s hits its 0.5 m limit at t = 0.5 s. Past it, the
+    compliant limit is m pdd + 2 m w pd + m w^2 p = 0 with p(0) = 0, pd(0) = v0, so
+    p = v0 t e^{-w t}: deepest v0 / (w e) at 1/w; the push k p + d pd vanishes at 2/w, where
+    the carriage leaves at v0 e^{-2} (it is not pulled back in)."""
+    path = tmp_path / "slider.urdf"
+    path.write_text(SLIDER)
+    slider = jd.RigidBodySystem.from_urdf(path, gravity=False)
+    w = 2 * np.pi / 0.02
+    np.testing.assert_allclose(slider.limit_stiffness, [2 * w ** 2])
+    traj = jd.simulate(slider, (0.0, 0.6), jnp.array([0.0, 1.0]), rtol=1e-10, atol=1e-12)
+    t_hit = 0.5
+    np.testing.assert_allclose(traj.state(t_hit + 1 / w)[0], 0.5 + 1.0 / (w * np.e), atol=1e-7)
+    np.testing.assert_allclose(traj.final_state[1], -np.exp(-2.0), rtol=1e-6)
+    free = jd.simulate(jd.RigidBodySystem.from_urdf(path, gravity=False, joint_limits=False), (0.0, 0.6),
+                       jnp.array([0.0, 1.0]))
+    np.testing.assert_allclose(free.final_state, [0.6, 1.0], atol=1e-9)
+
+
+def test_the_passive_panda_stays_within_its_joint_limits():
+    """examples/manipulator.py's passive arm: without limits it swings far past them; with
+    them, no joint goes past a limit by more than 0.1 rad."""
+    panda = jd.models.Panda()
+    x0 = jnp.concatenate([jnp.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8]), jnp.zeros(7)])
+    lower, upper = np.asarray(panda.tree.position_lower), np.asarray(panda.tree.position_upper)
+    ts = jnp.linspace(0.0, 1.5, 301)
+
+    def past(plant):
+        qs = np.asarray(jd.simulate(plant, (0.0, 1.5), x0).state(ts))[:, :7]
+        return np.max(np.maximum(qs - upper, lower - qs))
+
+    assert past(panda) < 0.1
+    assert past(jd.RigidBodySystem(panda.tree, joint_limits=False)) > 1.0

@@ -1,11 +1,13 @@
 r"""`RigidBodySystem`: the manipulator equations as a `System` (notes, D.3.1):
 
-$$H(q)\dot v + C(q, v) v + G(q) = B u - b \circ v + J_\phi^T(q) \lambda, \qquad \phi(q) = 0,$$
+$$H(q)\dot v + C(q, v) v + G(q) = B u - b \circ v + \tau_{lim}(q, v) + J_\phi^T(q) \lambda,
+  \qquad \phi(q) = 0,$$
 
 state $x = [q; v]$ ($\dot q = v$ except for a floating base's quaternion), input u through B,
-URDF joint damping b, and closed kinematic loops as constraints $\phi(q) = 0$ whose forces
-$\lambda$ come from the KKT system, with Baumgarte stabilization
-$\ddot\phi + 2\omega\dot\phi + \omega^2\phi = 0$ so that drift decays.
+URDF joint damping b, compliant joint position limits $\tau_{lim}$, and constraints
+$\phi(q) = 0$ (closed kinematic loops, coupled joints) whose forces $\lambda$ come from the
+KKT system, with Baumgarte stabilization $\ddot\phi + 2\omega\dot\phi + \omega^2\phi = 0$ so
+that drift decays.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import numpy as np
 from ..systems import Frame, System
 from ..systems._system import _static
 from . import _algorithms as alg
-from ._tree import KinematicTree, URDFError, tree_from_pinocchio, tree_from_urdf
+from ._tree import KinematicTree, URDFError, tree_from_pinocchio, tree_from_urdf, urdf_mimic_joints
 
 _AXES = {"x": 0, "y": 1, "z": 2}
 
@@ -33,6 +35,19 @@ class LoopConstraint:
     frame_a: str
     frame_b: str
     axes: tuple = ("x", "y", "z")
+
+
+@dataclasses.dataclass(frozen=True)
+class CouplerConstraint:
+    r"""Couples two one-dof joints: $q_{joint} = \rho\, q_{leader} + \Delta q$ (Drake's
+    `AddCouplerConstraint(joint, leader, gear_ratio, offset)`; a URDF `<mimic>` element read by
+    `from_urdf(..., mimic=True)`). Both joints stay coordinates; the constraint force keeps
+    them coupled, as a loop constraint does."""
+
+    joint: str
+    leader: str
+    gear_ratio: float = 1.0
+    offset: float = 0.0
 
 
 class RigidBodySystem(System):
@@ -48,8 +63,19 @@ class RigidBodySystem(System):
     - Input limits: the actuated joints' `<limit effort>` (|u_k| <= effort, as Drake's
       parser makes actuator effort limits), unless `effort_limits=False`; the simulator
       locates the saturation instants as events.
-    - Limits, damping and friction of the URDF are on `tree`; damping acts in the dynamics,
-      Coulomb friction and position limits are recorded, not applied.
+    - Joint position limits (`<limit lower upper>`) are compliant, unless `joint_limits=False`:
+      past a limit by p > 0, a joint is pushed back by $\max(0, k p + d \dot p)$, a critically
+      damped spring of natural period `limit_period` (default 0.02 s) on the joint's inertia
+      $H_{ii}$ at the neutral configuration: $k = H_{ii}\omega^2$, $d = 2 H_{ii}\omega$,
+      $\omega = 2\pi/$`limit_period`. A joint arriving at speed $v_0$ goes past by at most
+      $v_0/(\omega e)$ and leaves at $v_0 e^{-2}$ (the push never pulls). This is the penalty
+      model of MuJoCo's soft limits and of Drake's discrete plant; Drake's continuous plant
+      ignores limits (`joint_limits=False` reproduces it). `limit_stiffness`, `limit_damping`
+      are leaves (per velocity coordinate; 0 for unlimited joints) that you may replace.
+    - Coupled joints: `couplers=[CouplerConstraint(...)]`, or the URDF's `<mimic>` elements
+      with `from_urdf(..., mimic=True)` (by default, as Pinocchio's `buildModelFromUrdf`, a
+      mimic joint is an independent joint).
+    - Damping acts in the dynamics; the URDF's Coulomb friction is recorded on `tree`, not applied.
 
     The tree's masses, inertias, lengths and axes are pytree leaves: `jax.grad` with respect
     to a link mass works (system identification); build the system outside `jit`.
@@ -57,11 +83,16 @@ class RigidBodySystem(System):
 
     tree: KinematicTree
     B: jax.Array
+    limit_stiffness: jax.Array
+    limit_damping: jax.Array
     loops: tuple = _static(default=())
+    couplers: tuple = _static(default=())
+    limited: tuple = _static(default=())   # (q index, v index) of the joints with limits
     constraint_stiffness: float = 20.0
 
-    def __init__(self, tree: KinematicTree, actuated_joints=None, *, loops=(),
-                 constraint_stiffness: float = 20.0, effort_limits: bool = True):
+    def __init__(self, tree: KinematicTree, actuated_joints=None, *, loops=(), couplers=(),
+                 constraint_stiffness: float = 20.0, effort_limits: bool = True,
+                 joint_limits: bool = True, limit_period: float = 0.02):
         names = tree.joint_names
         if actuated_joints is None:
             actuated_joints = [n for n, k in zip(names, tree.joint_types) if k != "floating"]
@@ -84,9 +115,17 @@ class RigidBodySystem(System):
                                      f"of the tree; the links are {list(tree.frame_names)}")
             if not loop.axes or any(a not in _AXES for a in loop.axes):
                 raise ValueError(f"loop constraint axes must be among 'x', 'y', 'z', got {loop.axes}")
+        self.couplers = tuple(couplers)
+        for coupler in self.couplers:
+            for joint in (coupler.joint, coupler.leader):
+                if joint not in names or tree.joint_types[names.index(joint)] == "floating":
+                    raise ValueError(f"{tree.robot_name}: coupler constraint joint {joint!r} is not a "
+                                     f"one-dof joint of the tree; the joints are {list(names)}")
+        self.limited = _limited_joints(tree) if joint_limits else ()
+        self.limit_stiffness, self.limit_damping = _limit_gains(tree, self.limited, limit_period)
         self.constraint_stiffness = constraint_stiffness
         state = Frame(f"{tree.robot_name}State", tree.position_names() + tree.velocity_names())
-        num_loop = sum(len(loop.axes) for loop in self.loops)
+        num_loop = sum(len(loop.axes) for loop in self.loops) + len(self.couplers)
         super().__init__(num_continuous_states=tree.nq + tree.nv, num_inputs=len(actuated_joints),
                          direct_feedthrough=False, time_invariant=True, input_limits=limits,
                          num_state_constraints=2 * num_loop + tree.has_floating_base,
@@ -95,18 +134,27 @@ class RigidBodySystem(System):
 
     @classmethod
     def from_urdf(cls, path, *, floating_base: bool = False, actuated=None, gravity: bool = True,
-                  welded=(), loops=(), constraint_stiffness: float = 20.0,
-                  effort_limits: bool = True) -> "RigidBodySystem":
+                  welded=(), loops=(), mimic: bool = False, constraint_stiffness: float = 20.0,
+                  effort_limits: bool = True, joint_limits: bool = True,
+                  limit_period: float = 0.02) -> "RigidBodySystem":
         """Load a URDF (local files only: `package://` mesh paths are never resolved); joints
-        named in `welded` are fixed at zero."""
+        named in `welded` are fixed at zero; `mimic=True` couples each `<mimic>` joint to its
+        leader (a `CouplerConstraint`)."""
         with jax.ensure_compile_time_eval():  # parsing is host work, also inside jit / vmap
-            tree, transmitted = tree_from_urdf(pathlib.Path(path), floating_base=floating_base,
+            path = pathlib.Path(path)
+            tree, transmitted = tree_from_urdf(path, floating_base=floating_base,
                                                gravity=(0.0, 0.0, -9.81) if gravity else (0.0, 0.0, 0.0),
                                                welded=tuple(welded))
-        if actuated is None and transmitted:
-            actuated = list(transmitted)
-        return cls(tree, actuated, loops=loops, constraint_stiffness=constraint_stiffness,
-                   effort_limits=effort_limits)
+            couplers = [CouplerConstraint(*c) for c in urdf_mimic_joints(path, tuple(welded))] if mimic else []
+            for coupler in couplers:
+                if coupler.leader not in tree.joint_names:
+                    raise URDFError(f"{path}: joint {coupler.joint!r} mimics {coupler.leader!r}, which "
+                                    "is fixed or welded; weld both, or neither")
+            if actuated is None and transmitted:
+                actuated = list(transmitted)
+            return cls(tree, actuated, loops=loops, couplers=couplers,
+                       constraint_stiffness=constraint_stiffness, effort_limits=effort_limits,
+                       joint_limits=joint_limits, limit_period=limit_period)
 
     @classmethod
     def from_pinocchio(cls, model, *, actuated=None, loops=(),
@@ -136,20 +184,34 @@ class RigidBodySystem(System):
                 alg.gravity_forces(t, q), self.B)
 
     def inverse_dynamics(self, q, v, qdd):
-        """The generalized force H qdd + C v + G + b o v that produces qdd (damping included)."""
-        return alg.rnea(self.tree, q, v, qdd) + self.tree.damping * v
+        """The generalized force H qdd + C v + G + b o v - tau_lim that produces qdd (damping
+        and joint-limit forces included; constraint forces not)."""
+        return alg.rnea(self.tree, q, v, qdd) + self.tree.damping * v - self.joint_limit_torque(q, v)
+
+    def joint_limit_torque(self, q, v):
+        r"""The compliant limits' generalized force: $\max(0, k p + d\dot p)$ towards the
+        allowed range for each joint past a limit by p, 0 elsewhere (see the class docstring)."""
+        if not self.limited:
+            return jnp.zeros(self.tree.nv, v.dtype)
+        iq, iv = (np.array(i) for i in zip(*self.limited))
+        k, d = self.limit_stiffness[iv], self.limit_damping[iv]
+        qi, vi = q[iq], v[iv]
+        lower, upper = self.tree.position_lower[iq], self.tree.position_upper[iq]
+        up = jnp.where(qi < lower, jnp.maximum(0.0, k * (lower - qi) - d * vi), 0.0)
+        down = jnp.where(qi > upper, jnp.maximum(0.0, k * (qi - upper) + d * vi), 0.0)
+        return jnp.zeros(self.tree.nv, v.dtype).at[iv].add(up - down)
 
     def forward_dynamics(self, q, v, u):
-        """qdd (the time derivative of v) under input u, damping and loop-constraint forces."""
-        tau = self.B @ u - self.tree.damping * v
-        if not self.loops:
+        """qdd (the time derivative of v) under input u, damping, joint limits and constraint forces."""
+        tau = self.B @ u - self.tree.damping * v + self.joint_limit_torque(q, v)
+        if not (self.loops or self.couplers):
             return alg.aba(self.tree, q, v, tau)
         H = alg.mass_matrix(self.tree, q)
         rhs = tau - alg.bias_forces(self.tree, q, v)
-        J = self.loop_jacobian(q)
-        phi = self.loop_residual(q)
+        J = self.constraint_jacobian(q)
+        phi = self.constraint_residual(q)
         qdot = alg.configuration_derivative(self.tree, q, v)
-        Jdot_v = jax.jvp(lambda q_: self.loop_jacobian(q_) @ v, (q,), (qdot,))[1]
+        Jdot_v = jax.jvp(lambda q_: self.constraint_jacobian(q_) @ v, (q,), (qdot,))[1]
         w = self.constraint_stiffness
         k = J.shape[0]
         kkt = jnp.block([[H, J.T], [J, jnp.zeros((k, k), H.dtype)]])
@@ -162,7 +224,12 @@ class RigidBodySystem(System):
                                 self.forward_dynamics(q, v, u)])
 
     def initial_state(self):
-        return jnp.concatenate([self.tree.neutral_configuration(), jnp.zeros(self.tree.nv)])
+        """At rest in the neutral configuration (coupled joints placed by their couplers)."""
+        q = self.tree.neutral_configuration()
+        for coupler in self.couplers:
+            iq, lq = (self.tree.q_starts[self.tree.joint_names.index(j)] for j in (coupler.joint, coupler.leader))
+            q = q.at[iq].set(coupler.gear_ratio * q[lq] + coupler.offset)
+        return jnp.concatenate([q, jnp.zeros(self.tree.nv)])
 
     # ----- loops and constraints ------------------------------------------------------------
 
@@ -185,6 +252,24 @@ class RigidBodySystem(System):
                           - alg.frame_jacobian(self.tree, q, loop.frame_b))[idx])
         return jnp.concatenate(parts) if parts else jnp.zeros((0, self.tree.nv), q.dtype)
 
+    def _coupler_rows(self, q):
+        """phi and J of the couplers: q_joint - rho q_leader - offset, and its gradient in v."""
+        t = self.tree
+        phi, J = [], np.zeros((len(self.couplers), t.nv))
+        for row, c in enumerate(self.couplers):
+            i, l = t.joint_names.index(c.joint), t.joint_names.index(c.leader)
+            phi.append(q[t.q_starts[i]] - c.gear_ratio * q[t.q_starts[l]] - c.offset)
+            J[row, t.v_starts[i]], J[row, t.v_starts[l]] = 1.0, -c.gear_ratio
+        return (jnp.stack(phi) if phi else jnp.zeros(0, q.dtype)), jnp.asarray(J, q.dtype)
+
+    def constraint_residual(self, q):
+        """phi(q): the loops' residuals, then the couplers'."""
+        return jnp.concatenate([self.loop_residual(q), self._coupler_rows(q)[0]])
+
+    def constraint_jacobian(self, q):
+        """d phi / d q in velocity coordinates, rows as `constraint_residual`."""
+        return jnp.concatenate([self.loop_jacobian(q), self._coupler_rows(q)[1]])
+
     def state_constraints(self, x):
         """[|quaternion|^2 - 1 (floating base); phi(q); J(q) v]."""
         q, v = x[: self.tree.nq], x[self.tree.nq:]
@@ -192,8 +277,8 @@ class RigidBodySystem(System):
         if self.tree.has_floating_base:
             s = self.tree.q_starts[self.tree.joint_types.index("floating")]
             parts.append(jnp.atleast_1d(jnp.sum(q[s + 3: s + 7] ** 2) - 1))
-        if self.loops:
-            parts += [self.loop_residual(q), self.loop_jacobian(q) @ v]
+        if self.loops or self.couplers:
+            parts += [self.constraint_residual(q), self.constraint_jacobian(q) @ v]
         return jnp.concatenate(parts) if parts else jnp.zeros(0, x.dtype)
 
     # ----- energy ---------------------------------------------------------------------------
@@ -208,4 +293,67 @@ class RigidBodySystem(System):
         return alg.frame_pose(self.tree, q, frame)
 
 
-__all__ = ["LoopConstraint", "RigidBodySystem", "URDFError"]
+def _limited_joints(tree) -> tuple:
+    """(q index, v index) of every one-dof joint with a finite lower or upper position limit
+    (every one-dof joint when the limits are traced values)."""
+    one_dof = [i for i, kind in enumerate(tree.joint_types) if kind != "floating"]
+    try:
+        lower, upper = np.asarray(tree.position_lower), np.asarray(tree.position_upper)
+    except jax.errors.TracerArrayConversionError:
+        finite = [True] * len(one_dof)
+    else:
+        finite = [np.isfinite(lower[tree.q_starts[i]]) or np.isfinite(upper[tree.q_starts[i]]) for i in one_dof]
+    return tuple((tree.q_starts[i], tree.v_starts[i]) for i, f in zip(one_dof, finite) if f)
+
+
+def _limit_gains(tree, limited, period):
+    """Per velocity coordinate: k = H_ii w^2, d = 2 H_ii w (w = 2 pi / period, H at the neutral
+    configuration) for the limited joints, 0 for the others."""
+    if not period > 0:
+        raise ValueError(f"limit_period must be a positive time in seconds, got {period}")
+    if not limited:
+        return jnp.zeros(tree.nv), jnp.zeros(tree.nv)
+    iv = np.array([v for _, v in limited])
+    try:
+        inertia = jnp.asarray(_neutral_joint_inertias(tree))[iv]
+    except jax.errors.TracerArrayConversionError:  # traced leaves: the same number, traced
+        inertia = jnp.diagonal(alg.mass_matrix(tree, tree.neutral_configuration()))[iv]
+    omega = 2 * np.pi / period
+    zeros = jnp.zeros(tree.nv, inertia.dtype)
+    return zeros.at[iv].set(inertia * omega ** 2), zeros.at[iv].set(2 * inertia * omega)
+
+
+def _neutral_joint_inertias(tree):
+    """diag H(q_0) in NumPy (host work at construction: the eager JAX CRBA takes seconds): for a
+    revolute joint with world axis a at point o, the sum over its subtree of
+    $a^T \bar I_b a + m_b |a \times (c_b - o)|^2$; for a prismatic joint, the subtree's mass."""
+    R = np.zeros((tree.num_bodies, 3, 3))
+    p = np.zeros((tree.num_bodies, 3))
+    for i, parent in enumerate(tree.parents):
+        R_up, p_up = (R[parent], p[parent]) if parent >= 0 else (np.eye(3), np.zeros(3))
+        R[i] = R_up @ np.asarray(tree.origin_rotation[i]) if tree.joint_types[i] != "floating" else np.eye(3)
+        p[i] = R_up @ np.asarray(tree.origin_translation[i]) + p_up if tree.joint_types[i] != "floating" else 0.0
+    mass = np.asarray(tree.mass)
+    centre = np.einsum("nij,nj->ni", R, np.asarray(tree.com)) + p
+    inertia = np.einsum("nij,njk,nlk->nil", R, np.asarray(tree.inertia), R)
+    H = np.zeros(tree.nv)
+    for i, kind in enumerate(tree.joint_types):
+        if kind == "floating":
+            continue
+        subtree = [b for b in range(i, tree.num_bodies) if _is_ancestor(tree.parents, i, b)]
+        a = R[i] @ np.asarray(tree.axes[i])
+        if kind == "prismatic":
+            H[tree.v_starts[i]] = mass[subtree].sum()
+        else:
+            arm = np.cross(a, centre[subtree] - p[i])
+            H[tree.v_starts[i]] = np.einsum("i,nij,j->", a, inertia[subtree], a) + np.sum(mass[subtree] * np.sum(arm ** 2, 1))
+    return H
+
+
+def _is_ancestor(parents, i, b):
+    while b > i:
+        b = parents[b]
+    return b == i
+
+
+__all__ = ["CouplerConstraint", "LoopConstraint", "RigidBodySystem", "URDFError"]

@@ -343,6 +343,27 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
     return tree, tuple(actuated)
 
 
+def urdf_mimic_joints(path, welded=()) -> tuple:
+    """The URDF's `<mimic joint=... multiplier=... offset=...>` elements as (follower, leader,
+    multiplier, offset) tuples: the follower's position is multiplier * leader's + offset
+    (defaults 1 and 0, as urdfdom's). Fixed followers and those named in `welded` are left out."""
+    path = pathlib.Path(path)
+    root = ET.fromstring(read_urdf_text(path))
+    defined = {joint.get("name") for joint in root.findall("joint")}
+    couplings = []
+    for joint in root.findall("joint"):
+        mimic, name = joint.find("mimic"), joint.get("name")
+        if mimic is None or name in welded or joint.get("type") == "fixed":
+            continue
+        where = f"joint {name!r}"
+        leader = mimic.get("joint")
+        if leader not in defined:
+            raise URDFError(f"{path}: {where}: <mimic joint={leader!r}> names a joint the file does not define")
+        couplings.append((name, leader, float(_numbers(mimic, "multiplier", 1, 1.0, path, where)),
+                          float(_numbers(mimic, "offset", 1, 0.0, path, where))))
+    return tuple(couplings)
+
+
 def _origin(element, path, where):
     xyz = _numbers(element, "xyz", 3, [0.0, 0.0, 0.0], path, where)
     angles = _numbers(element, "rpy", 3, [0.0, 0.0, 0.0], path, where)
