@@ -1,6 +1,7 @@
-"""Analysis: Lyapunov functions, sums-of-squares programs, regions of attraction, and the
+"""Analysis: limit cycles, Lyapunov functions, sums-of-squares programs, regions of attraction, and the
 conversions of systems into polynomial systems that they need. (Imports cvxpy.)"""
 
+from ._limit_cycle import LimitCycle, LimitCycleError, limit_cycle
 from ._conversions import taylor_polynomial_system, to_trig_coordinates, trig_polynomial_system
 from ._lyapunov import (RegionOfAttraction, common_lyapunov_function, global_lyapunov_function,
                         RegionOfAttractionSearch, polynomial_dynamics, region_of_attraction,
@@ -9,7 +10,7 @@ from ._lyapunov import (RegionOfAttraction, common_lyapunov_function, global_lya
 from ._sos import CertificateCheck, InfeasibleError, SolveError, SosProgram, SosResult, gram_basis
 from ..control import solve_continuous_lyapunov, solve_discrete_lyapunov
 
-__all__ = ["CertificateCheck", "InfeasibleError", "RegionOfAttraction", "RegionOfAttractionSearch", "SolveError", "SosProgram",
+__all__ = ["CertificateCheck", "InfeasibleError", "LimitCycle", "LimitCycleError", "limit_cycle", "RegionOfAttraction", "RegionOfAttractionSearch", "SolveError", "SosProgram",
            "SosResult", "common_lyapunov_function", "global_lyapunov_function", "gram_basis",
            "polynomial_dynamics", "region_of_attraction", "sample_sublevel_set", "search_region_of_attraction",
            "solve_continuous_lyapunov", "solve_discrete_lyapunov", "taylor_polynomial_system",
