@@ -118,3 +118,62 @@ def test_value_iteration_errors_name_the_problem():
         fitted_value_iteration(plant, min_time_cost, [Q_GRID], [U_GRID], 0.01)
     with pytest.raises(ValueError, match="periodic coordinate"):
         fitted_value_iteration(plant, min_time_cost, [Q_GRID, QDOT_GRID], [U_GRID], 0.01, periodic=[(0, 0.0, 7.0)])
+
+
+SCENE = dict(obstacles=(np.array([[0.5, 0.5], [0.25, 0.75], [0.75, 0.25]]), np.array([0.2, 0.1, 0.1])),
+             step_size=0.05, max_nodes=1000)
+
+
+def segment_is_free(a, b, centres, radii, samples=200):
+    points = a + np.linspace(0, 1, samples)[:, None] * (b - a)
+    return np.all(np.linalg.norm(points[:, None] - centres[None], axis=2) > radii)
+
+
+def test_rrt_paths_are_collision_free_and_a_batch_equals_single_trees():
+    from jaxdrake.planning import rrt
+
+    start, goal, bounds = np.array([0.1, 0.1]), np.array([0.9, 0.9]), ([0.0, 0.0], [1.0, 1.0])
+    keys = jax.random.split(jax.random.key(0), 64)
+    batch = jax.jit(jax.vmap(lambda k: rrt(start, goal, bounds, k, **SCENE)))(keys)
+    assert bool(jnp.all(batch.success))
+    centres, radii = SCENE["obstacles"]
+    for i in (0, 17, 63):
+        single = rrt(start, goal, bounds, keys[i], **SCENE)
+        member = jax.tree.map(lambda a: a[i], batch)
+        np.testing.assert_array_equal(np.asarray(single.nodes), np.asarray(member.nodes))
+        path = single.path()
+        np.testing.assert_array_equal(path[0], start)
+        assert np.linalg.norm(path[-1] - goal) <= SCENE["step_size"]
+        steps = np.linalg.norm(np.diff(path, axis=0), axis=1)
+        assert np.all(steps <= SCENE["step_size"] + 1e-12)
+        assert all(segment_is_free(a, b, centres, radii) for a, b in zip(path[:-1], path[1:]))
+    # every edge of every tree, not only the paths, is free and in the box
+    nodes, parents, count = np.asarray(batch.nodes[5]), np.asarray(batch.parents[5]), int(batch.num_nodes[5])
+    assert all(segment_is_free(nodes[parents[k]], nodes[k], centres, radii) for k in range(1, count))
+    with pytest.raises(ValueError, match="the goal .* is inside an obstacle"):
+        rrt(start, [0.5, 0.5], bounds, keys[0], **SCENE)
+
+
+def test_kinodynamic_rrt_swings_the_pendulum_up_along_simulated_edges():
+    """Each edge is a simulation of the plant for dt under the recorded input (checked by
+    re-simulating it); the tree reaches the upright state with the torque limited to 2 N m."""
+    from jaxdrake.planning import kinodynamic_rrt
+
+    plant = jd.models.Pendulum()
+    result = kinodynamic_rrt(plant, [0.0, 0.0], [np.pi, 0.0], ([-np.pi, -8.0], [np.pi, 8.0]), (-2.0, 2.0), 0.1,
+                             jax.random.key(0), periodic=[(0, -np.pi, np.pi)], weights=[1.0, 0.1],
+                             goal_tolerance=0.3, max_nodes=5000)
+    assert bool(result.success)
+    path = result.path()
+    gap = np.mod(path[-1][0] - np.pi + np.pi, 2 * np.pi) - np.pi
+    assert np.sqrt(gap ** 2 + 0.1 * path[-1][1] ** 2) <= 0.3
+    parents, controls = np.asarray(result.parents), np.asarray(result.controls)
+    assert np.all(np.abs(controls[1:int(result.num_nodes)]) <= 2.0)
+    for k in (1, int(result.num_nodes) // 2, int(result.goal_node)):
+        x_parent = jnp.asarray(result.nodes[parents[k]])
+        wrap = lambda x: np.array([np.mod(x[0] + np.pi, 2 * np.pi) - np.pi, x[1]])
+        u = lambda t: jnp.asarray(controls[k])
+        rk4 = jd.simulate(plant, (0.0, 0.1), x_parent, inputs=u, solver="rk4", dt=0.1).final_state
+        np.testing.assert_allclose(np.asarray(result.nodes[k]), wrap(rk4), atol=1e-12)  # the edge: one RK4 step
+        exact = jd.simulate(plant, (0.0, 0.1), x_parent, inputs=u, rtol=1e-12, atol=1e-12).final_state
+        np.testing.assert_allclose(np.asarray(result.nodes[k]), wrap(exact), atol=1e-3)
