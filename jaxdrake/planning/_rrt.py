@@ -122,12 +122,21 @@ class _WeightedDistance(eqx.Module):
             x = x.at[k].set(lo + jnp.mod(x[k] - lo, hi - lo))
         return x
 
-    def __call__(self, a, b):
+    def squared(self, a, b):
+        """sum_k w_k d_k^2 over the last axis, written out (a 2- or 4-entry reduce is a slow
+        kernel of its own on the CPU; the sum of products fuses)."""
         d = a - b
-        for k, lo, hi in self.periodic:
-            span = hi - lo
-            d = d.at[k].set(jnp.mod(d[k] + span / 2, span) - span / 2)
-        return jnp.sqrt(jnp.sum(self.weights * d ** 2))
+        periodic = {k: hi - lo for k, lo, hi in self.periodic}
+        total = 0.0
+        for k in range(d.shape[-1]):
+            dk = d[..., k]
+            if k in periodic:
+                dk = jnp.mod(dk + periodic[k] / 2, periodic[k]) - periodic[k] / 2
+            total = total + self.weights[k] * dk * dk
+        return total
+
+    def __call__(self, a, b):
+        return jnp.sqrt(self.squared(a, b))
 
 
 class _SimulatedStep(eqx.Module):
@@ -172,7 +181,7 @@ def _grow(start, goal, low, high, key, extend, distance, tolerance, goal_bias, m
         key, k_pick, k_point, k_extend = jax.random.split(key, 4)
         target = jnp.where(jax.random.uniform(k_pick) < goal_bias, goal,
                            jax.random.uniform(k_point, (d,), start.dtype, low, high))
-        gaps = jax.vmap(lambda n: distance(n, target))(nodes)
+        gaps = distance.squared(nodes, target)
         nearest = jnp.argmin(jnp.where(jnp.arange(max_nodes) < count, gaps, jnp.inf))
         new, free, u = extend(nodes[nearest], target, k_extend)
         add = free & (count < max_nodes)
