@@ -17,7 +17,7 @@ the `events_per_period`-th next one (through the events' resets, differentiated 
 event times); Newton on $P(x) = x$ with $DP - I$. Its eigenvalues are the return map's
 (one is 0 when the event surface is a section: the flow direction is factored out).
 
-Both solves run in one jitted `lax.while_loop` (damped steps far from the orbit). The result
+Both solves run in one jitted `lax.while_loop` (Newton steps with backtracking on |F|). The result
 is differentiable in forward mode (`jax.jacfwd`, `jax.jvp`) with respect to the system's
 parameters by the implicit function theorem: one last Newton step is taken from the converged
 point held constant, whose derivative is $-(DF)^{-1}\partial F/\partial p$.
@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..simulation import SimulatedTrajectory, simulate
+from ..simulation._inputs import leaves_to_arrays
 from ..systems import HybridSystem, System
 
 
@@ -79,6 +80,7 @@ def limit_cycle(system: System, x_guess, period_guess, *, events_per_period: int
     if x_guess.shape != (system.num_states,):
         raise ValueError(f"x_guess has shape {x_guess.shape}; {system.name} has {system.num_states} states")
     options = dict(rtol=rtol, atol=atol, max_steps=max_steps)
+    system = leaves_to_arrays(system, x_guess.dtype)  # new parameter values: no new compilation
     result = _solve(system, x_guess, jnp.asarray(period_guess, x_guess.dtype), jnp.asarray(tol, x_guess.dtype),
                     max_iterations, events_per_period if hybrid else 0, options)
     if isinstance(result.residual, jax.core.Tracer):
@@ -101,6 +103,9 @@ def _solve(system, x_guess, period_guess, tol, max_iterations, events, options):
     n = x_guess.shape[0]
 
     if events:
+        def residual(z, system):
+            return _return_map(system, z, 3 * period_guess, events, options)[0] - z
+
         def residual_and_jacobian(z, system=system):
             def P(x):
                 x_next, period = _return_map(system, x, 3 * period_guess, events, options)
@@ -110,6 +115,11 @@ def _solve(system, x_guess, period_guess, tol, max_iterations, events, options):
         z0 = x_guess
     else:
         section = _field(system, x_guess)
+
+        def residual(z, system):
+            x, T = z[:n], z[n]
+            F = jnp.concatenate([_flow(system, x, T, options) - x, jnp.atleast_1d(section @ (x - x_guess))])
+            return jnp.where(T > 0, F, jnp.nan)
 
         def residual_and_jacobian(z, system=system):
             x, T = z[:n], z[n]
@@ -128,15 +138,21 @@ def _solve(system, x_guess, period_guess, tol, max_iterations, events, options):
     def newton(carry):  # on the parameters held constant: derivatives come from the last step
         z, _, k = carry
         F, DF, _, _ = residual_and_jacobian(z, held)
+        size = jnp.max(jnp.abs(F))
         step = jnp.linalg.solve(DF, -F)
-        # a damped step: no coordinate moves by more than half its scale, nor the period by
-        # more than a quarter of itself (full Newton steps near the orbit)
-        scale = 0.5 * jnp.maximum(1.0, jnp.max(jnp.abs(z[:n])))
-        limit = jnp.minimum(scale / jnp.max(jnp.abs(step[:n])),
-                            0.25 * jnp.abs(z[n]) / jnp.abs(step[n]) if not events else jnp.inf)
-        step = step * jnp.minimum(1.0, limit)
-        z_new = jnp.where(jnp.all(jnp.isfinite(step)), z + step, z)
-        return z_new, jnp.max(jnp.abs(F)), k + 1
+
+        def halve(trial):  # backtracking: the first of 1, 1/2, 1/4, ... that decreases |F|
+            alpha, _, _, j = trial
+            z_try = z + alpha * step
+            return alpha / 2, z_try, jnp.max(jnp.abs(residual(z_try, held))), j + 1
+
+        def worse(trial):
+            alpha, _, size_try, j = trial
+            return ~(size_try < (1 - 1e-4 * 2 * alpha) * size) & (j < 12)
+
+        _, z_new, _, _ = jax.lax.while_loop(worse, halve, (jnp.asarray(1.0, z.dtype), z, jnp.inf, 0))
+        z_new = jnp.where(jnp.all(jnp.isfinite(z_new)), z_new, z)
+        return z_new, size, k + 1
 
     def keep_going(carry):
         _, residual, k = carry

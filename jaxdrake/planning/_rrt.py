@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..simulation import simulate
+from ..simulation._inputs import leaves_to_arrays
 from ..systems import System
 
 
@@ -87,7 +88,7 @@ def kinodynamic_rrt(system: System, x_start, x_goal, bounds, input_bounds, dt, k
     w = jnp.ones_like(x_start) if weights is None else jnp.asarray(weights, x_start.dtype)
     periodic = tuple((int(k), float(lo), float(hi)) for k, lo, hi in periodic)
     distance = _WeightedDistance(w, periodic)
-    extend = _SimulatedStep(system, u_low, u_high, low, high, jnp.asarray(dt, x_start.dtype), distance,
+    extend = _SimulatedStep(leaves_to_arrays(system, x_start.dtype), u_low, u_high, low, high, jnp.asarray(dt, x_start.dtype), distance,
                             num_controls, solver, is_valid)
     return _grow(x_start, x_goal, low, high, key, extend, distance, goal_tolerance, goal_bias, max_nodes,
                  max_iterations or 20 * max_nodes, system.num_inputs)

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..simulation import simulate
+from ..simulation._inputs import leaves_to_arrays
 from ..systems import Frame, System
 
 
@@ -154,6 +155,7 @@ def fitted_value_iteration(system: System, cost, state_grid, input_grid, dt, *, 
         raise ValueError(f"{system.name}: a discrete system needs dt equal to its period "
                          f"{system.sample_times}, and no continuous state")
 
+    system = leaves_to_arrays(system, jnp.result_type(float))  # new parameter values: no new compilation
     indices, weights, stage = _transitions(system, cost, state_mesh, input_mesh, dt, periodic, solver, discrete)
     J = jnp.zeros(state_mesh.num_points, weights.dtype)
     change, done = jnp.inf, 0
