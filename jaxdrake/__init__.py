@@ -4,7 +4,7 @@ from ._xla import prefer_fast_cpu_compilation
 
 prefer_fast_cpu_compilation()
 
-from . import control, models, multibody, planning, simulation, systems, trajectories  # noqa: E402
+from . import control, models, multibody, planning, simulation, systems, trajectories, viz  # noqa: E402
 from .control import linearize
 from .multibody import CouplerConstraint, LoopConstraint, RigidBodySystem
 from .simulation import SimulatedTrajectory, SimulationError, SimulationStatus, simulate
@@ -19,7 +19,7 @@ __version__ = "0.1.0"
 __all__ = ["Diagram", "DiagramBuilder", "Frame", "HybridSystem", "LinearSystem", "SimulationError",
            "CouplerConstraint", "LoopConstraint", "Polynomial", "PolynomialSystem", "RigidBodySystem", "SimulatedTrajectory", "SimulationStatus", "StochasticSystem", "System", "Trajectory", "TrajectorySource", "Transition",
            "add_frame_conversion", "and_guards", "cascade", "control", "feedback", "linearize", "models", "multibody", "not_guard",
-           "parallel", "planning", "simulate", "simulation", "systems", "trajectories"]
+           "parallel", "planning", "simulate", "simulation", "systems", "trajectories", "viz"]
 
 
 def __getattr__(name):

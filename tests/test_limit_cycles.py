@@ -111,3 +111,27 @@ def test_the_fixed_point_is_differentiable_with_respect_to_the_slope():
     at = lambda s: np.asarray(limit_cycle(jd.models.CompassGait(slope=s), x_star, 0.75).state)
     fd = (at(slope + 1e-6) - at(slope - 1e-6)) / 2e-6
     np.testing.assert_allclose(np.asarray(d_state), fd, rtol=1e-5, atol=1e-6)
+
+
+def test_periodic_collocation_finds_the_same_van_der_pol_orbit():
+    """The second route: Hermite-Simpson collocation with x(T) = x(0), a free duration, and
+    the phase fixed on the section qdot = 0, q >= 1 (else x = 0, 'periodic' with any T, is
+    a solution). Its period converges to the shooting period as the knots multiply (O(h^4))."""
+    from jaxdrake.trajopt import DirectCollocation
+
+    vdp = jd.models.VanDerPol()
+    shooting = limit_cycle(vdp, [2.0, 0.0], 6.6)
+    T = float(shooting.period)
+    errors = []
+    for knots in (31, 61):
+        prog = DirectCollocation(vdp, knots, duration=(5.0, 8.0))
+        prog.add_periodicity()
+        prog.add_boundary_constraint(lambda x0, xf: x0[1:], np.zeros(1), np.zeros(1))
+        prog.add_state_bounds([1.0, -np.inf], [np.inf, np.inf], knots=[0])
+        ts = np.linspace(0.0, T, knots)
+        guess = np.asarray(shooting.trajectory.state(jnp.asarray(ts))) * 1.05  # a perturbed orbit
+        result = prog.solve(states=guess, duration=T * 0.97)
+        assert result.success, result.message
+        errors.append(abs(result.duration - T))
+        np.testing.assert_allclose(result.knot_states[0], np.asarray(shooting.state), atol=10 * errors[-1] ** 0.5)
+    assert errors[0] < 1e-3 and errors[1] < errors[0] / 8

@@ -1,0 +1,233 @@
+r"""Visualizers are dynamical systems, too (the notes, D.3.7): a `Visualizer` is a stateless
+system whose input is the state of the plant it draws, so `cascade(plant, visualizer)` is a
+diagram like any other; `playback`, `animate` and `save` replay a simulated trajectory.
+
+A visualizer describes a state by *shapes*: named arrays of points in the drawing plane (metres),
+computed by a pure JAX function of the state — `jax.vmap` gives every frame of a movie in one
+call, and the tests compare them with the plant's kinematics. Each shape has a matplotlib style:
+a polyline (`kind="line"`), markers (`"points"`) or a filled polygon (`"polygon"`). Frames are
+taken at $t_k = t_0 + k / \mathrm{fps}$, $k < \mathrm{round}((t_f - t_0)\,\mathrm{fps})$; a hybrid
+trajectory plays through its events (the state just after each), its mode named in the title.
+"""
+
+from __future__ import annotations
+
+import pathlib
+import re
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..systems import HybridSystem, System
+
+DRAW_PERIOD = 1 / 32  # exact in binary
+
+
+class Visualizer(System):
+    """A stateless system drawing the plant whose state is its input.
+
+    Subclasses give `shapes(x)` (a dict of (k, 2) point arrays, JAX), `STYLES` (a class-level
+    dict of matplotlib keyword dicts with a `kind`), `view()` ((xmin, xmax), (ymin, ymax)), and may draw
+    fixed `scenery(ax)` or shift each frame with `offsets(traj, times)` (a walker's progress).
+    """
+
+    draw_period: float = eqx.field(static=True)
+    plant_name: str = eqx.field(static=True)
+
+    def __init__(self, plant: System, draw_period: float = DRAW_PERIOD):
+        if not draw_period > 0:
+            raise ValueError(f"draw_period must be positive, got {draw_period}")
+        self.draw_period = float(draw_period)
+        self.plant_name = plant.name
+        super().__init__(num_inputs=plant.num_states, num_outputs=0, direct_feedthrough=False,
+                         time_invariant=True, input_frame=plant.state_frame)
+
+    # ----- what a subclass describes ----------------------------------------------------------
+
+    STYLES: ClassVar[dict] = {}  # {shape name: {"kind": ..., matplotlib kwargs}}
+
+    def shapes(self, x) -> dict:
+        raise NotImplementedError
+
+    def view(self):
+        raise NotImplementedError
+
+    def scenery(self, ax):
+        """Fixed background (ground, ramp, rail); nothing by default."""
+
+    def offsets(self, traj, times):
+        """A shift of every shape per frame (n, 2); zero unless the drawing follows the plant."""
+        return np.zeros((len(times), 2))
+
+    # ----- drawing ----------------------------------------------------------------------------
+
+    def output(self, t, x, u):
+        return jnp.zeros(0, u.dtype)
+
+    def frame_shapes(self, xs):
+        """Every shape for a batch of states xs (n, num_states): {name: (n, k, 2)}, on the host."""
+        xs = jnp.asarray(xs)[..., : self.num_inputs]
+        return {k: np.asarray(v) for k, v in jax.vmap(self.shapes)(xs).items()}
+
+    def _artists(self, ax, alpha=1.0):
+        from matplotlib.lines import Line2D
+        from matplotlib.patches import Polygon
+
+        artists = {}
+        for name, style in self.STYLES.items():
+            style = dict(style)
+            kind = style.pop("kind", "line")
+            if kind == "polygon":
+                artist = Polygon(np.zeros((3, 2)), closed=True, alpha=alpha * style.pop("alpha", 1.0), **style)
+                ax.add_patch(artist)
+            else:
+                if kind == "points":
+                    style.setdefault("linestyle", "none")
+                    style.setdefault("marker", "o")
+                artist = Line2D([], [], alpha=alpha * style.pop("alpha", 1.0), **style)
+                ax.add_line(artist)
+            artist.set_gid(name)  # find an artist by its shape's name
+            artists[name] = artist
+        return artists
+
+    @staticmethod
+    def _place(artists, shapes, k, offset):
+        for name, artist in artists.items():
+            points = shapes[name][k] + offset
+            if hasattr(artist, "set_xy"):
+                artist.set_xy(points)
+            else:
+                artist.set_data(points[:, 0], points[:, 1])
+
+    def _figure(self, ax=None, figsize=(6.4, 4.8)):
+        import matplotlib.pyplot as plt
+
+        if ax is None:
+            fig, ax = plt.subplots(figsize=figsize, dpi=100)
+        (x0, x1), (y0, y1) = self.view()
+        ax.set_xlim(x0, x1)
+        ax.set_ylim(y0, y1)
+        ax.set_aspect("equal")
+        self.scenery(ax)
+        return ax.figure, ax
+
+    def draw(self, x, ax=None):
+        """Draw the plant in state x; returns the matplotlib figure."""
+        fig, ax = self._figure(ax)
+        shapes = self.frame_shapes(jnp.asarray(x)[None])
+        self._place(self._artists(ax), shapes, 0, np.zeros(2))
+        ax.set_title(self.plant_name)
+        return fig
+
+    def frames(self, traj, fps=None):
+        """The frame times, states (n, [batch,] num_states) and mode labels of a trajectory."""
+        fps = 1 / self.draw_period if fps is None else float(fps)
+        batched = np.ndim(traj.t_final) == 1
+        first = traj[0] if batched else traj
+        t0, tf = float(first.t0), float(np.max(np.asarray(traj.t_final)))
+        times = t0 + np.arange(int(round((tf - t0) * fps))) / fps
+        if batched:
+            xs = np.stack([np.asarray(traj[i].state(jnp.asarray(times))) for i in range(len(traj.t_final))], 1)
+        else:
+            xs = np.asarray(traj.state(jnp.asarray(times)))
+        labels = [""] * len(times)
+        if isinstance(first.system, HybridSystem) and first.system.num_modes > 1 and not batched:
+            names = [m.name for m in first.system.modes]
+            labels = [f", {names[int(m)]}" for m in np.asarray(first.mode(jnp.asarray(times)))]
+        return times, xs, labels, fps
+
+    def animate(self, traj, fps=None, rate: float = 1.0, ax=None):
+        """A matplotlib `FuncAnimation` of a simulated trajectory (of the plant, or of a diagram
+        whose state starts with the plant's); a vmapped batch is drawn as overlaid ghosts.
+        `rate`: playback speed (2.0 plays twice as fast)."""
+        from matplotlib.animation import FuncAnimation
+
+        times, xs, labels, fps = self.frames(traj, fps)
+        if len(times) == 0:
+            raise ValueError(f"the trajectory is shorter than one frame (1/{fps:g} s)")
+        fig, ax = self._figure(ax)
+        members = xs.shape[1] if xs.ndim == 3 else 1
+        states = xs.reshape(len(times) * members, -1)
+        shapes = {k: v.reshape(len(times), members, *v.shape[1:]) for k, v in self.frame_shapes(states).items()}
+        offsets = self.offsets(traj, times) if members == 1 else np.zeros((len(times), 2))
+        alpha = 1.0 if members == 1 else max(0.1, 1 / np.sqrt(members))
+        layers = [self._artists(ax, alpha) for _ in range(members)]
+        title = ax.set_title("")
+
+        def update(k):
+            for j, artists in enumerate(layers):
+                self._place(artists, {n: v[:, j] for n, v in shapes.items()}, k, offsets[k])
+            title.set_text(f"{self.plant_name}: t = {times[k]:.2f} s{labels[k]}")
+            return [a for artists in layers for a in artists.values()] + [title]
+
+        update(0)
+        return FuncAnimation(fig, update, frames=len(times), interval=1000 / (fps * rate), blit=False)
+
+    def save(self, traj, path, fps=None) -> pathlib.Path:
+        """Write a movie of the trajectory: `.gif` (Pillow), `.mp4` (the ffmpeg of
+        `imageio-ffmpeg`; no system ffmpeg needed) or `.html` (self-contained, no network)."""
+        import matplotlib.pyplot as plt
+        from matplotlib.animation import FFMpegWriter, PillowWriter
+
+        path = pathlib.Path(path)
+        suffix = path.suffix.lower()
+        if suffix not in (".gif", ".mp4", ".html"):
+            raise ValueError(f"cannot write {path.name}: choose .gif, .mp4 or .html")
+        animation = self.animate(traj, fps)
+        fps = 1 / self.draw_period if fps is None else float(fps)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            if suffix == ".gif":
+                animation.save(path, writer=PillowWriter(fps=fps))
+            elif suffix == ".mp4":
+                try:
+                    import imageio_ffmpeg
+                except ImportError:
+                    raise ImportError("writing .mp4 needs the ffmpeg bundled by imageio-ffmpeg: "
+                                      "pip install imageio-ffmpeg (or save a .gif or .html)") from None
+                plt.rcParams["animation.ffmpeg_path"] = imageio_ffmpeg.get_ffmpeg_exe()
+                animation.save(path, writer=FFMpegWriter(fps=fps, codec="libx264",
+                                                         extra_args=["-pix_fmt", "yuv420p"]))
+            else:
+                path.write_text(_offline(animation.to_jshtml(fps=fps, default_mode="once")))
+        finally:
+            plt.close(animation._fig)
+        return path
+
+    def playback(self, traj, rate: float = 1.0, fps=None):
+        """Play the trajectory in real time (`rate` times faster): inline in a notebook (returns
+        the HTML player to display), in a window otherwise."""
+        import matplotlib.pyplot as plt
+
+        animation = self.animate(traj, fps, rate)
+        if _in_notebook():
+            from IPython.display import HTML
+
+            plt.close(animation._fig)
+            return HTML(_offline(animation.to_jshtml(fps=(1 / self.draw_period if fps is None else fps) * rate)))
+        plt.show()
+        return animation
+
+
+_BUTTONS = {"fa-plus": "+", "fa-minus": "\u2212", "fa-fast-backward": "\u23ee", "fa-step-backward": "\u23f4",
+            "fa-play fa-flip-horizontal": "\u25c0", "fa-pause": "\u23f8", "fa-play": "\u25b6",
+            "fa-step-forward": "\u23f5", "fa-fast-forward": "\u23ed"}
+
+
+def _offline(html: str) -> str:
+    """matplotlib's HTML player without its one network resource (the Font Awesome stylesheet
+    from a CDN): the buttons' icons become Unicode symbols."""
+    html = re.sub(r'<link rel="stylesheet"\s*href="https?://[^"]*"\s*/?>', "", html)
+    return re.sub(r'<i class="fa ([^"]*)"></i>', lambda m: _BUTTONS.get(m.group(1), ""), html)
+
+
+def _in_notebook() -> bool:
+    try:
+        from IPython import get_ipython
+    except ImportError:
+        return False
+    shell = get_ipython()
+    return shell is not None and type(shell).__name__ == "ZMQInteractiveShell"

@@ -1,0 +1,118 @@
+"""Visualizers draw what the plants' kinematics say: artist coordinates against closed forms
+and `frame_pose`; movies decode back to the right frames, with the drawn parts where the
+axes' transform puts them; the HTML export needs no network."""
+
+import re
+
+import jax
+import jax.numpy as jnp
+import matplotlib
+import numpy as np
+import pytest
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+import jaxdrake as jd  # noqa: E402
+from jaxdrake.viz import PlanarRigidBodyVisualizer, visualizer_for  # noqa: E402
+
+STATES = np.random.default_rng(0).uniform(-3, 3, (5, 4))
+
+
+def drawn(fig, name):
+    """The (k, 2) points of the artist drawing shape `name`."""
+    artist = next(a for a in fig.axes[0].get_children() if a.get_gid() == name)
+    points = artist.get_xy() if hasattr(artist, "get_xy") else np.stack(artist.get_data(), 1)
+    return np.asarray(points, float)
+
+
+def test_pendulum_acrobot_and_cart_pole_are_drawn_where_their_kinematics_put_them():
+    pendulum, acrobot, cart_pole = jd.models.Pendulum(l=0.7), jd.models.Acrobot(l1=1.2, l2=2.1), jd.models.CartPole(l=0.6)
+    for x in STATES:
+        fig = visualizer_for(pendulum).draw(x[:2])
+        np.testing.assert_allclose(drawn(fig, "bob")[0], 0.7 * np.array([np.sin(x[0]), -np.cos(x[0])]), atol=1e-12)
+        plt.close(fig)
+        fig = visualizer_for(acrobot).draw(x)
+        elbow = 1.2 * np.array([np.sin(x[0]), -np.cos(x[0])])
+        tip = elbow + 2.1 * np.array([np.sin(x[0] + x[1]), -np.cos(x[0] + x[1])])
+        points = drawn(fig, "links")
+        points = points[~np.isnan(points[:, 0])]
+        assert any(np.allclose(p, elbow, atol=1e-12) for p in points)
+        assert any(np.allclose(p, tip, atol=1e-12) for p in points)
+        np.testing.assert_allclose(drawn(fig, "joints")[1], elbow, atol=1e-12)
+        plt.close(fig)
+        fig = visualizer_for(cart_pole).draw(x)
+        points = drawn(fig, "links")
+        tip = np.array([x[0] + 0.6 * np.sin(x[1]), -0.6 * np.cos(x[1])])
+        assert any(np.allclose(p, tip, atol=1e-12) for p in points[~np.isnan(points[:, 0])])
+        np.testing.assert_allclose(drawn(fig, "cart")[:4].mean(0), [x[0], 0.0], atol=1e-12)  # a closed polygon
+        plt.close(fig)
+
+
+def test_a_urdf_robot_projection_puts_every_joint_at_its_frame_pose():
+    panda = jd.models.Panda()
+    vis = PlanarRigidBodyVisualizer(panda, plane="xz")
+    q = jnp.array([0.3, -0.5, 0.2, -2.0, 0.4, 1.5, 0.1])
+    fig = vis.draw(jnp.concatenate([q, jnp.zeros(7)]))
+    joints = drawn(fig, "joints")
+    for k, link in enumerate(panda.tree.body_names):
+        np.testing.assert_allclose(joints[k], np.asarray(panda.frame_pose(q, link)[1])[[0, 2]], atol=1e-12)
+    plt.close(fig)
+
+
+def test_a_gif_decodes_to_the_requested_frames_with_the_bob_where_the_axes_put_it(tmp_path):
+    from PIL import Image, ImageSequence
+
+    pendulum = jd.models.Pendulum()
+    vis = visualizer_for(pendulum)
+    traj = jd.simulate(pendulum, (0.0, 1.5), jnp.array([2.0, 0.0]))
+    path = vis.save(traj, tmp_path / "pendulum.gif", fps=8)
+    frames = [np.asarray(f.convert("RGB")) for f in ImageSequence.Iterator(Image.open(path))]
+    assert len(frames) == round(1.5 * 8) and frames[0].shape == (480, 640, 3)
+    animation = vis.animate(traj, fps=8)  # the same figure, to read its transform
+    fig = animation._fig
+    fig.canvas.draw()
+    k = 7
+    x = np.asarray(traj.state(k / 8))
+    bob = 0.5 * np.array([np.sin(x[0]), -np.cos(x[0])])
+    px, py = fig.axes[0].transData.transform(bob)
+    red = np.abs(frames[k].astype(int) - np.array([214, 39, 40])).sum(axis=2) < 60  # C3, the bob
+    rows, cols = np.nonzero(red)
+    assert len(rows) > 20
+    assert abs(cols.mean() - px) < 2 and abs(rows.mean() - (480 - py)) < 2
+    plt.close(fig)
+
+
+def test_mp4_and_html_movies_of_a_hybrid_trajectory(tmp_path):
+    import imageio.v3 as iio
+
+    wheel = jd.models.RimlessWheel()
+    vis = visualizer_for(wheel)
+    traj = jd.simulate(wheel, (0.0, 2.0), jnp.array([0.0, 2.0]))
+    assert len(traj.events["times"]) >= 2  # the movie plays through impacts
+    mp4 = vis.save(traj, tmp_path / "wheel.mp4", fps=10)
+    frames = np.stack(list(iio.imiter(mp4)))
+    assert frames.shape[0] == 20 and frames.shape[1:3] == (480, 640)
+    html = vis.save(traj, tmp_path / "wheel.html", fps=10).read_text()
+    assert "<script" in html and not re.search(r"(https?:)?//[a-z0-9.-]+\.[a-z]{2,}", html, re.IGNORECASE)
+    # the drawing follows the wheel: after k impacts the stance foot is k steps down the ramp
+    offsets = vis.offsets(traj, np.array([0.0, 1.99]))
+    step = 2 * np.sin(np.pi / 8)
+    k = np.searchsorted(traj.events["times"], 1.99)
+    np.testing.assert_allclose(np.linalg.norm(offsets[1]), k * step, rtol=1e-12)
+
+
+def test_a_visualizer_is_a_system_in_a_diagram_and_errors_name_the_remedy():
+    pendulum = jd.models.Pendulum()
+    vis = visualizer_for(pendulum)
+    assert vis.input_frame == pendulum.state_frame and vis.num_states == 0 and vis.draw_period == 1 / 32
+    diagram = jd.cascade(pendulum, vis)
+    traj = jd.simulate(diagram, (0.0, 1.0), jnp.array([1.0, 0.0]))
+    np.testing.assert_allclose(traj.final_state, jd.simulate(pendulum, (0.0, 1.0), jnp.array([1.0, 0.0])).final_state)
+    animation = vis.animate(traj)
+    assert animation._fig.axes[0].get_title().startswith("Pendulum: t = ")
+    plt.close(animation._fig)
+    with pytest.raises(TypeError, match="subclass jaxdrake.viz.Visualizer"):
+        visualizer_for(jd.models.VanDerPol())
+    with pytest.raises(ValueError, match="choose .gif, .mp4 or .html"):
+        vis.save(traj, "movie.avi")
