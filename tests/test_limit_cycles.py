@@ -126,6 +126,7 @@ def test_periodic_collocation_finds_the_same_van_der_pol_orbit():
     for knots in (31, 61):
         prog = DirectCollocation(vdp, knots, duration=(5.0, 8.0))
         prog.add_periodicity()
+        prog.add_duration_cost(0.0)  # a feasibility problem
         prog.add_boundary_constraint(lambda x0, xf: x0[1:], np.zeros(1), np.zeros(1))
         prog.add_state_bounds([1.0, -np.inf], [np.inf, np.inf], knots=[0])
         ts = np.linspace(0.0, T, knots)
