@@ -9,8 +9,9 @@
    events.
 4. The notes' bouncing ball, a hybrid system, dropped from 1000 heights in one vmapped call:
    impacts located to 1e-10, simulations stopped by the reset when the ball comes to rest.
+5. A movie: 16 of the 1000 pendulums swinging, overlaid (`jd.viz`, a visualizer is a system).
 
-Run:  python examples/demo.py [--out DIR]      (saves demo.png)
+Run:  python examples/demo.py [--out DIR]      (saves demo.png and demo.gif)
 """
 
 import pathlib
@@ -59,6 +60,7 @@ def phase_portrait(ax, num=1000):
     ax.set(xlabel=r"$\theta$ (rad)", ylabel=r"$\dot\theta$ (rad/s)", xlim=(-np.pi, np.pi),
            title=f"{num} damped pendulums in one vmap (150 drawn)")
     plt.colorbar(matplotlib.cm.ScalarMappable(norm, cmap), ax=ax, label="initial energy (J)")
+    return trajs
 
 
 def tune_damping(ax):
@@ -133,7 +135,10 @@ def bouncing_balls(ax, num=1000):
 def main(out: pathlib.Path) -> pathlib.Path:
     fig, axes = plt.subplots(2, 2, figsize=(13, 9), layout="constrained")
     axes = axes.ravel()
-    phase_portrait(axes[0])
+    pendulums = phase_portrait(axes[0])
+    start = time.perf_counter()
+    movie = jd.viz.visualizer_for(Pendulum()).save(pendulums[:16], out / "demo.gif", fps=16)
+    print(f"saved {movie} ({time.perf_counter() - start:.1f} s)")
     tune_damping(axes[1])
     torque_limits(axes[2])
     bouncing_balls(axes[3])

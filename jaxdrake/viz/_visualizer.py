@@ -130,7 +130,7 @@ class Visualizer(System):
         t0, tf = float(first.t0), float(np.max(np.asarray(traj.t_final)))
         times = t0 + np.arange(int(round((tf - t0) * fps))) / fps
         if batched:
-            xs = np.stack([np.asarray(traj[i].state(jnp.asarray(times))) for i in range(len(traj.t_final))], 1)
+            xs = np.swapaxes(np.asarray(jax.vmap(lambda member: member.state(jnp.asarray(times)))(traj)), 0, 1)
         else:
             xs = np.asarray(traj.state(jnp.asarray(times)))
         labels = [""] * len(times)
@@ -139,12 +139,8 @@ class Visualizer(System):
             labels = [f", {names[int(m)]}" for m in np.asarray(first.mode(jnp.asarray(times)))]
         return times, xs, labels, fps
 
-    def animate(self, traj, fps=None, rate: float = 1.0, ax=None):
-        """A matplotlib `FuncAnimation` of a simulated trajectory (of the plant, or of a diagram
-        whose state starts with the plant's); a vmapped batch is drawn as overlaid ghosts.
-        `rate`: playback speed (2.0 plays twice as fast)."""
-        from matplotlib.animation import FuncAnimation
-
+    def _scene(self, traj, fps, ax=None):
+        """A figure holding the first frame, and `update(k)` that moves its artists to frame k."""
         times, xs, labels, fps = self.frames(traj, fps)
         if len(times) == 0:
             raise ValueError(f"the trajectory is shorter than one frame (1/{fps:g} s)")
@@ -156,45 +152,88 @@ class Visualizer(System):
         alpha = 1.0 if members == 1 else max(0.1, 1 / np.sqrt(members))
         layers = [self._artists(ax, alpha) for _ in range(members)]
         title = ax.set_title("")
+        moving = [a for artists in layers for a in artists.values()] + [title]
 
         def update(k):
             for j, artists in enumerate(layers):
                 self._place(artists, {n: v[:, j] for n, v in shapes.items()}, k, offsets[k])
             title.set_text(f"{self.plant_name}: t = {times[k]:.2f} s{labels[k]}")
-            return [a for artists in layers for a in artists.values()] + [title]
+            return moving
 
         update(0)
-        return FuncAnimation(fig, update, frames=len(times), interval=1000 / (fps * rate), blit=False)
+        return fig, update, moving, len(times), fps
+
+    def animate(self, traj, fps=None, rate: float = 1.0, ax=None):
+        """A matplotlib `FuncAnimation` of a simulated trajectory (of the plant, or of a diagram
+        whose state starts with the plant's); a vmapped batch is drawn as overlaid ghosts.
+        `rate`: playback speed (2.0 plays twice as fast)."""
+        from matplotlib.animation import FuncAnimation
+
+        fig, update, _, count, fps = self._scene(traj, fps, ax)
+        return FuncAnimation(fig, update, frames=count, interval=1000 / (fps * rate), blit=False)
+
+    def render(self, traj, fps=None):
+        """The movie's frames as RGB arrays (n, height, width, 3): the axes, ticks and scenery
+        drawn once, then only the moving artists per frame (matplotlib blitting)."""
+        import matplotlib.pyplot as plt
+
+        fig, update, moving, count, fps = self._scene(traj, fps)
+        try:
+            for artist in moving:
+                artist.set_animated(True)
+            canvas = fig.canvas
+            canvas.draw()
+            background = canvas.copy_from_bbox(fig.bbox)
+            frames = []
+            for k in range(count):
+                canvas.restore_region(background)
+                for artist in update(k):
+                    fig.draw_artist(artist)
+                frames.append(np.asarray(canvas.buffer_rgba())[..., :3].copy())
+        finally:
+            plt.close(fig)
+        return np.stack(frames)
 
     def save(self, traj, path, fps=None) -> pathlib.Path:
         """Write a movie of the trajectory: `.gif` (Pillow), `.mp4` (the ffmpeg of
         `imageio-ffmpeg`; no system ffmpeg needed) or `.html` (self-contained, no network)."""
         import matplotlib.pyplot as plt
-        from matplotlib.animation import FFMpegWriter, PillowWriter
 
         path = pathlib.Path(path)
         suffix = path.suffix.lower()
         if suffix not in (".gif", ".mp4", ".html"):
             raise ValueError(f"cannot write {path.name}: choose .gif, .mp4 or .html")
-        animation = self.animate(traj, fps)
         fps = 1 / self.draw_period if fps is None else float(fps)
         path.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            if suffix == ".gif":
-                animation.save(path, writer=PillowWriter(fps=fps))
-            elif suffix == ".mp4":
-                try:
-                    import imageio_ffmpeg
-                except ImportError:
-                    raise ImportError("writing .mp4 needs the ffmpeg bundled by imageio-ffmpeg: "
-                                      "pip install imageio-ffmpeg (or save a .gif or .html)") from None
-                plt.rcParams["animation.ffmpeg_path"] = imageio_ffmpeg.get_ffmpeg_exe()
-                animation.save(path, writer=FFMpegWriter(fps=fps, codec="libx264",
-                                                         extra_args=["-pix_fmt", "yuv420p"]))
-            else:
+        if suffix == ".html":
+            animation = self.animate(traj, fps)
+            try:
                 path.write_text(_offline(animation.to_jshtml(fps=fps, default_mode="once")))
-        finally:
-            plt.close(animation._fig)
+            finally:
+                plt.close(animation._fig)
+            return path
+        if suffix == ".mp4":
+            try:
+                import imageio_ffmpeg
+            except ImportError:
+                raise ImportError("writing .mp4 needs the ffmpeg bundled by imageio-ffmpeg: "
+                                  "pip install imageio-ffmpeg (or save a .gif or .html)") from None
+        frames = self.render(traj, fps)
+        if suffix == ".gif":
+            from PIL import Image
+
+            # one palette for the movie, from a few frames side by side (per-frame palettes take seconds)
+            sample = Image.fromarray(np.concatenate(frames[:: max(1, len(frames) // 4)], axis=1))
+            palette = sample.quantize(colors=128, method=Image.Quantize.MEDIANCUT)
+            images = [Image.fromarray(f).quantize(palette=palette, dither=Image.Dither.NONE) for f in frames]
+            images[0].save(path, save_all=True, append_images=images[1:], duration=1000 / fps, loop=0)
+        else:
+            writer = imageio_ffmpeg.write_frames(str(path), (frames.shape[2], frames.shape[1]), fps=fps,
+                                                 codec="libx264", pix_fmt_out="yuv420p", macro_block_size=8)
+            writer.send(None)
+            for frame in frames:
+                writer.send(np.ascontiguousarray(frame))
+            writer.close()
         return path
 
     def playback(self, traj, rate: float = 1.0, fps=None):
