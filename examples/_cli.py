@@ -1,4 +1,4 @@
-"""What every example script shares: an `--out` folder, and saving its figure there."""
+"""What every example script shares: an `--out` folder, and saving its figure (and movie) there."""
 
 import argparse
 import pathlib
@@ -10,6 +10,15 @@ def run(main, doc: str):
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("output"),
                         help="folder for the figure (default: output/)")
     main(parser.parse_args().out)
+
+
+def save_movie(plant, traj, out: pathlib.Path, name: str, fps: float = 16) -> pathlib.Path:
+    """A movie of `traj` drawn by the plant's visualizer (`jd.viz.visualizer_for`)."""
+    import jaxdrake as jd
+
+    path = jd.viz.visualizer_for(plant).save(traj, out / name, fps=fps)
+    print(f"saved {path}")
+    return path
 
 
 def save(fig, out: pathlib.Path, name: str, dpi: int = 100) -> pathlib.Path:

@@ -19,7 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 import jaxdrake as jd  # noqa: E402
-from _cli import run, save  # noqa: E402  (examples/_cli.py)
+from _cli import run, save, save_movie  # noqa: E402  (examples/_cli.py)
 
 jax.config.update("jax_enable_x64", True)
 
@@ -60,6 +60,7 @@ def main(out: pathlib.Path) -> pathlib.Path:
     axes[2].legend(fontsize=8)
     print(f"d q(3 s) / d h0 at h0 = 5: {float(jax.grad(height)(5.0)):.6f}")
 
+    save_movie(ball, traj, out, "bouncing_ball.gif")
     return save(fig, out, "bouncing_ball.png")
 
 

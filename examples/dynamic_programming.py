@@ -24,7 +24,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 import jaxdrake as jd  # noqa: E402
-from _cli import run, save  # noqa: E402  (examples/_cli.py)
+from _cli import run, save, save_movie  # noqa: E402  (examples/_cli.py)
 from jaxdrake.planning import fitted_value_iteration, grid_world  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
@@ -87,6 +87,7 @@ def main(out: pathlib.Path) -> pathlib.Path:
     axes[3].set(xlabel="t (s)", title="Pendulum swing-up under the DP policy")
     axes[3].legend(fontsize=8)
     print(f"pendulum final state: {x[-1]}")
+    save_movie(plant, traj, out, "pendulum_swing_up.gif")
     return save(fig, out, "dynamic_programming.png")
 
 

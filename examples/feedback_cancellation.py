@@ -22,7 +22,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 import jaxdrake as jd  # noqa: E402
-from _cli import run, save  # noqa: E402  (examples/_cli.py)
+from _cli import run, save, save_movie  # noqa: E402  (examples/_cli.py)
 
 jax.config.update("jax_enable_x64", True)
 
@@ -78,6 +78,7 @@ def main(out: pathlib.Path) -> pathlib.Path:
     axes[2].plot(t, passive.state(ts)[:, 1], label="$q_2$")
     axes[2].set(xlabel="t (s)", ylabel="angle (rad)", title="the passive double pendulum (u = 0), same start")
     axes[2].legend()
+    save_movie(plant, bent, out, "feedback_cancellation.gif")
     return save(fig, out, "feedback_cancellation.png")
 
 

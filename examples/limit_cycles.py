@@ -24,7 +24,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 import jaxdrake as jd  # noqa: E402
-from _cli import run, save  # noqa: E402  (examples/_cli.py)
+from _cli import run, save, save_movie  # noqa: E402  (examples/_cli.py)
 from jaxdrake.analysis import limit_cycle  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
@@ -90,6 +90,7 @@ def main(out: pathlib.Path) -> pathlib.Path:
         axes[2].plot([s - 0.003, s + 0.003], [v - 0.003 * dv, v + 0.003 * dv], "k-", lw=2)
     axes[2].set(xlabel="slope (rad)", ylabel="m/s", title="Passive gait speed vs slope (black: d/d slope by jvp)")
     axes[2].legend(fontsize=8)
+    save_movie(gait, walk, out, "compass_gait.gif")
     return save(fig, out, "limit_cycles.png")
 
 

@@ -22,7 +22,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 import jaxdrake as jd  # noqa: E402
-from _cli import run, save  # noqa: E402  (examples/_cli.py)
+from _cli import run, save, save_movie  # noqa: E402  (examples/_cli.py)
 
 jax.config.update("jax_enable_x64", True)
 
@@ -59,6 +59,8 @@ def main(out: pathlib.Path) -> pathlib.Path:
         start = time.perf_counter()
         traj = jd.simulate(system, (0.0, T), x0, rtol=1e-7, atol=1e-9, max_steps=20000)
         print(f"{label}: {int(traj.num_steps)} steps, {time.perf_counter() - start:.1f} s with compilation")
+        if label.startswith("passive"):
+            save_movie(plant, traj, out, "manipulator_passive.gif")  # projected onto the x-z plane
         qs = np.asarray(traj.state(ts))[:, :7]
         for j in range(7):
             ax.plot(ts, qs[:, j], label=f"joint {j + 1}")

@@ -6,7 +6,7 @@ thetadot-. From any speed that carries it over the top, the wheel converges to s
 the fixed point of the return map thetadot+ = cot(2 alpha) sqrt(4 (g/l) sin(alpha) sin(slope)).
 Several initial speeds are simulated in one vmapped call.
 
-Run:  python examples/rimless_wheel.py [--out DIR]      (saves rimless_wheel.png)
+Run:  python examples/rimless_wheel.py [--out DIR]      (saves rimless_wheel.png and .gif)
 """
 
 import pathlib
@@ -20,7 +20,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 import jaxdrake as jd  # noqa: E402
-from _cli import run, save  # noqa: E402  (examples/_cli.py)
+from _cli import run, save, save_movie  # noqa: E402  (examples/_cli.py)
 
 jax.config.update("jax_enable_x64", True)
 
@@ -56,6 +56,8 @@ def main(out: pathlib.Path) -> pathlib.Path:
     axes[1].set(xlabel="step", ylabel=r"|post-impact $\dot\theta$ - fixed point|",
                 title="convergence to steady rolling (return map contracts by cos²(2α))")
     axes[1].legend(fontsize=8)
+    rolling = jd.simulate(wheel, (0.0, 8.0), jnp.array([0.0, 1.5]), rtol=1e-10, atol=1e-12)
+    save_movie(wheel, rolling, out, "rimless_wheel.gif")
     return save(fig, out, "rimless_wheel.png")
 
 

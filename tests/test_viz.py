@@ -95,11 +95,12 @@ def test_mp4_and_html_movies_of_a_hybrid_trajectory(tmp_path):
     assert frames.shape[0] == 20 and frames.shape[1:3] == (480, 640)
     html = vis.save(traj, tmp_path / "wheel.html", fps=10).read_text()
     assert "<script" in html and not re.search(r"(https?:)?//[a-z0-9.-]+\.[a-z]{2,}", html, re.IGNORECASE)
-    # the drawing follows the wheel: after k impacts the stance foot is k steps down the ramp
-    offsets = vis.offsets(traj, np.array([0.0, 1.99]))
+    # the camera follows the wheel: after k impacts it has gone k steps down the ramp
+    travel = vis.travel(traj, np.array([0.0, 1.99]))
     step = 2 * np.sin(np.pi / 8)
     k = np.searchsorted(traj.events["times"], 1.99)
-    np.testing.assert_allclose(np.linalg.norm(offsets[1]), k * step, rtol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(travel[1]), k * step, rtol=1e-12)
+    np.testing.assert_allclose(travel[1] / np.linalg.norm(travel[1]), [np.cos(0.08), -np.sin(0.08)], rtol=1e-12)
 
 
 def test_a_visualizer_is_a_system_in_a_diagram_and_errors_name_the_remedy():

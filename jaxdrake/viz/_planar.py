@@ -25,10 +25,22 @@ def _circle(centre, radius, count=40):
 
 def _ramp(ax, slope, length=40.0):
     """A ramp through the origin, descending to the right at `slope` rad."""
-    d = np.array([np.cos(slope), -np.sin(slope)])
+    d = _downhill(slope)
     ends = np.stack([-length * d, length * d])
     ax.fill_between(ends[:, 0], ends[:, 1], ends[:, 1].min() - 50, color="0.85", zorder=0)
     ax.plot(ends[:, 0], ends[:, 1], color="0.4", lw=1.5, zorder=0)
+
+
+def _downhill(slope):
+    return np.array([np.cos(slope), -np.sin(slope)])
+
+
+def _ramp_marks(slope, travel, spacing=0.5, count=41):
+    """Marks every `spacing` m along the ramp, as seen by a walker `travel` down it."""
+    along = (np.arange(count) - count // 2) * spacing - np.linalg.norm(travel) % spacing
+    return along[:, None] * _downhill(slope)
+
+RAMP_MARKS = dict(kind="points", marker="|", color="0.3", ms=10, mew=1.5)
 
 
 class PendulumVisualizer(Visualizer):
@@ -153,13 +165,14 @@ class BouncingBallVisualizer(Visualizer):
 
 class RimlessWheelVisualizer(Visualizer):
     """The rimless wheel on its ramp: spokes of length l at 2 alpha apart around the hub, the
-    stance spoke at angle theta from vertical, its foot at the origin; a movie follows the
-    wheel down the ramp by one step length 2 l sin(alpha) per impact."""
+    stance spoke at angle theta from vertical, its foot at the origin; in a movie the camera
+    follows the wheel, one step length 2 l sin(alpha) down the ramp per impact (the ramp's
+    marks move past)."""
 
     length: float
     slope: float
     num_spokes: int = eqx.field(static=True)
-    STYLES = {"spokes": dict(kind="line", color="C0", lw=2), "hub": MASS}
+    STYLES = {"spokes": dict(kind="line", color="C0", lw=2), "hub": MASS, "marks": RAMP_MARKS}
 
     def __init__(self, plant: RimlessWheel, draw_period=DRAW_PERIOD):
         self.length, self.slope, self.num_spokes = float(plant.modes[0].l), float(plant.slope), plant.num_spokes
@@ -177,29 +190,32 @@ class RimlessWheelVisualizer(Visualizer):
     def scenery(self, ax):
         _ramp(ax, self.slope)
 
-    def offsets(self, traj, times):
+    def travel(self, traj, times):
         events = traj.events
         sign = np.where(events["transitions"] == 0, 1.0, -1.0)  # step forward / backward
         steps = np.concatenate([[0.0], np.cumsum(sign)])[np.searchsorted(events["times"], times, side="right")]
         step = 2 * self.length * np.sin(np.pi / self.num_spokes)
-        return steps[:, None] * step * np.array([np.cos(self.slope), -np.sin(self.slope)])
+        return steps[:, None] * step * _downhill(self.slope)
+
+    def ground(self, travel):
+        return {"marks": _ramp_marks(self.slope, travel)}
 
     def view(self):
         l = self.length
-        return (-2 * l, 6 * l), (-3 * l, 2.5 * l)
+        return (-2.5 * l, 3.5 * l), (-2 * l, 2.5 * l)
 
 
 class CompassGaitVisualizer(Visualizer):
     """The compass gait on its ramp: the stance foot at the origin, the hip at
     l (sin(stance), cos(stance)) from it, the swing foot at l (sin(swing), cos(swing)) below the
-    hip; the legs' and hip's point masses. A movie follows the walker by each step's length,
-    2 l sin(|swing - stance| / 2) at heel strike."""
+    hip; the legs' and hip's point masses. In a movie the camera follows the walker, each step
+    2 l sin(|swing - stance| / 2) long at heel strike (the ramp's marks move past)."""
 
     length: float
     com: float
     slope: float
     STYLES = {"legs": dict(kind="line", color="C0", lw=3), "hip": MASS,
-              "leg_masses": dict(kind="points", color="C1", ms=9)}
+              "leg_masses": dict(kind="points", color="C1", ms=9), "marks": RAMP_MARKS}
 
     def __init__(self, plant: CompassGait, draw_period=DRAW_PERIOD):
         stance = plant.modes[0]
@@ -218,16 +234,19 @@ class CompassGaitVisualizer(Visualizer):
     def scenery(self, ax):
         _ramp(ax, self.slope)
 
-    def offsets(self, traj, times):
+    def travel(self, traj, times):
         events = traj.events
         after = events["states"]
         lengths = 2 * self.length * np.sin(np.abs(after[:, 1] - after[:, 0]) / 2) if len(after) else np.zeros(0)
         travelled = np.concatenate([[0.0], np.cumsum(lengths)])[np.searchsorted(events["times"], times, side="right")]
-        return travelled[:, None] * np.array([np.cos(self.slope), -np.sin(self.slope)])
+        return travelled[:, None] * _downhill(self.slope)
+
+    def ground(self, travel):
+        return {"marks": _ramp_marks(self.slope, travel)}
 
     def view(self):
         l = self.length
-        return (-1.5 * l, 5 * l), (-1.5 * l, 1.5 * l)
+        return (-1.5 * l, 2 * l), (-0.6 * l, 1.4 * l)
 
 
 class PlanarQuadrotorVisualizer(Visualizer):

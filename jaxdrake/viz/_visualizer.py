@@ -30,8 +30,9 @@ class Visualizer(System):
     """A stateless system drawing the plant whose state is its input.
 
     Subclasses give `shapes(x)` (a dict of (k, 2) point arrays, JAX), `STYLES` (a class-level
-    dict of matplotlib keyword dicts with a `kind`), `view()` ((xmin, xmax), (ymin, ymax)), and may draw
-    fixed `scenery(ax)` or shift each frame with `offsets(traj, times)` (a walker's progress).
+    dict of matplotlib keyword dicts with a `kind`), `view()` ((xmin, xmax), (ymin, ymax)), and may
+    draw fixed `scenery(ax)`; a walker gives its `travel(traj, times)` and the `ground(travel)`
+    that moves past it (the camera follows the walker).
     """
 
     draw_period: float = eqx.field(static=True)
@@ -58,9 +59,14 @@ class Visualizer(System):
     def scenery(self, ax):
         """Fixed background (ground, ramp, rail); nothing by default."""
 
-    def offsets(self, traj, times):
-        """A shift of every shape per frame (n, 2); zero unless the drawing follows the plant."""
+    def travel(self, traj, times):
+        """How far a walker has gone at each frame time (n, 2): zero for plants that stay in view.
+        A movie keeps the walker in view and moves `ground(travel)` past it instead."""
         return np.zeros((len(times), 2))
+
+    def ground(self, travel):
+        """Shapes of the ground seen from a walker that has gone `travel` (numpy); none by default."""
+        return {}
 
     # ----- drawing ----------------------------------------------------------------------------
 
@@ -72,12 +78,14 @@ class Visualizer(System):
         xs = jnp.asarray(xs)[..., : self.num_inputs]
         return {k: np.asarray(v) for k, v in jax.vmap(self.shapes)(xs).items()}
 
-    def _artists(self, ax, alpha=1.0):
+    def _artists(self, ax, alpha=1.0, names=None):
         from matplotlib.lines import Line2D
         from matplotlib.patches import Polygon
 
         artists = {}
         for name, style in self.STYLES.items():
+            if names is not None and name not in names:
+                continue
             style = dict(style)
             kind = style.pop("kind", "line")
             if kind == "polygon":
@@ -117,8 +125,8 @@ class Visualizer(System):
     def draw(self, x, ax=None):
         """Draw the plant in state x; returns the matplotlib figure."""
         fig, ax = self._figure(ax)
-        shapes = self.frame_shapes(jnp.asarray(x)[None])
-        self._place(self._artists(ax), shapes, 0, np.zeros(2))
+        shapes = self.frame_shapes(jnp.asarray(x)[None]) | {k: v[None] for k, v in self.ground(np.zeros(2)).items()}
+        self._place(self._artists(ax, names=shapes), shapes, 0, np.zeros(2))
         ax.set_title(self.plant_name)
         return fig
 
@@ -148,15 +156,18 @@ class Visualizer(System):
         members = xs.shape[1] if xs.ndim == 3 else 1
         states = xs.reshape(len(times) * members, -1)
         shapes = {k: v.reshape(len(times), members, *v.shape[1:]) for k, v in self.frame_shapes(states).items()}
-        offsets = self.offsets(traj, times) if members == 1 else np.zeros((len(times), 2))
+        travel = self.travel(traj, times) if members == 1 else np.zeros((len(times), 2))
+        grounds = [self.ground(step) for step in travel]
+        ground = {name: np.stack([g[name] for g in grounds]) for name in grounds[0]}
         alpha = 1.0 if members == 1 else max(0.1, 1 / np.sqrt(members))
-        layers = [self._artists(ax, alpha) for _ in range(members)]
+        layers = [self._artists(ax, alpha, names=set(shapes) | set(ground)) for _ in range(members)]
         title = ax.set_title("")
         moving = [a for artists in layers for a in artists.values()] + [title]
 
         def update(k):
             for j, artists in enumerate(layers):
-                self._place(artists, {n: v[:, j] for n, v in shapes.items()}, k, offsets[k])
+                drawn = {n: v[:, j] for n, v in shapes.items()} | ground
+                self._place(artists, drawn, k, np.zeros(2))
             title.set_text(f"{self.plant_name}: t = {times[k]:.2f} s{labels[k]}")
             return moving
 
