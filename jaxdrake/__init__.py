@@ -13,13 +13,14 @@ from .systems import (Diagram, DiagramBuilder, Frame, HybridSystem, LinearSystem
                       System, TrajectorySource, Transition, add_frame_conversion, and_guards, cascade, feedback,
                       not_guard, parallel)
 from .trajectories import Trajectory
+from ._batch import run_batch
 
 __version__ = "0.1.0"
 
 __all__ = ["Diagram", "DiagramBuilder", "Frame", "HybridSystem", "LinearSystem", "SimulationError",
            "CouplerConstraint", "LoopConstraint", "Polynomial", "PolynomialSystem", "RigidBodySystem", "SimulatedTrajectory", "SimulationStatus", "StochasticSystem", "System", "Trajectory", "TrajectorySource", "Transition",
            "add_frame_conversion", "and_guards", "cascade", "control", "feedback", "linearize", "models", "multibody", "not_guard",
-           "parallel", "planning", "simulate", "simulation", "systems", "trajectories", "viz"]
+           "parallel", "planning", "run_batch", "simulate", "simulation", "systems", "trajectories", "viz"]
 
 
 def __getattr__(name):

@@ -1,0 +1,64 @@
+"""`jd.run_batch`: pendulum simulations (2 s, default tolerances, final state only) in chunks,
+sharded over the local devices; against one `jit(vmap)` call on one device.
+
+Rows: one call of the whole batch on one device (when it fits); run_batch on one device in
+chunks (the chunking overhead); run_batch on every local device (the scaling). Times are the
+second call (the first compiles; its time is printed too).
+
+    python benchmarks/batch_benchmark.py [--batch 10000000] [--chunk 1000000]
+"""
+
+from __future__ import annotations
+
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxdrake as jd
+from _common import argument_parser, machine_line  # benchmarks/_common.py
+
+PENDULUM = jd.models.Pendulum()
+
+
+def final_state(x0):
+    return jd.simulate(PENDULUM, (0.0, 2.0), x0, dense=False, throw=False).final_state
+
+
+def timed(fn):
+    start = time.perf_counter()
+    out = jax.block_until_ready(fn())
+    first = time.perf_counter() - start
+    start = time.perf_counter()
+    out = jax.block_until_ready(fn())
+    return out, first, time.perf_counter() - start
+
+
+def main():
+    parser = argument_parser(__doc__, repeats=1, gpu_help="unused: the rows use every local device", batch=10_000_000)
+    parser.add_argument("--chunk", type=int, default=1_000_000, help="members per device per chunk")
+    parser.add_argument("--single", type=int, default=2_000_000, help="batch of the one-call row")
+    args = parser.parse_args()
+    print(machine_line(), f"| {jax.local_device_count()} devices")
+    x0 = np.asarray(jax.random.uniform(jax.random.key(0), (args.batch, 2), minval=-3.0, maxval=3.0))
+    one = jax.local_devices()[:1]
+
+    single = jax.jit(jax.vmap(final_state))
+    n = min(args.single, args.batch)
+    _, first, second = timed(lambda: single(jnp.asarray(x0[:n])))
+    print(f"one jit(vmap) call, {n:>9d} members, 1 device : {second:8.3f} s ({n / second:12.0f} sims/s), "
+          f"first {first:.2f} s")
+    for devices in (one, jax.local_devices()):
+        chunk = args.chunk * len(devices)
+        out, first, second = timed(lambda: jd.run_batch(final_state, x0, chunk_size=chunk, devices=devices))
+        print(f"run_batch, {args.batch:>9d} members, {len(devices)} device{'s' if len(devices) > 1 else ' '}: "
+              f"{second:8.3f} s ({args.batch / second:12.0f} sims/s), first {first:.2f} s, "
+              f"chunks of {chunk}")
+        if len(devices) == 1:
+            reference = out
+    np.testing.assert_array_equal(out, reference)  # the sharded run equals the one-device run
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,101 @@
+"""`run_batch`: a per-member function over a batch of any size, in chunks that fit in memory,
+each chunk sharded across devices (JAX's `NamedSharding` over a "batch" mesh axis).
+
+One program is compiled for every full chunk (the last one is padded with copies of the batch's
+last member and trimmed), and chunks are dispatched ahead of the host copies of their
+predecessors' results, so the devices are not idle while results come back. On several hosts
+(`jax.distributed.initialize()` first), pass the global devices and gather=False.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+
+def run_batch(fn, inputs, *, chunk_size: int | None = None, devices=None, progress: bool = False,
+              gather: bool = True):
+    """`jax.vmap(fn)(inputs)`, computed chunk by chunk and sharded across `devices`.
+
+    - `fn`: a function of one member (a pytree of arrays) returning a pytree of arrays.
+    - `inputs`: a pytree whose leaves share a leading batch axis of size B.
+    - `chunk_size`: members per chunk (rounded up to a multiple of the number of devices);
+      default: the whole batch in one chunk.
+    - `devices`: default `jax.local_devices()`; `progress`: a progress bar over chunks (tqdm).
+    - `gather`: return NumPy arrays on the host (device memory holds one chunk at a time);
+      False keeps the results on the devices, sharded along the batch axis.
+
+    The compiled program is kept per (`fn`, devices): pass the same function object (not a new
+    lambda) to call again without compiling."""
+    leaves, treedef = jax.tree.flatten(inputs)
+    if not leaves:
+        raise ValueError("run_batch: `inputs` has no arrays to map over")
+    sizes = {np.shape(leaf)[0] if np.ndim(leaf) else None for leaf in leaves}
+    if len(sizes) != 1 or None in sizes:
+        raise ValueError(f"run_batch: every leaf of `inputs` needs the same leading batch axis, "
+                         f"got leading sizes {sorted(sizes, key=str)}")
+    size = sizes.pop()
+    if size == 0:
+        raise ValueError("run_batch: the batch is empty")
+    devices = tuple(jax.local_devices() if devices is None else devices)
+    count = len(devices)
+    chunk = size if chunk_size is None else int(chunk_size)
+    if chunk < 1:
+        raise ValueError(f"run_batch: chunk_size must be a positive int, got {chunk_size}")
+    chunk = -(-min(chunk, size) // count) * count  # a multiple of the device count
+    mapped, sharding = _program(fn, devices)
+    starts = range(0, size, chunk)
+    bar = _bar(progress, len(starts))
+    pending, results = None, []
+    for start in starts:
+        stop = min(start + chunk, size)
+        piece = [_padded(np.asarray(leaf[start:stop]) if not isinstance(leaf, jax.Array) else leaf[start:stop],
+                         chunk) for leaf in leaves]
+        piece = jax.device_put(jax.tree.unflatten(treedef, piece), sharding)
+        out = mapped(piece)  # dispatched; runs while the previous chunk is copied back
+        if pending is not None:
+            results.append(_collect(*pending, gather))
+            if bar:
+                bar.update(1)
+        pending = (out, stop - start)
+    results.append(_collect(*pending, gather))
+    if bar:
+        bar.update(1)
+        bar.close()
+    if gather:
+        return jax.tree.map(lambda *parts: np.concatenate(parts), *results)
+    return jax.tree.map(lambda *parts: jnp.concatenate(parts) if len(parts) > 1 else parts[0], *results)
+
+
+@functools.lru_cache(maxsize=64)
+def _program(fn, devices):
+    """The jitted, sharded `vmap(fn)` for these devices (kept: one compilation per chunk shape)."""
+    mesh = Mesh(np.asarray(devices), ("batch",))
+    sharding = NamedSharding(mesh, PartitionSpec("batch"))
+    return jax.jit(jax.vmap(fn), in_shardings=sharding, out_shardings=sharding), sharding
+
+
+def _padded(x, chunk):
+    """x (n, ...) with its last row repeated up to `chunk` rows."""
+    missing = chunk - x.shape[0]
+    if missing == 0:
+        return x
+    tail = jnp.repeat(x[-1:], missing, axis=0) if isinstance(x, jax.Array) else np.repeat(x[-1:], missing, axis=0)
+    return (jnp if isinstance(x, jax.Array) else np).concatenate([x, tail])
+
+
+def _collect(out, used, gather):
+    if gather:
+        return jax.tree.map(lambda a: np.asarray(a)[:used], out)
+    return jax.tree.map(lambda a: a[:used] if used < a.shape[0] else a, out)
+
+
+def _bar(progress, total):
+    if not progress:
+        return None
+    from tqdm.auto import tqdm
+    return tqdm(total=total, desc="batch", unit="chunk")

@@ -1,0 +1,56 @@
+"""`jd.run_batch` on four CPU devices (a fresh process: the device count is fixed when JAX
+starts): chunked and sharded results equal one unsharded vmap, outputs left on the devices
+are sharded across all four, and a batch ten times a chunk keeps one chunk on the devices."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+
+import jaxdrake as jd
+
+SCRIPT = textwrap.dedent("""
+    import jax, jax.numpy as jnp, numpy as np
+    jax.config.update("jax_enable_x64", True)
+    import jaxdrake as jd
+
+    assert len(jax.devices()) == 4, jax.devices()
+    pendulum = jd.models.Pendulum()
+
+    def final_state(x0):
+        return jd.simulate(pendulum, (0.0, 2.0), x0, dense=False, throw=False).final_state
+
+    x0 = jax.random.uniform(jax.random.key(0), (1000, 2), minval=-3.0, maxval=3.0)
+    reference = np.asarray(jax.jit(jax.vmap(final_state))(x0))
+    chunked = jd.run_batch(final_state, x0, chunk_size=96)           # 11 chunks, the last padded
+    ulp = np.spacing(np.abs(reference))
+    assert chunked.shape == (1000, 2) and np.all(np.abs(chunked - reference) <= ulp), np.max(np.abs(chunked - reference) / ulp)
+    on_devices = jd.run_batch(final_state, x0, chunk_size=200, gather=False)
+    assert len(on_devices.sharding.device_set) == 4 and on_devices.shape == (1000, 2)
+    assert np.all(np.abs(np.asarray(on_devices) - reference) <= ulp)
+    # ten chunks of 100, gathered: the results live on the host, nothing accumulates on the devices
+    def live_bytes():
+        return sum(a.nbytes for a in jax.live_arrays())
+    before = live_bytes()
+    result = jd.run_batch(final_state, x0, chunk_size=100, progress=True)
+    assert isinstance(result, np.ndarray) and live_bytes() - before <= 100 * 2 * 8, live_bytes() - before
+    print("OK", np.max(np.abs(chunked - reference)))
+""")
+
+
+def test_run_batch_on_four_cpu_devices_equals_one_vmap():
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    done = subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True, env=env, timeout=600)
+    assert done.returncode == 0 and "OK" in done.stdout, done.stderr[-3000:]
+
+
+def test_run_batch_errors_name_the_problem():
+    import pytest
+
+    with pytest.raises(ValueError, match="same leading batch axis"):
+        jd.run_batch(lambda a, b: a, (np.zeros(3), np.zeros(4)))
+    with pytest.raises(ValueError, match="chunk_size must be a positive int"):
+        jd.run_batch(lambda a: a, np.zeros(3), chunk_size=0)
+    np.testing.assert_array_equal(jd.run_batch(lambda a: 2 * a, np.arange(5.0), chunk_size=2), 2 * np.arange(5.0))
