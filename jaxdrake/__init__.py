@@ -6,7 +6,7 @@ prefer_fast_cpu_compilation()
 
 from . import control, models, multibody, planning, simulation, systems, trajectories, viz  # noqa: E402
 from .control import linearize
-from .multibody import CouplerConstraint, LoopConstraint, RigidBodySystem
+from .multibody import CouplerConstraint, LoopConstraint, MujocoSystem, RigidBodySystem
 from .simulation import SimulatedTrajectory, SimulationError, SimulationStatus, simulate
 from .systems import (Diagram, DiagramBuilder, Frame, HybridSystem, LinearSystem, Polynomial,
                       PolynomialSystem, StochasticSystem,
@@ -18,7 +18,7 @@ from ._batch import run_batch
 __version__ = "0.1.0"
 
 __all__ = ["Diagram", "DiagramBuilder", "Frame", "HybridSystem", "LinearSystem", "SimulationError",
-           "CouplerConstraint", "LoopConstraint", "Polynomial", "PolynomialSystem", "RigidBodySystem", "SimulatedTrajectory", "SimulationStatus", "StochasticSystem", "System", "Trajectory", "TrajectorySource", "Transition",
+           "CouplerConstraint", "LoopConstraint", "MujocoSystem", "Polynomial", "PolynomialSystem", "RigidBodySystem", "SimulatedTrajectory", "SimulationStatus", "StochasticSystem", "System", "Trajectory", "TrajectorySource", "Transition",
            "add_frame_conversion", "and_guards", "cascade", "control", "feedback", "linearize", "models", "multibody", "not_guard",
            "parallel", "planning", "run_batch", "simulate", "simulation", "systems", "trajectories", "viz"]
 

@@ -1,0 +1,136 @@
+"""MuJoCo models as systems (MJX): C MuJoCo's own `mj_step` is the oracle; vmap equals single
+runs; gradients against central differences; discrete LQR of the linearized update balances
+the cart-pole. (MJX's step compiles for seconds: the batched, differentiated and LQR tests are
+`slow`.)"""
+
+import pathlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxdrake as jd
+
+mujoco = pytest.importorskip("mujoco")
+pytest.importorskip("mujoco.mjx")
+DATA = pathlib.Path(__file__).parent / "data"
+PENDULUM = """<mujoco model="pendulum"><option timestep="0.002"/>
+  <worldbody><body name="arm"><joint name="theta" type="hinge" axis="0 1 0" damping="0.05"/>
+  <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.02" mass="1"/></body></worldbody>
+  <actuator><motor name="tau" joint="theta" ctrlrange="-1 1" ctrllimited="true"/></actuator></mujoco>"""
+
+
+def c_mujoco(model, x0, controls, warmstart=True):
+    """States after each of len(controls) mj_step calls (C MuJoCo, float64)."""
+    if not warmstart:
+        model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_WARMSTART
+    data = mujoco.MjData(model)
+    data.qpos[:], data.qvel[:] = x0[: model.nq], x0[model.nq:]
+    states = []
+    for u in controls:
+        data.ctrl[:] = u
+        mujoco.mj_step(model, data)
+        states.append(np.concatenate([data.qpos, data.qvel]))
+    return np.asarray(states)
+
+
+@pytest.mark.parametrize("source", [PENDULUM, DATA / "mj_cartpole.xml"], ids=["pendulum", "cartpole"])
+def test_a_thousand_steps_equal_c_mujoco(source):
+    system = jd.MujocoSystem.from_xml(source)
+    dt, n = system.sample_time, 1000
+    x0 = np.array(system.initial_state()) + 0.3
+    controls = 0.8 * np.sin(3.0 * dt * np.arange(n))[:, None] * np.ones((1, system.num_inputs))
+    expected = c_mujoco(system.mj_model, x0, controls)
+    tape = jd.Trajectory.from_samples(dt * np.arange(n), controls, interpolation="zoh")
+    traj = jd.simulate(system, (0.0, n * dt), jnp.asarray(x0), inputs=tape)
+    np.testing.assert_allclose(np.asarray(traj.final_state), expected[-1], rtol=0, atol=1e-10)
+    samples = np.asarray(traj.state(jnp.asarray(dt * np.arange(1, n + 1))))
+    np.testing.assert_allclose(samples, expected, rtol=0, atol=1e-10)
+
+
+def test_contacts_equal_c_mujoco_to_the_solver_tolerance():
+    """A spinning ball dropped onto a plane, converged solver (MuJoCo's defaults: tolerance
+    1e-8): MJX and C MuJoCo (warm start off in both) agree to 1e-6 over 400 steps (2 s),
+    through the impact and the rolling contact; before the contact, to rounding (1e-14)."""
+    system = jd.MujocoSystem.from_xml((DATA / "mj_ball.xml").read_text().replace(
+        'iterations="1" ls_iterations="4"', ""))
+    x0 = np.array(system.initial_state())
+    x0[7], x0[11] = 0.5, 1.0   # moving along x, spinning about y
+    expected = c_mujoco(system.mj_model, x0, np.zeros((400, 0)), warmstart=False)
+    traj = jd.simulate(system, (0.0, 400 * system.sample_time), jnp.asarray(x0))
+    ours = np.asarray(traj.state(jnp.asarray(system.sample_time * np.arange(1, 401))))
+    np.testing.assert_allclose(ours[:80], expected[:80], rtol=0, atol=1e-14)
+    np.testing.assert_allclose(ours, expected, rtol=0, atol=1e-6)
+    assert expected[-1, 2] == pytest.approx(0.1, abs=1e-3)  # resting on the plane
+
+
+@pytest.mark.slow
+def test_vmap_over_states_and_masses_equals_single_runs():
+    system = jd.MujocoSystem.from_xml(DATA / "mj_cartpole.xml")
+    run = lambda s, x0: jd.simulate(s, (0.0, 1.0), x0, dense=False).final_state
+    x0s = jnp.asarray(np.random.default_rng(0).uniform(-0.5, 0.5, (1000, 4)))
+    batch = jax.jit(jax.vmap(lambda x0: run(system, x0)))(x0s)
+    for i in (0, 517, 999):
+        np.testing.assert_allclose(batch[i], run(system, x0s[i]), rtol=0, atol=1e-14)
+    pole = system.mj_model.body("pole").id
+
+    def run_mass(m):
+        heavier = eqx_set_mass(system, pole, m)
+        return run(heavier, x0s[0])
+    masses = jnp.linspace(0.05, 0.5, 8)
+    per_mass = jax.jit(jax.vmap(run_mass))(masses)
+    np.testing.assert_allclose(per_mass[5], run_mass(masses[5]), rtol=0, atol=1e-14)
+    assert not np.allclose(per_mass[0], per_mass[-1])
+
+
+def eqx_set_mass(system, body, mass):
+    import equinox as eqx
+    return eqx.tree_at(lambda s: s.model.body_mass, system, system.model.body_mass.at[body].set(mass))
+
+
+@pytest.mark.slow
+def test_gradients_of_rollouts_match_central_differences():
+    """Contact-free (the cart-pole, w.r.t. x0 and the pole's mass) and with contacts (the
+    ball with one solver iteration, w.r.t. its initial height and speed)."""
+    cartpole = jd.MujocoSystem.from_xml(DATA / "mj_cartpole.xml")
+    pole = cartpole.mj_model.body("pole").id
+
+    def loss(x0, mass):
+        s = eqx_set_mass(cartpole, pole, mass)
+        return jnp.sum(jd.simulate(s, (0.0, 0.5), x0, dense=False).final_state ** 2)
+
+    x0, mass = jnp.array([0.1, 0.2, 0.0, -0.3]), 0.1
+    gx, gm = jax.grad(loss, argnums=(0, 1))(x0, mass)
+    eps = 1e-6
+    fd_x = np.array([(loss(x0 + eps * e, mass) - loss(x0 - eps * e, mass)) / (2 * eps) for e in np.eye(4)])
+    np.testing.assert_allclose(gx, fd_x, rtol=1e-5, atol=1e-8)
+    np.testing.assert_allclose(gm, (loss(x0, mass + eps) - loss(x0, mass - eps)) / (2 * eps), rtol=1e-5)
+
+    ball = jd.MujocoSystem.from_xml(DATA / "mj_ball.xml")   # iterations="1": differentiable contacts
+
+    def height_after_bounce(z0, vx):
+        x = jnp.asarray(ball.initial_state()).at[2].set(z0).at[7].set(vx)
+        final = jd.simulate(ball, (0.0, 0.6), x, dense=False).final_state
+        return final[0] + final[2]
+
+    g = jax.grad(height_after_bounce, argnums=(0, 1))(0.6, 0.4)
+    fd = [(height_after_bounce(0.6 + eps, 0.4) - height_after_bounce(0.6 - eps, 0.4)) / (2 * eps),
+          (height_after_bounce(0.6, 0.4 + eps) - height_after_bounce(0.6, 0.4 - eps)) / (2 * eps)]
+    np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-7)
+
+
+@pytest.mark.slow
+def test_lqr_of_the_linearized_update_balances_the_cart_pole():
+    cartpole = jd.MujocoSystem.from_xml(DATA / "mj_cartpole.xml")
+    upright, u0 = jnp.zeros(4), jnp.zeros(1)
+    result = jd.control.lqr(cartpole, jnp.diag(jnp.array([1.0, 10.0, 1.0, 1.0])), jnp.eye(1), x0=upright, u0=u0)
+    closed = jd.feedback(cartpole, result.controller)
+    traj = jd.simulate(closed, (0.0, 8.0), jnp.array([0.0, 0.15, 0.0, 0.0]))
+    angles = np.asarray(traj.state(jnp.linspace(0.0, 8.0, 801)))[:, 1]
+    assert np.max(np.abs(angles)) < 0.2 and abs(angles[-1]) < 1e-3  # caught and settled upright
+    np.testing.assert_allclose(traj.final_state, 0.0, atol=1e-2)
+    assert cartpole.output_frame.coordinates == ("slider", "hinge", "sliderdot", "hingedot")
+    sensed = jd.MujocoSystem.from_xml(DATA / "mj_cartpole.xml", output="sensors")
+    np.testing.assert_allclose(sensed.output(0.0, jnp.array([0.2, -0.4, 1.0, 2.0]), u0), [0.2, -0.4], atol=1e-15)
+    assert sensed.output_frame.coordinates == ("cart_position", "pole_angle")
