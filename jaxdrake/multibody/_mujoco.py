@@ -4,8 +4,11 @@ A `MujocoSystem` is a discrete-time system of period `opt.timestep`:
 $x_{k+1} = \mathrm{mjx.step}(x_k, u_k)$ with state $x = [q_{pos}; q_{vel}; a]$ (positions,
 velocities, actuator activations) and input the controls (`ctrl`, saturated to `ctrlrange`
 where the model limits them). Every other quantity MJX needs is rebuilt from the model each
-step; in particular the constraint solver starts from zero acceleration (no warm start), so
-a comparison with C MuJoCo sets `mjDSBL_WARMSTART` there. The model's arrays (masses, damping,
+step. The constraint solver's warm start (the previous step's accelerations) is state only
+with `warm_start=True` (x gains nv entries; then steps are identical to MJX's and C MuJoCo's
+own loops); by default each step's solve starts from zero (C MuJoCo's `mjDSBL_WARMSTART`),
+which changes nothing without constraints and, with a converged solver, little with them,
+but matters with one solver iteration (MuJoCo Playground's setting). The model's arrays (masses, damping,
 gains, geometry sizes, ...) are pytree leaves: `vmap` over them does not recompile and `grad`
 reaches them. Needs `pip install mujoco==3.17.0 mujoco-mjx==3.17.0` (the `mujoco` extra).
 """
@@ -40,7 +43,8 @@ class MujocoSystem(System):
 
     **Construction:** `MujocoSystem.from_xml(text_or_path, assets=None)` (MJCF, or a URDF that
     MuJoCo imports) or `MujocoSystem(mj_model)` for a `mujoco.MjModel`. `output="state"`
-    (default) or `"sensors"` (`sensordata`, named by the model's sensors).
+    (default) or `"sensors"` (`sensordata`, named by the model's sensors); `warm_start=True`
+    carries the solver's warm start in the state (see the module doc).
 
     `mj_model` keeps the C model (for C MuJoCo, rendering); `model` is the `mjx.Model`.
     """
@@ -49,8 +53,9 @@ class MujocoSystem(System):
     mj_model: Any = eqx.field(static=True)
     sizes: tuple = eqx.field(static=True)  # (nq, nv, na)
     sensors: bool = eqx.field(static=True)
+    warm_start: bool = eqx.field(static=True)
 
-    def __init__(self, mj_model, *, output: str = "state"):
+    def __init__(self, mj_model, *, output: str = "state", warm_start: bool = False):
         mujoco, mjx = _mujoco()
         if not isinstance(mj_model, mujoco.MjModel):
             raise TypeError(f"MujocoSystem needs a mujoco.MjModel (or use MujocoSystem.from_xml), "
@@ -62,8 +67,12 @@ class MujocoSystem(System):
         self.mj_model, self.model = mj_model, mjx.put_model(mj_model)
         self.sizes = (mj_model.nq, mj_model.nv, mj_model.na)
         self.sensors = output == "sensors"
+        self.warm_start = bool(warm_start)
         name = mj_model.names[: mj_model.names.find(b"\0")].decode() or "mujoco_model"
-        state = Frame(f"{name}State", _state_names(mujoco, mj_model))
+        names = _state_names(mujoco, mj_model)
+        if self.warm_start:
+            names += tuple(f"{v}_warmstart" for v in names[mj_model.nq: mj_model.nq + mj_model.nv])
+        state = Frame(f"{name}State", names)
         inputs = Frame(f"{name}Input", tuple(_name(mujoco, mj_model, mujoco.mjtObj.mjOBJ_ACTUATOR, i, "u")
                                              for i in range(mj_model.nu)))
         limited = np.asarray(mj_model.actuator_ctrllimited, bool)
@@ -74,13 +83,13 @@ class MujocoSystem(System):
         outputs = state
         if self.sensors:
             outputs = Frame(f"{name}Sensors", _sensor_names(mujoco, mj_model))
-        super().__init__(num_discrete_states=sum(self.sizes), num_inputs=mj_model.nu,
+        super().__init__(num_discrete_states=sum(self.sizes) + self.warm_start * mj_model.nv, num_inputs=mj_model.nu,
                          num_outputs=len(outputs.coordinates), sample_time=float(mj_model.opt.timestep),
                          time_invariant=True, input_limits=limits, state_frame=state,
                          input_frame=inputs, output_frame=outputs)
 
     @classmethod
-    def from_xml(cls, text_or_path, assets=None, *, output: str = "state") -> "MujocoSystem":
+    def from_xml(cls, text_or_path, assets=None, *, output: str = "state", warm_start: bool = False) -> "MujocoSystem":
         """From MJCF text or a file path (an `.xml` MJCF or a `.urdf`); `assets`: {file name: bytes}."""
         mujoco, _ = _mujoco()
         text = str(text_or_path)
@@ -91,19 +100,21 @@ class MujocoSystem(System):
             if not path.exists():
                 raise FileNotFoundError(f"no MuJoCo model file {path}")
             model = mujoco.MjModel.from_xml_path(str(path), assets or {})
-        return cls(model, output=output)
+        return cls(model, output=output, warm_start=warm_start)
 
     def _data(self, t, x, u):
         _, mjx = _mujoco()
-        nq, nv, _ = self.sizes
+        nq, nv, na = self.sizes
         data = mjx.make_data(self.model)
-        return data.replace(time=jnp.asarray(t, x.dtype), qpos=x[:nq], qvel=x[nq: nq + nv], act=x[nq + nv:],
-                            ctrl=u.astype(x.dtype))
+        data = data.replace(time=jnp.asarray(t, x.dtype), qpos=x[:nq], qvel=x[nq: nq + nv],
+                            act=x[nq + nv: nq + nv + na], ctrl=u.astype(x.dtype))
+        return data.replace(qacc_warmstart=x[nq + nv + na:]) if self.warm_start else data
 
     def update(self, t, x, u):
         _, mjx = _mujoco()
         data = mjx.step(self.model, self._data(t, x, u))
-        return jnp.concatenate([data.qpos, data.qvel, data.act]).astype(x.dtype)
+        parts = [data.qpos, data.qvel, data.act] + ([data.qacc_warmstart] if self.warm_start else [])
+        return jnp.concatenate(parts).astype(x.dtype)
 
     def output(self, t, x, u):
         if not self.sensors:
@@ -112,9 +123,9 @@ class MujocoSystem(System):
         return mjx.forward(self.model, self._data(t, x, u)).sensordata.astype(x.dtype)
 
     def initial_state(self):
-        """The model's qpos0 at rest, activations zero (MuJoCo's reset state)."""
+        """The model's qpos0 at rest, activations (and warm start) zero: MuJoCo's reset state."""
         nq, nv, na = self.sizes
-        return jnp.concatenate([jnp.asarray(self.mj_model.qpos0, float), jnp.zeros(nv + na)])
+        return jnp.concatenate([jnp.asarray(self.mj_model.qpos0, float), jnp.zeros(nv + na + self.warm_start * nv)])
 
     def render(self, x, *, width: int = 640, height: int = 480, camera=-1):
         """An RGB image (height, width, 3) of state x by MuJoCo's own renderer (needs an OpenGL
@@ -123,7 +134,7 @@ class MujocoSystem(System):
         nq, nv, _ = self.sizes
         data = mujoco.MjData(self.mj_model)
         x = np.asarray(x, float)
-        data.qpos[:], data.qvel[:], data.act[:] = x[:nq], x[nq: nq + nv], x[nq + nv:]
+        data.qpos[:], data.qvel[:], data.act[:] = x[:nq], x[nq: nq + nv], x[nq + nv: nq + nv + self.sizes[2]]
         mujoco.mj_forward(self.mj_model, data)
         with mujoco.Renderer(self.mj_model, height, width) as renderer:
             renderer.update_scene(data, camera)
