@@ -1,9 +1,14 @@
-"""Every example script and notebook runs end to end (they are products, not decoration)."""
+"""Every example script and notebook runs end to end (they are products, not decoration).
+
+Each runs in a process of its own, two at a time (compiling is mostly single-threaded, and a
+2-core machine then does two compilations at once): the selected scripts and notebooks are
+started when the first of these tests runs, and each test waits for its own."""
 
 import os
 import pathlib
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
@@ -13,44 +18,64 @@ EXAMPLES = sorted(p for p in (ROOT / "examples").glob("*.py") if not p.name.star
 SLOW = {"swing_up.ipynb"}
 NOTEBOOKS = [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW else p
              for p in sorted((ROOT / "notebooks").glob("*.ipynb"))]
+WORKERS = 2
+
+EXECUTE_NOTEBOOK = """
+import sys, nbclient, nbformat
+nb = nbformat.read(sys.argv[1], as_version=4)
+nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
+                        resources={"metadata": {"path": sys.argv[2]}}).execute()
+images = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
+          if "image/png" in o.get("data", {})]
+print("IMAGES", len(images))
+"""
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _shared_compilation_cache(tmp_path_factory):
-    """Scripts and notebook kernels share JAX's persistent compilation cache (a fresh one per
-    run): a notebook that repeats its script's computations loads those programs instead of
-    compiling them again, as a user's second session would."""
-    settings = {"JAX_COMPILATION_CACHE_DIR": str(tmp_path_factory.mktemp("jax-cache")),
-                "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
-    saved = {k: os.environ.get(k) for k in settings}
-    os.environ.update(settings)
-    yield
-    for k, v in saved.items():
-        if v is None:
-            os.environ.pop(k)
-        else:
-            os.environ[k] = v
+@pytest.fixture(scope="module")
+def runs(request, tmp_path_factory):
+    """Start every selected script and notebook (two at a time); {path: future of the
+    finished process}. Scripts and notebook kernels share JAX's persistent compilation cache
+    (a fresh one per run): a notebook that repeats its script's computations loads those
+    programs instead of compiling them again, as a user's second session would."""
+    env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=str(tmp_path_factory.mktemp("jax-cache")),
+               JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
+    selected = [item.callspec.params for item in request.session.items
+                if item.module is request.module and hasattr(item, "callspec")]
+    pool = ThreadPoolExecutor(WORKERS)
+    futures = {}
+    for params in selected:  # the scripts first: the notebooks then find their programs cached
+        if "script" in params:
+            script, out = params["script"], tmp_path_factory.mktemp(params["script"].stem)
+            futures[script] = pool.submit(_run, [sys.executable, str(script), "--out", str(out)], env, out)
+    for params in selected:
+        if "notebook" in params:
+            notebook = params["notebook"]
+            futures[notebook] = pool.submit(_run, [sys.executable, "-c", EXECUTE_NOTEBOOK, str(notebook),
+                                                   str(notebook.parent)], env, None)
+    yield futures
+    pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _run(command, env, out):
+    done = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=900)
+    return done, out
 
 
 @pytest.mark.notebook
 @pytest.mark.parametrize("script", EXAMPLES, ids=lambda p: p.name)
-def test_example_script_runs_and_saves_its_figure(script, tmp_path):
-    result = subprocess.run([sys.executable, str(script), "--out", str(tmp_path)], cwd=ROOT,
-                            capture_output=True, text=True, timeout=600)
-    assert result.returncode == 0, result.stderr[-3000:]
-    figures = list(tmp_path.glob("*.png"))
+def test_example_script_runs_and_saves_its_figure(script, runs):
+    done, out = runs[script].result()
+    assert done.returncode == 0, done.stderr[-3000:]
+    figures = list(out.glob("*.png"))
     assert figures and all(f.stat().st_size > 10_000 for f in figures)
+    movies = list(out.glob("*.gif"))
+    assert all(m.stat().st_size > 10_000 for m in movies)
 
 
 @pytest.mark.notebook
 @pytest.mark.parametrize("notebook", NOTEBOOKS, ids=lambda p: getattr(p, "name", None))
-def test_notebook_executes(notebook):
-    import nbclient
-    import nbformat
-
-    nb = nbformat.read(notebook, as_version=4)
-    nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
-                            resources={"metadata": {"path": str(notebook.parent)}}).execute()
-    images = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
-              if "image/png" in o.get("data", {})]
-    assert images, "a notebook should show at least one plot"
+def test_notebook_executes(notebook, runs):
+    done, _ = runs[notebook].result()
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "IMAGES" in done.stdout and int(done.stdout.split("IMAGES")[1]) > 0, \
+        "a notebook should show at least one plot"
