@@ -57,13 +57,15 @@ class LimitCycleError(RuntimeError):
 
 
 def limit_cycle(system: System, x_guess, period_guess, *, events_per_period: int = 1,
-                tol: float = 1e-10, max_iterations: int = 30, rtol: float = 1e-12,
-                atol: float = 1e-12, max_steps: int = 16384) -> LimitCycle:
+                tol: float | None = None, max_iterations: int = 30, rtol: float | None = None,
+                atol: float | None = None, max_steps: int = 16384) -> LimitCycle:
     """A periodic orbit of `system` (inputs held at 0) near `x_guess`, with period near
     `period_guess` (for a hybrid system, the guess bounds the time searched for the events:
     3 x `period_guess`). `tol`: the Newton residual at which to stop (max norm); `rtol`,
-    `atol`, `max_steps`: of the simulations. Raises `LimitCycleError` when Newton does not
-    converge (outside `jit`; inside, check `result.residual`)."""
+    `atol`, `max_steps`: of the simulations. Defaults follow the float width: 1e-10 and 1e-12
+    in float64, 1e-4 and 1e-6 in float32 (JAX's default; it cannot resolve more). Raises
+    `LimitCycleError` when Newton does not converge (outside `jit`; inside, check
+    `result.residual`)."""
     if not isinstance(system, System):
         raise TypeError(f"limit_cycle needs a jaxdrake.System, got {type(system).__name__}")
     hybrid = isinstance(system, HybridSystem)
@@ -79,6 +81,10 @@ def limit_cycle(system: System, x_guess, period_guess, *, events_per_period: int
         x_guess = system.pad_state(system.initial_mode, x_guess)
     if x_guess.shape != (system.num_states,):
         raise ValueError(f"x_guess has shape {x_guess.shape}; {system.name} has {system.num_states} states")
+    wide = jnp.finfo(x_guess.dtype).bits >= 64
+    tol = (1e-10 if wide else 1e-4) if tol is None else tol
+    rtol = (1e-12 if wide else 1e-6) if rtol is None else rtol
+    atol = (1e-12 if wide else 1e-6) if atol is None else atol
     options = dict(rtol=rtol, atol=atol, max_steps=max_steps)
     system = leaves_to_arrays(system, x_guess.dtype)  # new parameter values: no new compilation
     result = _solve(system, x_guess, jnp.asarray(period_guess, x_guess.dtype), jnp.asarray(tol, x_guess.dtype),

@@ -68,7 +68,8 @@ class MujocoSystem(System):
         self.sizes = (mj_model.nq, mj_model.nv, mj_model.na)
         self.sensors = output == "sensors"
         self.warm_start = bool(warm_start)
-        name = mj_model.names[: mj_model.names.find(b"\0")].decode() or "mujoco_model"
+        name = "".join(c for c in mj_model.names[: mj_model.names.find(b"\0")].decode().title() if c.isalnum())
+        name = name or "MujocoModel"
         names = _state_names(mujoco, mj_model)
         if self.warm_start:
             names += tuple(f"{v}_warmstart" for v in names[mj_model.nq: mj_model.nq + mj_model.nv])

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import pathlib
 import re
+import warnings
 from typing import ClassVar
 
 import equinox as eqx
@@ -239,12 +240,14 @@ class Visualizer(System):
             images = [Image.fromarray(f).quantize(palette=palette, dither=Image.Dither.NONE) for f in frames]
             images[0].save(path, save_all=True, append_images=images[1:], duration=1000 / fps, loop=0)
         else:
-            writer = imageio_ffmpeg.write_frames(str(path), (frames.shape[2], frames.shape[1]), fps=fps,
-                                                 codec="libx264", pix_fmt_out="yuv420p", macro_block_size=8)
-            writer.send(None)
-            for frame in frames:
-                writer.send(np.ascontiguousarray(frame))
-            writer.close()
+            with warnings.catch_warnings():  # JAX warns of any fork; ffmpeg's process execs at once
+                warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
+                writer = imageio_ffmpeg.write_frames(str(path), (frames.shape[2], frames.shape[1]), fps=fps,
+                                                     codec="libx264", pix_fmt_out="yuv420p", macro_block_size=8)
+                writer.send(None)
+                for frame in frames:
+                    writer.send(np.ascontiguousarray(frame))
+                writer.close()
         return path
 
     def playback(self, traj, rate: float = 1.0, fps=None):
