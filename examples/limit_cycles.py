@@ -70,7 +70,7 @@ def main(out: pathlib.Path) -> pathlib.Path:
                 title="Compass gait on a 0.0525 rad slope")
     axes[1].legend(fontsize=8)
 
-    slopes = np.linspace(0.03, 0.08, 6)
+    slopes = np.linspace(0.03, 0.08, 4)
     guess = np.asarray(fixed.state)
 
     def speed(slope):  # mean walking speed along the ramp: step length / step time

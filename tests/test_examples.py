@@ -18,7 +18,7 @@ EXAMPLES = sorted(p for p in (ROOT / "examples").glob("*.py") if not p.name.star
 SLOW = {"swing_up.ipynb"}
 NOTEBOOKS = [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW else p
              for p in sorted((ROOT / "notebooks").glob("*.ipynb"))]
-WORKERS = 2
+WORKERS = 3
 
 EXECUTE_NOTEBOOK = """
 import sys, nbclient, nbformat
