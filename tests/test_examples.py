@@ -15,7 +15,7 @@ import pytest
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 EXAMPLES = sorted(p for p in (ROOT / "examples").glob("*.py") if not p.name.startswith("_"))
 # a notebook that repeats its example script at a much larger batch runs with `-m slow` only
-SLOW = {"swing_up.ipynb"}
+SLOW = {"swing_up.ipynb", "lqr.ipynb"}  # lqr.ipynb: 45 s, extends lqr.py (run with -m slow)
 NOTEBOOKS = [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW else p
              for p in sorted((ROOT / "notebooks").glob("*.ipynb"))]
 WORKERS = 3
