@@ -79,7 +79,7 @@ class PlanarRigidBodyVisualizer(Visualizer):
             raise ValueError(f"plane must name two world axes, e.g. 'xz', got {plane!r}")
         self.plant, self.plane = plant, tuple(axes[c] for c in plane)
         tree = plant.tree
-        self.links = tuple(pairs for pairs in _link_segments(tree))
+        self.links = tuple(_link_segments(tree))
         super().__init__(plant, draw_period)
 
     def points(self, x):
@@ -163,7 +163,14 @@ class BouncingBallVisualizer(Visualizer):
         return (-3 * self.radius, 3 * self.radius), (-0.5 * self.radius, 7 * self.radius)
 
 
-class RimlessWheelVisualizer(Visualizer):
+class _RampWalker(Visualizer):
+    """A walker on a ramp of `slope` rad: the ramp's marks move past as it travels."""
+
+    def ground(self, travel):
+        return {"marks": _ramp_marks(self.slope, travel)}
+
+
+class RimlessWheelVisualizer(_RampWalker):
     """The rimless wheel on its ramp: spokes of length l at 2 alpha apart around the hub, the
     stance spoke at angle theta from vertical, its foot at the origin; in a movie the camera
     follows the wheel, one step length 2 l sin(alpha) down the ramp per impact (the ramp's
@@ -197,15 +204,13 @@ class RimlessWheelVisualizer(Visualizer):
         step = 2 * self.length * np.sin(np.pi / self.num_spokes)
         return steps[:, None] * step * _downhill(self.slope)
 
-    def ground(self, travel):
-        return {"marks": _ramp_marks(self.slope, travel)}
 
     def view(self):
         l = self.length
         return (-2.5 * l, 3.5 * l), (-2 * l, 2.5 * l)
 
 
-class CompassGaitVisualizer(Visualizer):
+class CompassGaitVisualizer(_RampWalker):
     """The compass gait on its ramp: the stance foot at the origin, the hip at
     l (sin(stance), cos(stance)) from it, the swing foot at l (sin(swing), cos(swing)) below the
     hip; the legs' and hip's point masses. In a movie the camera follows the walker, each step
@@ -241,8 +246,6 @@ class CompassGaitVisualizer(Visualizer):
         travelled = np.concatenate([[0.0], np.cumsum(lengths)])[np.searchsorted(events["times"], times, side="right")]
         return travelled[:, None] * _downhill(self.slope)
 
-    def ground(self, travel):
-        return {"marks": _ramp_marks(self.slope, travel)}
 
     def view(self):
         l = self.length

@@ -103,9 +103,9 @@ class Visualizer(System):
         return artists
 
     @staticmethod
-    def _place(artists, shapes, k, offset):
+    def _place(artists, shapes, k):
         for name, artist in artists.items():
-            points = shapes[name][k] + offset
+            points = shapes[name][k]
             if hasattr(artist, "set_xy"):
                 artist.set_xy(points)
             else:
@@ -127,7 +127,7 @@ class Visualizer(System):
         """Draw the plant in state x; returns the matplotlib figure."""
         fig, ax = self._figure(ax)
         shapes = self.frame_shapes(jnp.asarray(x)[None]) | {k: v[None] for k, v in self.ground(np.zeros(2)).items()}
-        self._place(self._artists(ax, names=shapes), shapes, 0, np.zeros(2))
+        self._place(self._artists(ax, names=shapes), shapes, 0)
         ax.set_title(self.plant_name)
         return fig
 
@@ -168,7 +168,7 @@ class Visualizer(System):
         def update(k):
             for j, artists in enumerate(layers):
                 drawn = {n: v[:, j] for n, v in shapes.items()} | ground
-                self._place(artists, drawn, k, np.zeros(2))
+                self._place(artists, drawn, k)
             title.set_text(f"{self.plant_name}: t = {times[k]:.2f} s{labels[k]}")
             return moving
 
