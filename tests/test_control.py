@@ -312,3 +312,30 @@ def test_switch_to_lqr_rejects_mismatched_controllers():
                                               x0=np.array([np.pi, 0.0])).controller, balance)
     with pytest.raises(ValueError, match="one input driving one joint"):
         jd.control.acrobot_spong_controller(jd.models.DoublePendulum())
+
+
+def test_riccati_derivatives_in_both_modes_match_finite_differences():
+    """dS/dA by reverse mode (the transposed Lyapunov / Stein solves) equals forward mode and
+    central differences, continuous and discrete."""
+    rng = np.random.default_rng(3)
+    A, B = rng.normal(size=(4, 4)), rng.normal(size=(4, 2))
+    Q, R, W = np.eye(4), np.eye(2), rng.normal(size=(4, 4))
+    for solve, A0 in ((solve_continuous_are, A), (solve_discrete_are, 0.3 * A)):
+        loss = lambda A: jnp.sum(W * solve(A, B, Q, R))
+        reverse, forward = jax.grad(loss)(A0), jax.jacfwd(loss)(A0)
+        E = np.zeros((4, 4))
+        E[1, 2] = 1e-6
+        central = (loss(A0 + E) - loss(A0 - E)) / 2e-6
+        np.testing.assert_allclose(reverse, forward, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(reverse[1, 2], central, rtol=1e-6)
+
+
+def test_lqr_without_a_stabilising_solution_is_a_named_error():
+    uncontrollable = jd.LinearSystem([[1.0, 0.0], [0.0, -1.0]], [[0.0], [1.0]])  # the unstable mode has no input
+    with pytest.raises(ValueError, match="no stabilising solution"):
+        lqr(uncontrollable, np.eye(2), np.eye(1))
+    with pytest.raises(ValueError, match="imaginary axis"):  # Q = 0 leaves the double integrator's modes unseen
+        lqr(jd.models.DoubleIntegrator(), np.zeros((2, 2)), np.eye(1))
+    discrete = jd.LinearSystem([[2.0, 0.0], [0.0, 0.5]], [[0.0], [1.0]], sample_time=0.1)
+    with pytest.raises(ValueError, match="unit circle"):
+        lqr(discrete, np.eye(2), np.eye(1))

@@ -86,6 +86,23 @@ def _lqr_gain(A, B, Q, R, N, discrete: bool):
     return jnp.linalg.solve(R, B.T @ S + (0.0 if N is None else N.T)), S
 
 
+def _require_stabilising(system, lin, K, S):
+    """A ValueError unless S is finite and A - B K is stable (the Riccati equation has a
+    stabilising solution only for stabilisable (A, B) and (A, Q) without unobservable modes
+    on the stability boundary)."""
+    poles = np.linalg.eigvals(np.asarray(lin.A) - np.asarray(lin.B) @ np.asarray(K)) if np.all(np.isfinite(K)) else None
+    if lin.is_discrete:
+        boundary, stable = "unit circle", poles is not None and np.all(np.abs(poles) < 1)
+    else:
+        boundary, stable = "imaginary axis", poles is not None and np.all(poles.real < 0)
+    if not (stable and np.all(np.isfinite(S))):
+        raise ValueError(
+            f"lqr: the Riccati equation of {system.name} has no stabilising solution "
+            f"(closed-loop poles {poles}): an unstable mode is not controllable through B, or Q "
+            f"does not see a mode on the {boundary}. Check the operating point and the "
+            "inputs, or penalise every state in Q (Q > 0).")
+
+
 def lqr(system: System, Q, R, x0=None, u0=None, *, N=None, check_equilibrium: bool = True) -> LQRResult:
     """The infinite-horizon LQR of `system` about (x0, u0) (default: the origin, u = 0):
     continuous or discrete to match the system; `N` the cross term. Differentiable with
@@ -103,6 +120,8 @@ def lqr(system: System, Q, R, x0=None, u0=None, *, N=None, check_equilibrium: bo
         raise ValueError("lqr: R must be positive definite")
     lin = linearize(system, x0, u0, check_equilibrium=check_equilibrium)
     K, S = _lqr_gain(lin.A, lin.B, Q, R, N, lin.is_discrete)
+    if not isinstance(K, jax.core.Tracer):
+        _require_stabilising(system, lin, K, S)
     controller = System.from_functions(
         output=_affine_gain, num_states=0, num_inputs=n, num_outputs=m, params=(K, x0, u0),
         input_frame=system.state_frame, output_frame=system.input_frame)

@@ -5,13 +5,25 @@ Discrete (DARE): $A^T S A - S - (A^T S B + N)(R + B^T S B)^{-1}(B^T S A + N^T) +
 
 The cross term N is removed by the usual change of variables ($\bar A = A - B R^{-1} N^T$,
 $\bar Q = Q - N R^{-1} N^T$ for the CARE). The CARE is solved by the matrix sign function of
-the Hamiltonian (Roberts; Byers' determinant scaling), the DARE by the structure-preserving
-doubling algorithm (Chu, Fan, Lin 2005); each is then polished by two Newton steps (a
-Lyapunov / Stein solve). Derivatives: at the solution, $dS$ solves the linearised equation
+the Hamiltonian $Z = [[A, -G], [-Q, -A^T]]$, $G = B R^{-1} B^T$ (Newton's iteration
+$Z \leftarrow (cZ + (cZ)^{-1})/2$ with Byers' determinant scaling $c = |\det Z|^{-1/2n}$,
+stopped once $\|cZ - (cZ)^{-1}\|_1 \le \epsilon_{tol} \|Z\|_1$, usually after 6–10 steps);
+S is the least-squares solution of $[W_{12}; W_{22} + I] S = -[W_{11} + I; W_{21}]$,
+$W = \mathrm{sign}(Z)$. The DARE is solved by the structure-preserving doubling algorithm
+(Chu, Fan, Lin 2005), stopped at convergence. Where the relative residual is not at rounding
+level, Newton steps (Kleinman / Hewer) polish S.
+
+The linear matrix equations of the polish and of the derivatives involve the stable closed
+loop $A_c$ and are solved iteratively in O(n^3) per step: the Lyapunov equation
+$A_c^T X + X A_c + C = 0$ by the sign function of $[[A_c^T, C], [0, -A_c]]$ (Roberts),
+the Stein equation $A_c^T X A_c - X + C = 0$ by Smith's doubling
+$X \leftarrow X + M^T X M$, $M \leftarrow M^2$. Derivatives: at the solution, $dS$ solves
 $A_c^T dS + dS A_c = -\partial_\theta F\, d\theta$ (continuous) or
-$A_c^T dS A_c - dS = -\partial_\theta F\, d\theta$ (discrete), $A_c$ the closed loop, with
-$\partial_\theta F$ from `jax.jvp` at fixed S: no differentiation through the iterations.
-The linear matrix equations are solved by Kronecker products (fine up to n ~ 30).
+$A_c^T dS A_c - dS = -\partial_\theta F\, d\theta$ (discrete), $\partial_\theta F$ from
+`jax.jvp` at fixed S: no differentiation through the iterations.
+
+The public Lyapunov solvers accept any A without eigenvalues $\lambda_i + \lambda_j = 0$
+(or $\lambda_i \lambda_j = 1$): they solve the $n^2 \times n^2$ Kronecker system (fine up to n ~ 30).
 """
 
 from __future__ import annotations
@@ -19,100 +31,179 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-_SIGN_ITERATIONS = 60
-_DOUBLING_ITERATIONS = 40
+_MAX_ITERATIONS = 60
+_POLISH_STEPS = 3
 
 
-def _kron_solve(op_matrix, rhs):
-    n = rhs.shape[0]
-    return jnp.linalg.solve(op_matrix, rhs.reshape(-1)).reshape(n, n)
+def _tolerance(M):
+    """Stopping tolerance of the iterations: rounding level, grown with the size."""
+    return 100 * M.shape[0] * jnp.finfo(M.dtype).eps
 
 
-def _lyapunov_operator(Ac):
-    """The matrix of X -> Ac^T X + X Ac acting on row-major vec(X)."""
-    n = Ac.shape[0]
-    eye = jnp.eye(n, dtype=Ac.dtype)
-    return jnp.kron(Ac.T, eye) + jnp.kron(eye, Ac.T)
+def _norm1(M):
+    return jnp.sum(jnp.abs(M))
 
 
-def _stein_operator(Ac):
-    """The matrix of X -> Ac^T X Ac - X on row-major vec(X)."""
-    n = Ac.shape[0]
-    return jnp.kron(Ac.T, Ac.T) - jnp.eye(n * n, dtype=Ac.dtype)
+def _inverse_and_log_det(M):
+    """(M^-1, log |det M|) from one LU factorization."""
+    lu, _, permutation = jax.lax.linalg.lu(M)
+    lower = jax.lax.linalg.triangular_solve(lu, jnp.eye(M.shape[0], dtype=M.dtype)[permutation],
+                                            left_side=True, lower=True, unit_diagonal=True)
+    inverse = jax.lax.linalg.triangular_solve(lu, lower, left_side=True, lower=False)
+    return inverse, jnp.sum(jnp.log(jnp.abs(jnp.diagonal(lu))))
 
 
-def _care_residual(S, A, B, Q, R):
-    return A.T @ S + S @ A - S @ B @ jnp.linalg.solve(R, B.T @ S) + Q
+def _sign_iteration(Z, C=None):
+    r"""(sign(Z), C_final) by the scaled Newton iteration. With C, the iteration runs on the
+    block matrix $[[Z, C], [0, -Z^T]]$, whose upper-right block evolves as
+    $C \leftarrow (cC + Z^{-1} C Z^{-T} / c)/2$ and tends to $2X$, $Z X + X Z^T + C = 0$, when
+    Z is Hurwitz."""
+    tolerance = _tolerance(Z)
+
+    def step(state):
+        Z, C, _, k = state
+        inverse, log_det = _inverse_and_log_det(Z)
+        c = jnp.exp(-log_det / Z.shape[0])
+        c = jnp.where(jnp.isfinite(c) & (c > 0), c, 1.0)
+        moving = _norm1(c * Z - inverse / c) > tolerance * _norm1(Z)
+        if C is not None:
+            C = 0.5 * (c * C + inverse @ C @ inverse.T / c)
+        return 0.5 * (c * Z + inverse / c), C, moving & (k + 1 < _MAX_ITERATIONS), k + 1
+
+    Z, C, _, _ = jax.lax.while_loop(lambda state: state[2], step, (Z, C, True, 0))
+    return Z, C
 
 
-def _dare_residual(S, A, B, Q, R):
-    BtSA = B.T @ S @ A
-    return A.T @ S @ A - S - BtSA.T @ jnp.linalg.solve(R + B.T @ S @ B, BtSA) + Q
+def _lyapunov_by_sign(Ac, C):
+    """X with Ac^T X + X Ac + C = 0, Ac Hurwitz (the sign function of [[Ac^T, C], [0, -Ac]])."""
+    return 0.5 * _sign_iteration(Ac.T, C)[1]
+
+
+def _stein_by_doubling(Ac, C):
+    """X with Ac^T X Ac - X + C = 0, Ac Schur stable (Smith's doubling)."""
+    tolerance = _tolerance(Ac)
+
+    def step(state):
+        X, M, _, k = state
+        increment = M.T @ X @ M
+        moving = _norm1(increment) > tolerance * _norm1(X)
+        return X + increment, M @ M, moving & (k + 1 < _MAX_ITERATIONS), k + 1
+
+    return jax.lax.while_loop(lambda state: state[2], step, (C, Ac, True, 0))[0]
+
+
+def _linear_solve(solver, operator, Ac, C):
+    """X with operator(Ac, X) + C = 0 by solver(Ac, C), transposable (the adjoint of either
+    operator is the same operator of Ac^T), so reverse mode differentiates through it."""
+    return jax.lax.custom_linear_solve(
+        lambda X: -operator(Ac, X), C, lambda _, C: solver(Ac, C),
+        transpose_solve=lambda _, C: solver(Ac.T, C))
+
+
+def _lyapunov_of_stable(Ac, C):
+    """X with Ac^T X + X Ac + C = 0, Ac Hurwitz; differentiable in C in either mode."""
+    return _linear_solve(_lyapunov_by_sign, lambda Ac, X: Ac.T @ X + X @ Ac, Ac, C)
+
+
+def _stein_of_stable(Ac, C):
+    """X with Ac^T X Ac - X + C = 0, Ac Schur stable; differentiable in C in either mode."""
+    return _linear_solve(_stein_by_doubling, lambda Ac, X: Ac.T @ X @ Ac - X, Ac, C)
 
 
 def _symmetric(S):
     return (S + S.T) / 2
 
 
+def _polish(S, residual, newton_correction):
+    r"""Newton steps $S \leftarrow S + \Delta(S, F(S))$ while the relative residual
+    $\|F(S)\|_1 / \mathrm{scale}$ is above $10^3 n \epsilon$ (well above the rounding level a
+    correct solve reaches) and still falls."""
+    tolerance = 10 * _tolerance(S)
+
+    def relative(S):
+        F, scale = residual(S)
+        return F, _norm1(F) / jnp.maximum(scale, jnp.finfo(S.dtype).tiny)
+
+    def step(state):
+        S, F, error, _, k = state
+        S = _symmetric(S + newton_correction(S, F))
+        F, new_error = relative(S)
+        return S, F, new_error, (new_error > tolerance) & (new_error < 0.5 * error) & (k + 1 < _POLISH_STEPS), k + 1
+
+    F, error = relative(S)
+    return jax.lax.while_loop(lambda state: state[3], step, (S, F, error, error > tolerance, 0))[0]
+
+
+def _care_terms(S, A, G, Q):
+    """(F(S), the 1-norm scale of its terms) for the CARE with G = B R^-1 B^T."""
+    AtS, SGS = A.T @ S, S @ G @ S
+    return AtS + AtS.T - SGS + Q, 2 * _norm1(AtS) + _norm1(SGS) + _norm1(Q)
+
+
+def _care_residual(S, A, B, Q, R):
+    return _care_terms(S, A, B @ jnp.linalg.solve(R, B.T), Q)[0]
+
+
 @jax.custom_jvp
 def _care(A, B, Q, R):
     n = A.shape[0]
     G = B @ jnp.linalg.solve(R, B.T)
-    Z = jnp.block([[A, -G], [-Q, -A.T]])
-
-    def sign_step(Z, _):
-        c = jnp.abs(jnp.linalg.det(Z)) ** (-1.0 / (2 * n))  # determinant scaling
-        c = jnp.where(jnp.isfinite(c) & (c > 0), c, 1.0)
-        return 0.5 * (c * Z + jnp.linalg.inv(c * Z)), None
-
-    W = jax.lax.scan(sign_step, Z, None, length=_SIGN_ITERATIONS)[0]
+    W = _sign_iteration(jnp.block([[A, -G], [-Q, -A.T]]))[0]
     eye = jnp.eye(n, dtype=A.dtype)
     lhs = jnp.concatenate([W[:n, n:], W[n:, n:] + eye])
     rhs = -jnp.concatenate([W[:n, :n] + eye, W[n:, :n]])
-    S = _symmetric(jnp.linalg.lstsq(lhs, rhs)[0])
-    for _ in range(2):  # Newton (Kleinman) polish
-        Ac = A - G @ S
-        S = _symmetric(S + _kron_solve(_lyapunov_operator(Ac), -_care_residual(S, A, B, Q, R)))
-    return S
-
-
-def _implicit_tangent(residual, operator, S, primals, tangents):
-    """(S, dS) with dS solving operator(dS) = -(dF/dtheta) dtheta at the solution S."""
-    dF = jax.jvp(lambda *p: residual(S, *p), primals, tangents)[1]
-    return S, _symmetric(_kron_solve(operator, -dF))
+    q, r = jnp.linalg.qr(lhs)
+    S = _symmetric(jax.lax.linalg.triangular_solve(r, q.T @ rhs, left_side=True, lower=False))
+    return _polish(S, lambda S: _care_terms(S, A, G, Q), lambda S, F: _lyapunov_of_stable(A - G @ S, F))
 
 
 @_care.defjvp
 def _care_jvp(primals, tangents):
     A, B, Q, R = primals
     S = _care(A, B, Q, R)
-    Ac = A - B @ jnp.linalg.solve(R, B.T @ S)
-    return _implicit_tangent(_care_residual, _lyapunov_operator(Ac), S, primals, tangents)
+    dF = jax.jvp(lambda *p: _care_residual(S, *p), primals, tangents)[1]
+    return S, _lyapunov_of_stable(A - B @ jnp.linalg.solve(R, B.T @ S), dF)
+
+
+def _dare_gain(S, A, B, R):
+    return jnp.linalg.solve(R + B.T @ S @ B, B.T @ S @ A)
+
+
+def _dare_terms(S, A, B, Q, R):
+    """(F(S), the 1-norm scale of its terms) for the DARE."""
+    AtSA, BtSA = A.T @ S @ A, B.T @ S @ A
+    return AtSA - S - BtSA.T @ jnp.linalg.solve(R + B.T @ S @ B, BtSA) + Q, \
+        _norm1(AtSA) + _norm1(S) + _norm1(Q)
+
+
+def _dare_residual(S, A, B, Q, R):
+    return _dare_terms(S, A, B, Q, R)[0]
 
 
 @jax.custom_jvp
 def _dare(A, B, Q, R):
     G = B @ jnp.linalg.solve(R, B.T)
     eye = jnp.eye(A.shape[0], dtype=A.dtype)
+    tolerance = _tolerance(A)
 
-    def doubling(state, _):
-        Ak, Gk, Hk = state
-        M = jnp.linalg.inv(eye + Gk @ Hk)
-        return (Ak @ M @ Ak, Gk + Ak @ M @ Gk @ Ak.T, Hk + Ak.T @ Hk @ M @ Ak), None
+    def doubling(state):
+        Ak, Gk, Hk, _, k = state
+        MA, MG = jnp.split(jnp.linalg.solve(eye + Gk @ Hk, jnp.concatenate([Ak, Gk], axis=1)), 2, axis=1)
+        increment = Ak.T @ (Hk @ MA)
+        moving = _norm1(increment) > tolerance * _norm1(Hk)
+        return (Ak @ MA, Gk + Ak @ MG @ Ak.T, Hk + increment, moving & (k + 1 < _MAX_ITERATIONS), k + 1)
 
-    S = _symmetric(jax.lax.scan(doubling, (A, G, Q), None, length=_DOUBLING_ITERATIONS)[0][2])
-    for _ in range(2):  # Newton (Hewer) polish
-        K = jnp.linalg.solve(R + B.T @ S @ B, B.T @ S @ A)
-        S = _symmetric(S + _kron_solve(_stein_operator(A - B @ K), -_dare_residual(S, A, B, Q, R)))
-    return S
+    S = _symmetric(jax.lax.while_loop(lambda state: state[3], doubling, (A, G, Q, True, 0))[2])
+    return _polish(S, lambda S: _dare_terms(S, A, B, Q, R),
+                   lambda S, F: _stein_of_stable(A - B @ _dare_gain(S, A, B, R), F))
 
 
 @_dare.defjvp
 def _dare_jvp(primals, tangents):
     A, B, Q, R = primals
     S = _dare(A, B, Q, R)
-    K = jnp.linalg.solve(R + B.T @ S @ B, B.T @ S @ A)
-    return _implicit_tangent(_dare_residual, _stein_operator(A - B @ K), S, primals, tangents)
+    dF = jax.jvp(lambda *p: _dare_residual(S, *p), primals, tangents)[1]
+    return S, _stein_of_stable(A - B @ _dare_gain(S, A, B, R), dF)
 
 
 def _without_cross_term(A, B, Q, R, N):
@@ -136,16 +227,22 @@ def solve_discrete_are(A, B, Q, R, N=None):
     return _dare(A_bar, B, Q_bar, R)
 
 
+def _kron_solve(op_matrix, rhs):
+    n = rhs.shape[0]
+    return jnp.linalg.solve(op_matrix, rhs.reshape(-1)).reshape(n, n)
+
+
 def solve_continuous_lyapunov(A, Q):
     r"""P with $A^T P + P A = -Q$ (Drake's `RealContinuousLyapunovEquation`); for Hurwitz A
     and Q > 0, P > 0 and $V = x^T P x$ is a Lyapunov function of $\dot x = A x$.
     Kronecker solve; differentiable."""
     A, Q = jnp.asarray(A, float), jnp.asarray(Q, float)
-    return _symmetric(_kron_solve(_lyapunov_operator(A), -Q))
+    eye = jnp.eye(A.shape[0], dtype=A.dtype)
+    return _symmetric(_kron_solve(jnp.kron(A.T, eye) + jnp.kron(eye, A.T), -Q))
 
 
 def solve_discrete_lyapunov(A, Q):
     r"""P with $A^T P A - P = -Q$ (for Schur-stable A, $V = x^T P x$ decreases along
     $x[n+1] = A x[n]$). Kronecker solve; differentiable."""
     A, Q = jnp.asarray(A, float), jnp.asarray(Q, float)
-    return _symmetric(_kron_solve(_stein_operator(A), -Q))
+    return _symmetric(_kron_solve(jnp.kron(A.T, A.T) - jnp.eye(A.size, dtype=A.dtype), -Q))
