@@ -405,8 +405,9 @@ class _TrajectoryProgram:
 
 
 def _hermite_midpoint(x0, u0, x1, u1, t, h, system):
-    f0 = system.dynamics(t, x0, u0)
-    f1 = system.dynamics(t + h, x1, u1)
+    """(f0, f1, x_c, u_c); both knots' dynamics in one vmapped call, so the traced program (and
+    its derivatives) holds one copy of the vector field for them, not two."""
+    f0, f1 = jax.vmap(system.dynamics)(jnp.stack([t, t + h]), jnp.stack([x0, x1]), jnp.stack([u0, u1]))
     xc = (x0 + x1) / 2 + h / 8 * (f0 - f1)
     uc = (u0 + u1) / 2
     return f0, f1, xc, uc
