@@ -119,3 +119,21 @@ def test_linear_system_shape_errors():
         jd.LinearSystem(np.eye(2), np.ones((3, 1)))
     with pytest.raises(ValueError, match=r"C must have shape \(p, 2\)"):
         jd.LinearSystem(np.eye(2), np.ones((2, 1)), C=np.ones((1, 3)))
+
+
+def test_jax_transformations_of_a_systems_methods_work_for_array_holding_systems():
+    """`jax.jit(plant.dynamics)` as a user writes it: systems holding arrays (a URDF plant, a
+    LinearSystem) hash by identity, so the bound method is a cacheable function."""
+    for plant in (jd.models.Acrobot(), jd.LinearSystem([[0.0, 1.0], [-2.0, -0.5]], [[0.0], [1.0]])):
+        x, u = jnp.linspace(0.1, 0.4, plant.num_states), jnp.ones(plant.num_inputs)
+        fast = jax.jit(plant.dynamics)
+        np.testing.assert_allclose(fast(0.0, x, u), plant.dynamics(0.0, x, u), rtol=1e-12)
+        batch = jax.vmap(fast, in_axes=(None, 0, None))(0.0, jnp.stack([x, 2 * x]), u)
+        np.testing.assert_allclose(batch[1], plant.dynamics(0.0, 2 * x, u), rtol=1e-12)
+        J = jax.jacrev(lambda x: fast(0.0, x, u))(x)
+        e = 1e-6 * np.eye(plant.num_states)[0]
+        np.testing.assert_allclose(J[:, 0], (plant.dynamics(0.0, x + e, u) - plant.dynamics(0.0, x - e, u)) / 2e-6,
+                                   rtol=1e-6, atol=1e-8)
+    linear = jd.LinearSystem([[0.0, 1.0], [-2.0, -0.5]], [[0.0], [1.0]])
+    np.testing.assert_allclose(jax.jit(linear.dynamics)(0.0, jnp.array([1.0, 2.0]), jnp.array([3.0])),
+                               [2.0, -2.0 - 1.0 + 3.0])

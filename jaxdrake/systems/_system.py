@@ -89,6 +89,19 @@ class System(eqx.Module):
     noise_groups: tuple[tuple[int, float, float], ...] = _static(default=())
     input_limits: tuple[Any, Any] | None = None
 
+    def __hash__(self):
+        """Equinox hashes a module by its fields, which fails for array fields; such a system
+        hashes by identity instead, so `jax.jit(system.dynamics)` works as for any closure
+        (one compiled program per system object, its arrays constants of the program; pass
+        the system as an argument, or use `equinox.filter_jit`, to vary them without
+        recompiling)."""
+        try:
+            return super().__hash__()
+        except TypeError:
+            if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(self)):
+                raise  # inside a trace JAX takes the unhashable (uncached) path, as before
+            return id(self)
+
     def __init__(self, *, num_continuous_states: int = 0, num_discrete_states: int = 0,
                  num_inputs: int = 0, num_outputs: int | None = None,
                  sample_time: float | tuple[float, ...] | None = None, direct_feedthrough: bool | None = None,
