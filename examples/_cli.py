@@ -12,11 +12,12 @@ def run(main, doc: str):
     main(parser.parse_args().out)
 
 
-def save_movie(plant, traj, out: pathlib.Path, name: str, fps: float = 16) -> pathlib.Path:
-    """A movie of `traj` drawn by the plant's visualizer (`jd.viz.visualizer_for`)."""
+def save_movie(plant, traj, out: pathlib.Path, name: str, fps: float = 16, plane=None) -> pathlib.Path:
+    """A movie of `traj` drawn by the plant's visualizer (`jd.viz.visualizer_for`; a URDF
+    robot's 3-D scene for `.html`, its projection onto `plane` for `.gif` / `.mp4`)."""
     import jaxdrake as jd
 
-    path = jd.viz.visualizer_for(plant).save(traj, out / name, fps=fps)
+    path = jd.viz.visualizer_for(plant, plane=plane).save(traj, out / name, fps=fps)
     print(f"saved {path}")
     return path
 

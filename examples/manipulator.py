@@ -4,10 +4,13 @@ The manipulator equations H(q) qdd + C(q, v) v + G(q) = u come from the URDF (7 
 fingers welded). Three runs from the same configuration: the passive arm collapsing under
 gravity; gravity compensation u = G(q) + b v, which holds it still; and computed-torque control
 u = H (kp (q_d - q) - kd v) + C v + G + b v, which moves it to a target along decoupled,
-critically damped joint responses. Plots the joint angles of each run and the hand's path.
-Needs the example-robot-data package (installed with the test extras).
+critically damped joint responses. Plots the joint angles of each run and the hand's path,
+writes the passive run as a movie projected onto the x-z plane and the computed-torque run as
+a 3-D MeshCat scene with its meshes (one offline .html file to open in a browser).
+Needs the example-robot-data package (installed with the test extras) and the viz extra.
 
-Run:  python examples/manipulator.py [--out DIR]      (saves manipulator.png)
+Run:  python examples/manipulator.py [--out DIR]
+      (saves manipulator.png, manipulator_passive.gif, manipulator_computed_torque.html)
 """
 
 import pathlib
@@ -60,7 +63,9 @@ def main(out: pathlib.Path) -> pathlib.Path:
         traj = jd.simulate(system, (0.0, T), x0, rtol=1e-7, atol=1e-9, max_steps=20000)
         print(f"{label}: {int(traj.num_steps)} steps, {time.perf_counter() - start:.1f} s with compilation")
         if label.startswith("passive"):
-            save_movie(plant, traj, out, "manipulator_passive.gif")  # projected onto the x-z plane
+            save_movie(plant, traj, out, "manipulator_passive.gif", plane="xz")
+        if label.startswith("computed"):
+            save_movie(plant, traj, out, "manipulator_computed_torque.html")  # 3-D, in MeshCat
         qs = np.asarray(traj.state(ts))[:, :7]
         for j in range(7):
             ax.plot(ts, qs[:, j], label=f"joint {j + 1}")

@@ -117,3 +117,64 @@ def test_a_visualizer_is_a_system_in_a_diagram_and_errors_name_the_remedy():
         visualizer_for(jd.models.VanDerPol())
     with pytest.raises(ValueError, match="choose .gif, .mp4 or .html"):
         vis.save(traj, "movie.avi")
+
+
+# ----- 3-D scenes (MeshCat) -------------------------------------------------------------------
+
+def scene_transforms(commands, prefix):
+    """{link: its last 4 x 4 transform} from the set_transform commands of a recorded scene."""
+    out = {}
+    for c in commands:
+        parts = c["path"].split("/")
+        if c["type"] == "set_transform" and len(parts) == 4 and parts[2] == prefix:
+            out[parts[3]] = np.asarray(c["matrix"]).reshape(4, 4).T  # MeshCat sends column-major
+    return out
+
+
+def test_meshcat_scene_places_every_link_at_its_frame_pose_with_its_meshes():
+    meshcat = pytest.importorskip("meshcat")
+    panda = jd.models.Panda()
+    recorder = jd.viz.SceneRecorder()
+    vis = jd.viz.MeshcatVisualizer(panda, scene=meshcat.Visualizer(window=recorder))
+    assert isinstance(visualizer_for(panda), jd.viz.MeshcatVisualizer)
+    assert isinstance(visualizer_for(panda, plane="xz"), PlanarRigidBodyVisualizer)
+    assert isinstance(visualizer_for(jd.models.Acrobot()), PlanarRigidBodyVisualizer)  # the notes' plants stay planar
+    for q in np.random.default_rng(1).uniform(-1.5, 1.5, (3, 7)):
+        vis.draw(jnp.concatenate([jnp.asarray(q), jnp.zeros(7)]))
+        placed = scene_transforms(recorder.commands, "panda")
+        assert set(placed) == set(panda.tree.frame_names)
+        for link, T in placed.items():
+            R, p = panda.frame_pose(jnp.asarray(q), link)
+            np.testing.assert_allclose(T[:3, :3], R, atol=1e-12)
+            np.testing.assert_allclose(T[:3, 3], p, atol=1e-12)
+    meshes = [c for c in recorder.commands if c["type"] == "set_object" and "visual" in c["path"]]
+    assert len(meshes) == 11 and all(c["object"]["geometries"][0]["format"] == "dae" for c in meshes)
+    assert sum(c["type"] == "set_object" for c in recorder.commands) == 11  # the geometry is sent once
+
+
+def test_meshcat_html_export_is_offline_and_animates_the_skeleton_of_a_bare_urdf(tmp_path):
+    import base64
+
+    pytest.importorskip("meshcat")
+    import umsgpack
+
+    acrobot = jd.models.Acrobot(l1=1.2, l2=2.1)  # its URDF has no <visual>: spheres and rods
+    vis = jd.viz.MeshcatVisualizer(acrobot)
+    traj = jd.simulate(acrobot, (0.0, 1.0), jnp.array([1.0, 0.5, 0.0, 0.0]))
+    html = vis.save(traj, tmp_path / "acrobot.html", fps=10).read_text()
+    assert not re.findall(r"https?://(?!www\.w3\.org/\d{4}/)", html)  # only XML namespace names
+    assert not re.search(r"""(src|href)\s*=\s*["']?//""", html)
+    commands = [umsgpack.unpackb(base64.b64decode(c)) for c in re.findall(r'^"([A-Za-z0-9+/=]+)",?$', html, re.M)]
+    rods = {c["path"]: c["object"]["geometries"][0]["height"] for c in commands
+            if c["type"] == "set_object" and "rod" in c["path"]}
+    assert sorted(rods.values()) == pytest.approx([1.2, 2.1], abs=1e-12)  # elbow and hand at the link lengths
+    animation = commands[-1]
+    assert animation["type"] == "set_animation"
+    tracks = {a["path"].split("/")[-1]: a["clip"]["tracks"] for a in animation["animations"]}
+    position = next(t for t in tracks["lower_link"] if t["name"] == ".position")
+    assert len(position["keys"]) == 10  # round(T fps) frames
+    k = 7
+    q = traj.state(k / 10)[:2]
+    np.testing.assert_allclose(position["keys"][k]["value"], acrobot.frame_pose(q, "lower_link")[1], atol=1e-12)
+    with pytest.raises(ValueError, match="save\\(traj, 'robot.html'\\)"):
+        vis.save(traj, tmp_path / "acrobot.gif")

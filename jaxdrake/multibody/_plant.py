@@ -89,10 +89,11 @@ class RigidBodySystem(System):
     couplers: tuple = _static(default=())
     limited: tuple = _static(default=())   # (q index, v index) of the joints with limits
     constraint_stiffness: float = 20.0
+    source: str | None = _static(default=None)  # the URDF file, when loaded from one
 
     def __init__(self, tree: KinematicTree, actuated_joints=None, *, loops=(), couplers=(),
                  constraint_stiffness: float = 20.0, effort_limits: bool = True,
-                 joint_limits: bool = True, limit_period: float = 0.02):
+                 joint_limits: bool = True, limit_period: float = 0.02, source=None):
         names = tree.joint_names
         if actuated_joints is None:
             actuated_joints = [n for n, k in zip(names, tree.joint_types) if k != "floating"]
@@ -124,6 +125,7 @@ class RigidBodySystem(System):
         self.limited = _limited_joints(tree) if joint_limits else ()
         self.limit_stiffness, self.limit_damping = _limit_gains(tree, self.limited, limit_period)
         self.constraint_stiffness = constraint_stiffness
+        self.source = None if source is None else str(source)
         state = Frame(f"{tree.robot_name}State", tree.position_names() + tree.velocity_names())
         num_loop = sum(len(loop.axes) for loop in self.loops) + len(self.couplers)
         super().__init__(num_continuous_states=tree.nq + tree.nv, num_inputs=len(actuated_joints),
@@ -154,7 +156,7 @@ class RigidBodySystem(System):
                 actuated = list(transmitted)
             return cls(tree, actuated, loops=loops, couplers=couplers,
                        constraint_stiffness=constraint_stiffness, effort_limits=effort_limits,
-                       joint_limits=joint_limits, limit_period=limit_period)
+                       joint_limits=joint_limits, limit_period=limit_period, source=path.resolve())
 
     @classmethod
     def from_pinocchio(cls, model, *, actuated=None, loops=(),

@@ -3,11 +3,14 @@ projection of any `RigidBodySystem` onto a plane; `visualizer_for(system)` picks
 
 from __future__ import annotations
 
+import pathlib
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
 from ..models import BouncingBall, CompassGait, Pendulum, PlanarQuadrotor, RimlessWheel
+from ..models._rigid import URDF_DIR
 from ..multibody import RigidBodySystem
 from ..multibody import _algorithms as alg
 from ..systems import System
@@ -277,9 +280,10 @@ class PlanarQuadrotorVisualizer(Visualizer):
 
 
 def visualizer_for(system: System, *, plane: str | None = None, draw_period=DRAW_PERIOD) -> Visualizer:
-    """The planar visualizer for one of the notes' plants (the cart-pole and the acrobot are
-    `RigidBodySystem`s too); for any other `RigidBodySystem`, its projection onto `plane`
-    (default "xz"). (3-D scenes of URDF robots are not built yet.)"""
+    """The planar visualizer for one of the notes' plants (the cart-pole, the acrobot and the
+    double pendulum are `RigidBodySystem`s of the package's own URDFs); for any other URDF robot
+    a 3-D `MeshcatVisualizer`, or its projection onto `plane` ("xz", "yz", "xy") on request (also
+    for a `RigidBodySystem` not loaded from a file)."""
     simple = {Pendulum: PendulumVisualizer, BouncingBall: BouncingBallVisualizer, RimlessWheel: RimlessWheelVisualizer,
               CompassGait: CompassGaitVisualizer, PlanarQuadrotor: PlanarQuadrotorVisualizer}
     for kind, make in simple.items():
@@ -289,6 +293,10 @@ def visualizer_for(system: System, *, plane: str | None = None, draw_period=DRAW
         tree = system.tree
         if plane is None and tree.joint_types[:1] == ("prismatic",) and "pole_tip" in tree.frame_names:
             return CartPoleVisualizer(system, draw_period=draw_period)
-        return PlanarRigidBodyVisualizer(system, plane or "xz", draw_period)
+        if plane is not None or system.source is None or pathlib.Path(system.source).parent == URDF_DIR:
+            return PlanarRigidBodyVisualizer(system, plane or "xz", draw_period)
+        from ._meshcat import MeshcatVisualizer
+
+        return MeshcatVisualizer(system, draw_period=draw_period)
     raise TypeError(f"no visualizer for {type(system).__name__} ({system.name}); subclass "
                     "jaxdrake.viz.Visualizer (shapes, STYLES, view) to draw it")
