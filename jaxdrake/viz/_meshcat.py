@@ -149,7 +149,7 @@ class MeshcatVisualizer(Visualizer):
     def frame_transforms(self, xs):
         """`link_transforms` of a batch of states (n, num_states), on the host: (n, links, 4, 4)."""
         xs = jnp.asarray(xs)[..., : self.num_inputs]
-        return np.asarray(_batched_transforms(self)(xs))
+        return np.asarray(_batched_transforms(self)(xs), dtype=float)  # MeshCat packs Python floats
 
     # ----- the scene --------------------------------------------------------------------------
 
