@@ -208,3 +208,44 @@ def test_killed_and_restarted_controller_process(caplog):
     assert sum("resumed" in m for m in messages) == 2, messages
     assert events[0] > 20 and events[1] > events[0] + 20  # answered in both lives
     assert stats.malformed == 0
+
+
+def test_state_viewer_draws_the_newest_state_at_its_rate():
+    """A publisher sends pendulum states at ~1 kHz; the viewer (its matplotlib display) draws at
+    most 20 per second, each the newest state, never a backlog, the bob where the state puts it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    pendulum = jd.models.Pendulum(l=0.7)
+    visualizer = jd.viz.visualizer_for(pendulum)
+    bus = lcm.LCM("memq://")
+    window, drawn = visualizer.live(), []
+
+    def show(x, t):
+        drawn.append((t, np.asarray(x), time.perf_counter()))
+        window(x, t)
+
+    viewer = jd.lcm.LcmViewer(visualizer, bus, max_rate=20.0, show=show)
+    coder = SignalCoder(pendulum.state_frame)
+
+    start = time.perf_counter()
+
+    def publish():
+        for k in range(600):
+            bus.publish("PendulumState", coder.encode(k / 1000, np.array([k / 100, 0.0])))
+            time.sleep(max(0.0, start + (k + 1) / 1000 - time.perf_counter()))
+
+    publisher = threading.Thread(target=publish)
+    publisher.start()
+    stats = viewer.run(duration=0.9)
+    publisher.join()
+    times, walls = (np.array([d[i] for d in drawn]) for i in (0, 2))
+    walls -= start
+    assert stats.received > 300 and 6 <= stats.drawn <= 0.9 * 20 + 1 and stats.drawn == len(drawn)
+    assert np.all(np.diff(walls) >= 0.05)  # at most 20 draws per second
+    publishing = walls < 0.58
+    assert np.all(times[publishing] > walls[publishing] - 0.03)  # the newest state, not a backlog
+    t, x, _ = drawn[-1]
+    np.testing.assert_allclose(x, [t * 10, 0.0])
+    bob = next(a for a in window.figure.axes[0].get_children() if a.get_gid() == "bob")
+    np.testing.assert_allclose(np.stack(bob.get_data(), 1)[0], 0.7 * np.array([np.sin(x[0]), -np.cos(x[0])]), atol=1e-12)

@@ -3,8 +3,9 @@ bindings of the definitions in the top-level `lcmtypes/`), attached to frames wi
 `Frame.with_coder`."""
 
 from ._bridge import LcmNode, NodeStatistics
+from ._viewer import LcmViewer, ViewerStatistics
 from ._relay import LoopbackRelay
 from ._coders import (LcmCoder, MessageError, RobotCommandCoder, RobotStateCoder, SignalCoder,
                       TypeCoder)
 
-__all__ = ["LcmCoder", "LcmNode", "LoopbackRelay", "NodeStatistics", "MessageError", "RobotCommandCoder", "RobotStateCoder", "SignalCoder", "TypeCoder"]
+__all__ = ["LcmCoder", "LcmNode", "LcmViewer", "LoopbackRelay", "NodeStatistics", "MessageError", "RobotCommandCoder", "RobotStateCoder", "SignalCoder", "TypeCoder", "ViewerStatistics"]

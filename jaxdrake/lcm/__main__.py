@@ -3,6 +3,11 @@
     python -m jaxdrake.lcm SYSTEM [--url URL] [--rate HZ] [--input-channel C] [--output-channel C]
         [--duration S | --max-ticks N] [--lockstep] [--input-timeout S] [--safe-input U ...]
         [--log FILE]
+    python -m jaxdrake.lcm SYSTEM --view [--plane xz] [--max-rate HZ] [--input-channel C] [--url URL]
+
+With `--view`, the node is SYSTEM's state viewer instead: it draws the states received on
+SYSTEM's state channel (or `--input-channel`) with `jaxdrake.viz.visualizer_for(SYSTEM)` at
+up to `--max-rate` (30) Hz: a matplotlib window, or a MeshCat scene for a URDF robot.
 
 SYSTEM names a `jaxdrake.System`, or a function returning one, as `module:name` (e.g.
 `jaxdrake.models:Pendulum`) or `path/to/file.py:name`. The default URL is LCM's multicast group
@@ -57,6 +62,9 @@ def main(argv=None):
     parser.add_argument("--x0", type=float, nargs="+", help="initial state (default the system's)")
     parser.add_argument("--log")
     parser.add_argument("--x64", action="store_true", help="run the system in float64")
+    parser.add_argument("--view", action="store_true", help="draw SYSTEM's received states instead")
+    parser.add_argument("--plane", help="with --view: project a URDF robot onto this plane (xz, yz, xy)")
+    parser.add_argument("--max-rate", type=float, default=30.0, help="with --view: draws per second at most")
     args = parser.parse_args(argv)
     # the node's own messages at INFO; JAX's (e.g. its probe for a TPU backend) only if they warn
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
@@ -70,6 +78,8 @@ def main(argv=None):
     from ._bridge import HOST_ONLY_URL
 
     args.url = args.url or HOST_ONLY_URL
+    if args.view:
+        return view(load_system(args.system), args)
     node = LcmNode(load_system(args.system), args.url, rate=args.rate, input_channel=args.input_channel,
                    output_channel=args.output_channel, lockstep=args.lockstep, input_timeout=args.input_timeout,
                    safe_input=args.safe_input, log_path=args.log, x0=args.x0)
@@ -83,6 +93,19 @@ def main(argv=None):
         line += (f"; latency input->output p50 {np.percentile(lat, 50):.0f} us, "
                  f"p99 {np.percentile(lat, 99):.0f} us, max {lat.max():.0f} us")
     print(line, flush=True)
+
+
+def view(system, args):
+    from ..viz import MeshcatVisualizer, visualizer_for
+    from ._viewer import LcmViewer
+
+    visualizer = visualizer_for(system, plane=args.plane)
+    viewer = LcmViewer(visualizer, args.url, channel=args.input_channel, max_rate=args.max_rate)
+    where = visualizer.url() if isinstance(visualizer, MeshcatVisualizer) else "a matplotlib window"
+    print(f"viewer of {system.name} on {args.url}: states from {viewer.channel}, drawn in {where} "
+          f"at up to {viewer.max_rate:g} Hz", flush=True)
+    stats = viewer.run(duration=args.duration)
+    print(f"stopped: {stats.received} received, {stats.drawn} drawn, {stats.malformed} malformed", flush=True)
 
 
 if __name__ == "__main__":

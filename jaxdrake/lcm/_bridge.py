@@ -55,7 +55,39 @@ def _no_delay(node):
         sock.close()
 
 
-def _coder(frame):
+def stop_on_signals(stop) -> dict:
+    """Call `stop()` on SIGINT / SIGTERM; returns the previous handlers (none off the main
+    thread, where the caller's own stop is the way out)."""
+    previous = {}
+    try:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, lambda *_: stop())
+    except ValueError:
+        return {}
+    return previous
+
+
+def restore_signals(previous: dict):
+    for sig, handler in previous.items():
+        signal.signal(sig, handler)
+
+
+def open_lcm(url):
+    """An `lcm.LCM` on `url` (or `url` itself, an existing instance), TCP_NODELAY on tcpq."""
+    import lcm
+
+    if isinstance(url, lcm.LCM):
+        return url
+    if not isinstance(url, str) or "://" not in url:
+        raise ValueError(f"an LCM URL looks like 'udpm://239.255.76.67:7667?ttl=0', 'tcpq://127.0.0.1:7700' "
+                         f"or 'memq://', got {url!r}")
+    connection = lcm.LCM(url)
+    if url.startswith("tcpq://"):
+        _no_delay(connection)
+    return connection
+
+
+def coder_for(frame):
     return frame.coder if frame.coder is not None else SignalCoder(frame)
 
 
@@ -92,16 +124,14 @@ class LcmNode:
         import lcm
 
         require_plain_system(system, "LcmNode", "run a deterministic system (one mode of a hybrid one)")
-        if not isinstance(url, lcm.LCM) and (not isinstance(url, str) or "://" not in url):
-            raise ValueError(f"an LCM URL looks like 'udpm://239.255.76.67:7667?ttl=0', 'tcpq://127.0.0.1:7700' "
-                             f"or 'memq://', got {url!r}")
+        self._lcm = open_lcm(url)
         self.system, self.url = system, url if isinstance(url, str) else "an lcm.LCM instance"
         self.stateless = system.num_states == 0
         if rate is None and not self.stateless:
             rate = 1.0 / system.sample_time if system.has_discrete_state else 100.0
         self.rate = rate
-        self.input_coder = _coder(system.input_frame) if system.num_inputs else None
-        self.output_coder = _coder(system.output_frame)
+        self.input_coder = coder_for(system.input_frame) if system.num_inputs else None
+        self.output_coder = coder_for(system.output_frame)
         self.input_channel = input_channel or system.input_frame.name
         self.output_channel = output_channel or system.output_frame.name
         self.input_timeout, self.lockstep = float(input_timeout), bool(lockstep)
@@ -115,9 +145,6 @@ class LcmNode:
         self.stats = NodeStatistics()
         self._stop, self._failures = False, 0
         self._started = time.perf_counter()
-        self._lcm = url if isinstance(url, lcm.LCM) else lcm.LCM(url)
-        if self.url.startswith("tcpq://"):
-            _no_delay(self._lcm)
         self._log = lcm.EventLog(str(log_path), "w", overwrite=True) if log_path else None
         if self.input_coder is not None:
             self._lcm.subscribe(self.input_channel, self._on_input)
@@ -222,12 +249,7 @@ class LcmNode:
     def run(self, duration: float | None = None, max_ticks: int | None = None) -> NodeStatistics:
         """Run until `duration` seconds of wall time (or `max_ticks`, or SIGINT / SIGTERM) pass;
         return the counters."""
-        previous = {}
-        try:
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                previous[sig] = signal.signal(sig, lambda *_: self.stop())
-        except ValueError:  # not the main thread: stop() is the way out
-            previous = {}
+        previous = stop_on_signals(self.stop)
         if self.input_coder is not None:  # let the subscription reach the network (a relay, a
             settle = time.perf_counter() + 0.2  # multicast join) before the first output
             while time.perf_counter() < settle:
@@ -256,8 +278,7 @@ class LcmNode:
                 else:
                     self.handle(next_tick - now)
         finally:
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
+            restore_signals(previous)
             if self._log is not None:
                 self._log.close()
         return self.stats

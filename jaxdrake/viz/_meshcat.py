@@ -19,14 +19,13 @@ import functools
 import pathlib
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..multibody import RigidBodySystem
 from ..multibody import _algorithms as alg
 from ..multibody._tree import KinematicTree
-from ._visualizer import DRAW_PERIOD, Visualizer
+from ._visualizer import DRAW_PERIOD, Visualizer, batched
 
 _GREY, _SKELETON = 0xA0A0A8, 0x4C72B0
 
@@ -149,7 +148,7 @@ class MeshcatVisualizer(Visualizer):
     def frame_transforms(self, xs):
         """`link_transforms` of a batch of states (n, num_states), on the host: (n, links, 4, 4)."""
         xs = jnp.asarray(xs)[..., : self.num_inputs]
-        return np.asarray(_batched_transforms(self)(xs), dtype=float)  # MeshCat packs Python floats
+        return np.asarray(batched(self, "link_transforms")(xs), dtype=float)  # MeshCat packs Python floats
 
     # ----- the scene --------------------------------------------------------------------------
 
@@ -225,6 +224,10 @@ class MeshcatVisualizer(Visualizer):
             robot[name].set_transform(T)
         return scene
 
+    def live(self):
+        """`show(x, t=None)`: place the robot at state x in the live scene."""
+        return lambda x, t=None: self.draw(x)
+
     def animate(self, traj, fps=None, rate: float = 1.0, ax=None):
         """Send the trajectory to the scene as a MeshCat animation (frames at `fps`, played
         `rate` times faster by the browser, with its own controls); returns it."""
@@ -272,11 +275,6 @@ class MeshcatVisualizer(Visualizer):
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(scene_html(recorder.commands, title=self.plant_name))
         return path
-
-
-@functools.lru_cache(maxsize=32)
-def _batched_transforms(visualizer):
-    return jax.jit(jax.vmap(visualizer.link_transforms))
 
 
 def scene_html(commands, title: str = "jaxdrake") -> str:

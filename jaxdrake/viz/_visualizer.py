@@ -12,6 +12,7 @@ trajectory plays through its events (the state just after each), its mode named 
 
 from __future__ import annotations
 
+import functools
 import pathlib
 import re
 import warnings
@@ -77,7 +78,7 @@ class Visualizer(System):
     def frame_shapes(self, xs):
         """Every shape for a batch of states xs (n, num_states): {name: (n, k, 2)}, on the host."""
         xs = jnp.asarray(xs)[..., : self.num_inputs]
-        return {k: np.asarray(v) for k, v in jax.vmap(self.shapes)(xs).items()}
+        return {k: np.asarray(v) for k, v in batched(self, "shapes")(xs).items()}
 
     def _artists(self, ax, alpha=1.0, names=None):
         from matplotlib.lines import Line2D
@@ -130,6 +131,30 @@ class Visualizer(System):
         self._place(self._artists(ax, names=shapes), shapes, 0)
         ax.set_title(self.plant_name)
         return fig
+
+    def live(self):
+        """`show(x, t=None)`: redraw the plant in state x in one window, kept between calls
+        (what an LCM viewer node calls for each state it draws)."""
+        import matplotlib.pyplot as plt
+
+        fig, ax = self._figure()
+        title, artists = ax.set_title(self.plant_name), {}
+
+        def show(x, t=None):
+            shapes = self.frame_shapes(jnp.asarray(x)[None]) | {k: v[None] for k, v in self.ground(np.zeros(2)).items()}
+            if not artists:
+                artists.update(self._artists(ax, names=shapes))
+            self._place(artists, shapes, 0)
+            if t is not None:
+                title.set_text(f"{self.plant_name}: t = {float(t):.2f} s")
+            fig.canvas.draw_idle()
+            fig.canvas.flush_events()
+
+        with warnings.catch_warnings():  # a non-interactive backend (Agg) only draws
+            warnings.simplefilter("ignore", UserWarning)
+            plt.show(block=False)
+        show.figure = fig
+        return show
 
     def frames(self, traj, fps=None):
         """The frame times, states (n, [batch,] num_states) and mode labels of a trajectory."""
@@ -263,6 +288,12 @@ class Visualizer(System):
             return HTML(_offline(animation.to_jshtml(fps=(1 / self.draw_period if fps is None else fps) * rate)))
         plt.show()
         return animation
+
+
+@functools.lru_cache(maxsize=64)
+def batched(visualizer, method: str):
+    """`visualizer.method` vmapped over states and compiled, once per visualizer."""
+    return jax.jit(jax.vmap(getattr(visualizer, method)))
 
 
 _BUTTONS = {"fa-plus": "+", "fa-minus": "\u2212", "fa-fast-backward": "\u23ee", "fa-step-backward": "\u23f4",
