@@ -347,6 +347,25 @@ def test_malformed_urdfs_raise_a_clear_error_quickly(case, tmp_path):
     assert time.perf_counter() - start < 1.0
 
 
+def test_a_mass_matrix_singular_at_run_time_is_named_with_its_joint():
+    """A link's mass and inertia set to zero after loading (the load check cannot see it): the
+    simulation stops at once, and the error names the singular H(q) and the joint, also when
+    the plant sits inside a diagram."""
+    import equinox as eqx
+
+    plant = jd.RigidBodySystem.from_urdf(URDF_DIR / "double_pendulum.urdf")
+    tree = plant.tree
+    hollow = eqx.tree_at(lambda s: (s.tree.mass, s.tree.inertia), plant,
+                         (tree.mass.at[1].set(0.0), tree.inertia.at[1].set(0.0)))
+    x0 = jnp.array([0.3, 0.2, 0.0, 0.0])
+    with pytest.raises(jd.SimulationError, match=r"mass matrix H\(q\) of double_pendulum is singular .* joint\(s\) joint2"):
+        jd.simulate(hollow, (0.0, 1.0), x0)
+    damper = jd.System.from_functions(output=lambda t, x, u: -0.1 * u[2:], num_states=0, num_inputs=4, num_outputs=2)
+    with pytest.raises(jd.SimulationError, match=r"joint\(s\) joint2 move no mass"):
+        jd.simulate(jd.feedback(hollow, damper), (0.0, 1.0), x0)
+    assert plant.failure_hint(x0) is None
+
+
 def test_bad_actuator_and_loop_names_are_errors():
     with pytest.raises(ValueError, match="no joint 'wrist'"):
         jd.RigidBodySystem.from_urdf(URDF_DIR / "acrobot.urdf", actuated=["wrist"])

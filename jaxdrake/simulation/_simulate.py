@@ -140,9 +140,10 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
         status = SimulationStatus(int(traj.status))
         if not SimulationStatus.is_success(status):
             size = float(jnp.max(jnp.abs(traj.final_state))) if traj.final_state.size else 0.0
+            hint = system.failure_hint(traj.final_state)
             raise SimulationError(status, f"simulating {system.name} over [{float(t0)}, {float(tf)}] "
                                           f"stopped at t = {float(traj.t_final)!r} with max |x| = {size:.3g}: "
-                                          f"{status.message}")
+                                          + (f"{hint} (status: {status.name})" if hint else status.message))
     return traj
 
 

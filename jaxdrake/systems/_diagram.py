@@ -253,6 +253,12 @@ class Diagram(System):
     def output(self, t, x, u):
         return self.mode_output(self._single_mode("output"), t, x, self._with_zero_noise(u, x))
 
+    def failure_hint(self, x):
+        """The subsystems' hints at their parts of x, each named by the subsystem."""
+        hints = [(name, system.failure_hint(self.subsystem_state(i, x)))
+                 for i, (name, system) in enumerate(zip(self.names, self.subsystems))]
+        return "; ".join(f"{name}: {hint}" for name, hint in hints if hint) or None
+
     def initial_state(self):
         x = jnp.zeros(self.num_states)
         for i, s in enumerate(self.subsystems):

@@ -166,6 +166,12 @@ class System(eqx.Module):
         """The state used when `simulate` is given no x0 (the notes' default: zeros)."""
         return jnp.zeros(self.num_states)
 
+    def failure_hint(self, x) -> str | None:
+        """Why a simulation may have failed at the (last finite) state x, where the system can
+        tell (a rigid-body plant: a singular mass matrix); None by default. `simulate` adds it
+        to its error message."""
+        return None
+
     def state_constraints(self, x):
         """Announced constraints $\\phi(x) = 0$ (size `num_state_constraints`)."""
         if self.num_state_constraints:
