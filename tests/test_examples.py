@@ -15,7 +15,9 @@ import pytest
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 EXAMPLES = sorted(p for p in (ROOT / "examples").glob("*.py") if not p.name.startswith("_"))
 # a notebook that repeats its example script at a much larger batch runs with `-m slow` only
-SLOW = {"swing_up.ipynb", "lqr.ipynb"}  # lqr.ipynb: 45 s, extends lqr.py (run with -m slow)
+# swing_up.py: 61 s of compiling four hybrid closed loops, whose swing-ups and switches
+# tests/test_control.py checks by default (run it with -m slow)
+SLOW = {"swing_up.ipynb", "lqr.ipynb", "swing_up.py"}  # lqr.ipynb: 45 s, extends lqr.py (run with -m slow)
 NOTEBOOKS = [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW else p
              for p in sorted((ROOT / "notebooks").glob("*.ipynb"))]
 WORKERS = 3
@@ -62,7 +64,8 @@ def _run(command, env, out):
 
 
 @pytest.mark.notebook
-@pytest.mark.parametrize("script", EXAMPLES, ids=lambda p: p.name)
+@pytest.mark.parametrize("script", [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW else p
+                                    for p in EXAMPLES], ids=lambda p: getattr(p, "name", None))
 def test_example_script_runs_and_saves_its_figure(script, runs):
     done, out = runs[script].result()
     assert done.returncode == 0, done.stderr[-3000:]

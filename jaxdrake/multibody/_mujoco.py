@@ -18,7 +18,9 @@ then names `while_loop`): use `simulate(..., autodiff="forward")` with `jax.jacf
 
 from __future__ import annotations
 
+import os
 import pathlib
+import sys
 from typing import Any
 
 import equinox as eqx
@@ -29,6 +31,10 @@ from ..systems import Frame, System
 
 _POSITIONS = {0: ("x", "y", "z", "qw", "qx", "qy", "qz"), 1: ("qw", "qx", "qy", "qz"), 2: ("",), 3: ("",)}
 _VELOCITIES = {0: ("vx", "vy", "vz", "wx", "wy", "wz"), 1: ("wx", "wy", "wz"), 2: ("dot",), 3: ("dot",)}
+
+
+if sys.platform.startswith("linux") and not os.environ.get("DISPLAY") and "mujoco" not in sys.modules:
+    os.environ.setdefault("MUJOCO_GL", "egl")  # MuJoCo renders offscreen without a display (Mesa's EGL)
 
 
 def _mujoco():

@@ -6,8 +6,9 @@ from ._planar import (BouncingBallVisualizer, CartPoleVisualizer, CompassGaitVis
                       PlanarQuadrotorVisualizer, PlanarRigidBodyVisualizer, RimlessWheelVisualizer,
                       visualizer_for)
 from ._meshcat import MeshcatVisualizer, SceneRecorder
+from ._mujoco import MujocoVisualizer
 from ._visualizer import DRAW_PERIOD, Visualizer
 
 __all__ = ["DRAW_PERIOD", "BouncingBallVisualizer", "CartPoleVisualizer", "CompassGaitVisualizer", "MeshcatVisualizer",
-           "PendulumVisualizer", "PlanarQuadrotorVisualizer", "PlanarRigidBodyVisualizer",
+           "MujocoVisualizer", "PendulumVisualizer", "PlanarQuadrotorVisualizer", "PlanarRigidBodyVisualizer",
            "RimlessWheelVisualizer", "SceneRecorder", "Visualizer", "visualizer_for"]

@@ -12,6 +12,7 @@ import numpy as np
 from ..models import BouncingBall, CompassGait, Pendulum, PlanarQuadrotor, RimlessWheel
 from ..models._rigid import URDF_DIR
 from ..multibody import RigidBodySystem
+from ..multibody._mujoco import MujocoSystem
 from ..multibody import _algorithms as alg
 from ..systems import System
 from ._visualizer import DRAW_PERIOD, Visualizer
@@ -283,7 +284,7 @@ def visualizer_for(system: System, *, plane: str | None = None, draw_period=DRAW
     """The planar visualizer for one of the notes' plants (the cart-pole, the acrobot and the
     double pendulum are `RigidBodySystem`s of the package's own URDFs); for any other URDF robot
     a 3-D `MeshcatVisualizer`, or its projection onto `plane` ("xz", "yz", "xy") on request (also
-    for a `RigidBodySystem` not loaded from a file)."""
+    for a `RigidBodySystem` not loaded from a file); MuJoCo's renderer for a `MujocoSystem`."""
     simple = {Pendulum: PendulumVisualizer, BouncingBall: BouncingBallVisualizer, RimlessWheel: RimlessWheelVisualizer,
               CompassGait: CompassGaitVisualizer, PlanarQuadrotor: PlanarQuadrotorVisualizer}
     for kind, make in simple.items():
@@ -298,5 +299,9 @@ def visualizer_for(system: System, *, plane: str | None = None, draw_period=DRAW
         from ._meshcat import MeshcatVisualizer
 
         return MeshcatVisualizer(system, draw_period=draw_period)
+    if isinstance(system, MujocoSystem):
+        from ._mujoco import MujocoVisualizer
+
+        return MujocoVisualizer(system, draw_period=draw_period)
     raise TypeError(f"no visualizer for {type(system).__name__} ({system.name}); subclass "
                     "jaxdrake.viz.Visualizer (shapes, STYLES, view) to draw it")

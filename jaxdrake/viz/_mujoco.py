@@ -1,0 +1,105 @@
+"""MuJoCo models drawn by MuJoCo's own renderer: the planar visualizers' interface (`draw`,
+`animate`, `playback`, `save` to .gif / .mp4 / .html) with each frame an image of the model's
+scene at that state (`mj_forward`, then the offscreen renderer). On a machine without a
+display MuJoCo renders through EGL (Mesa's software EGL works on CPU-only machines); importing
+jaxdrake sets `MUJOCO_GL=egl` there, unless you chose a backend or imported mujoco before.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import numpy as np
+
+from ..multibody._mujoco import MujocoSystem, _mujoco
+from ._visualizer import DRAW_PERIOD, Visualizer
+
+
+class MujocoVisualizer(Visualizer):
+    """Frames of a `MujocoSystem` rendered by MuJoCo (`width` x `height` pixels, from `camera`:
+    a camera name or index of the model, -1 for the free camera)."""
+
+    width: int = eqx.field(static=True)
+    height: int = eqx.field(static=True)
+    camera: int | str = eqx.field(static=True)
+    mj_model: object = eqx.field(static=True)  # the plant's C model (MuJoCo renders from it)
+    sizes: tuple = eqx.field(static=True)  # (nq, nv, na)
+
+    def __init__(self, plant: MujocoSystem, *, width: int = 640, height: int = 480, camera=-1,
+                 draw_period: float = DRAW_PERIOD):
+        if not isinstance(plant, MujocoSystem):
+            raise TypeError(f"MujocoVisualizer draws a MujocoSystem, not {type(plant).__name__}")
+        super().__init__(plant, draw_period)
+        self.width, self.height, self.camera = int(width), int(height), camera
+        self.mj_model, self.sizes = plant.mj_model, plant.sizes
+
+    def images(self, xs) -> np.ndarray:
+        """RGB images (n, height, width, 3) of the states xs (n, num_states)."""
+        mujoco, _ = _mujoco()
+        model = self.mj_model
+        nq, nv, na = self.sizes
+        data = mujoco.MjData(model)
+        frames = []
+        try:
+            renderer = mujoco.Renderer(model, self.height, self.width)
+        except Exception as error:
+            raise RuntimeError(f"MuJoCo's renderer did not start ({error}). Without a display, set "
+                               "MUJOCO_GL=egl (or osmesa) before mujoco is first imported (importing "
+                               "jaxdrake first sets egl by default)") from error
+        with renderer:
+            for x in np.asarray(xs, float)[:, : self.num_inputs]:  # a diagram's state starts with the plant's
+                data.qpos[:], data.qvel[:], data.act[:] = x[:nq], x[nq: nq + nv], x[nq + nv: nq + nv + na]
+                mujoco.mj_forward(model, data)
+                renderer.update_scene(data, self.camera)
+                frames.append(renderer.render().copy())
+        return np.stack(frames)
+
+    def _figure_with_image(self, image, ax=None):
+        import matplotlib.pyplot as plt
+
+        if ax is None:
+            fig, ax = plt.subplots(figsize=(self.width / 100, self.height / 100), dpi=100)
+            fig.subplots_adjust(0, 0, 1, 1)
+        ax.set_axis_off()
+        return ax.figure, ax.imshow(image)
+
+    def draw(self, x, ax=None):
+        """The model at state x, as a matplotlib figure of MuJoCo's image."""
+        return self._figure_with_image(self.images(np.asarray(x)[None])[0], ax)[0]
+
+    def render(self, traj, fps=None):
+        """The movie's frames (n, height, width, 3), rendered by MuJoCo."""
+        times, xs, _, fps = self.frames(traj, fps)
+        if xs.ndim == 3:
+            raise ValueError("MujocoVisualizer renders one trajectory; index the batch (traj[i])")
+        if len(times) == 0:
+            raise ValueError(f"the trajectory is shorter than one frame (1/{fps:g} s)")
+        return self.images(xs)
+
+    def animate(self, traj, fps=None, rate: float = 1.0, ax=None):
+        """A matplotlib `FuncAnimation` of the rendered frames."""
+        from matplotlib.animation import FuncAnimation
+
+        fps = 1 / self.draw_period if fps is None else float(fps)
+        frames = self.render(traj, fps)
+        fig, image = self._figure_with_image(frames[0], ax)
+
+        def update(k):
+            image.set_data(frames[k])
+            return [image]
+
+        return FuncAnimation(fig, update, frames=len(frames), interval=1000 / (fps * rate), blit=False)
+
+    def live(self):
+        """`show(x, t=None)`: redraw the model at state x in one kept window."""
+        import matplotlib.pyplot as plt
+
+        fig, image = self._figure_with_image(np.zeros((self.height, self.width, 3), np.uint8))
+        plt.show(block=False)
+
+        def show(x, t=None):
+            image.set_data(self.images(np.asarray(x)[None])[0])
+            fig.canvas.draw_idle()
+            fig.canvas.flush_events()
+
+        show.figure = fig
+        return show
