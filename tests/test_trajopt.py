@@ -247,3 +247,25 @@ def test_cart_pole_swing_up_and_simulation_reproduces_it():
     whole = jd.simulate(plant, (0.0, refined.duration), refined.knot_states[0], inputs=refined.inputs,
                         rtol=1e-11, atol=1e-12)
     assert np.max(np.abs(np.asarray(whole.state(jnp.asarray(refined.times))) - refined.knot_states)) < 1e-3
+
+
+def test_box_qp_matches_scipys_bounded_minimizer():
+    """The projected-Newton box QP of the control-limited backward pass, against SciPy's
+    L-BFGS-B on random convex QPs with some bounds active."""
+    import scipy.optimize as so
+
+    from jaxdrake.trajopt._ilqr import box_qp
+
+    rng, active = np.random.default_rng(4), 0
+    for m in (1, 2, 4):
+        M = rng.normal(size=(m, m))
+        H, g = M @ M.T + 0.5 * np.eye(m), 3 * rng.normal(size=m)
+        lower, upper = -np.ones(m), np.ones(m)
+        x, free, _ = box_qp(jnp.asarray(H), jnp.asarray(g), jnp.asarray(lower), jnp.asarray(upper), jnp.zeros(m))
+        reference = so.minimize(lambda x: 0.5 * x @ H @ x + g @ x, np.zeros(m), jac=lambda x: H @ x + g,
+                                bounds=list(zip(lower, upper)), method="L-BFGS-B", options={"gtol": 1e-12, "ftol": 1e-15})
+        np.testing.assert_allclose(x, reference.x, atol=1e-7)
+        on_bound = np.isclose(np.abs(np.asarray(x)), 1.0)
+        np.testing.assert_array_equal(np.asarray(free), ~on_bound)
+        active += on_bound.sum()
+    assert active >= 2

@@ -3,12 +3,19 @@ r"""A batched, JAX-native trajectory optimizer: augmented-Lagrangian iLQR.
 For the discretized dynamics $x_{k+1} = \Phi(t_k, x_k, u_k)$ (an RK4 step with the input held,
 or a discrete system's update) it minimizes
 $$J = \sum_{k=0}^{N-1} h\,\ell(t_k, x_k, u_k) + \ell_f(x_N)$$
-subject to $u_{min} \le u_k \le u_{max}$ and optionally $x_N = x_{goal}$, by the method of
-ALTRO (Howell, Jackson & Manchester 2019): constraints enter an augmented Lagrangian
-(Powell-Hestenes-Rockafellar form for the inequalities), whose unconstrained problem is solved
-by iLQR (Li & Todorov 2004) with Levenberg-Marquardt regularization of the value Hessian and a
-backtracking line search (Tassa, Erez & Todorov 2012); multipliers and the penalty are updated
-between inner solves. Every loop is a `lax.while_loop` and every derivative comes from JAX,
+subject to $u_{min} \le u_k \le u_{max}$ and optionally $x_N = x_{goal}$. The input bounds
+are kept exactly by box-constrained iLQR (Tassa, Mansard & Todorov 2014): each backward step
+solves the box QP $\min_{\delta u} \tfrac12 \delta u^T Q_{uu} \delta u + Q_u^T \delta u$,
+$u_{min} - u \le \delta u \le u_{max} - u$, by projected Newton, and the feedback acts on the
+free inputs only; the forward pass clamps. The goal enters an augmented Lagrangian (as ALTRO,
+Howell, Jackson & Manchester 2019), whose unconstrained problems are solved by differential
+dynamic programming: iLQR's backward pass (Li & Todorov 2004) plus the dynamics' curvature
+$V_x' \cdot \nabla^2 \Phi$ (the full DDP expansion, one Hessian of $V_x' \cdot \Phi$ per step
+inside the backward scan), with Levenberg-Marquardt regularization of the value Hessian and
+a backtracking line search (Tassa, Erez & Todorov 2012); the multiplier and the penalty are
+updated between inner solves. The curvature term matters once the goal's multiplier is large:
+without it, the Gauss-Newton model crawls (pendulum swing-ups: 553 iterations for the slowest
+of 64, against 46 with it). Every loop is a `lax.while_loop` and every derivative comes from JAX,
 so `jax.vmap` over initial states, goals or parameters solves many problems at once (all
 members run until the last has finished). It returns a status, never raises inside `jit`.
 """
@@ -26,6 +33,35 @@ from ..systems._system import require_plain_system
 from ..trajectories import Trajectory
 
 _ALPHAS = 0.5 ** np.arange(10)
+_BOX_QP_ITERATIONS = 8  # projected Newton steps per box QP, at most (m + 1: exact in one when m = 1)
+
+
+def box_qp(H, g, lower, upper, x0):
+    r"""Projected Newton for $\min \tfrac12 x^T H x + g^T x$, lower <= x <= upper (H > 0):
+    (x, free, the Cholesky factor of H on the free set, identity elsewhere). An index is
+    clamped when it sits on a bound its gradient pushes against; each step solves on the free
+    set and backtracks (Armijo) along the projected path."""
+    m = g.shape[0]
+    eye = jnp.eye(m, dtype=H.dtype)
+    q = lambda x: 0.5 * x @ H @ x + g @ x  # noqa: E731
+
+    def factor(free):
+        both = free[:, None] & free[None, :]
+        return jnp.linalg.cholesky(jnp.where(both, H, eye))
+
+    def step(x, _):
+        grad = g + H @ x
+        free = ~(((x <= lower) & (grad > 0)) | ((x >= upper) & (grad < 0)))
+        direction = jnp.where(free, -jax.scipy.linalg.cho_solve((factor(free), True), jnp.where(free, grad, 0.0)), 0.0)
+        trials = jnp.clip(x + jnp.asarray(_ALPHAS, H.dtype)[:, None] * direction, lower, upper)
+        values = jax.vmap(q)(trials)
+        good = values <= q(x) + 1e-8 * (jnp.asarray(_ALPHAS, H.dtype) * (grad @ direction))
+        return jnp.where(jnp.any(good), trials[jnp.argmax(good)], x), None
+
+    x = jax.lax.scan(step, jnp.clip(x0, lower, upper), None, length=min(_BOX_QP_ITERATIONS, m + 1))[0]
+    grad = g + H @ x
+    free = ~(((x <= lower) & (grad > 0)) | ((x >= upper) & (grad < 0)))
+    return x, free, factor(free)
 
 
 class ILQRResult(eqx.Module):
@@ -109,9 +145,8 @@ def ilqr(system: System, x0, inputs, time_step, running_cost, final_cost=None, *
     def goal_constraint(x):
         return jnp.where(goal_mask, x - goal, 0.0) if has_goal else jnp.zeros(n, dtype)
 
-    def stage(t, x, u, lam, mu):
-        c = input_constraints(u)
-        return h * running_cost(t, x, u) + jnp.sum(jnp.maximum(0.0, lam + mu * c) ** 2 - lam ** 2) / (2 * mu)
+    def stage(t, x, u):
+        return h * running_cost(t, x, u)
 
     def terminal(x, lam, mu):
         c = goal_constraint(x)
@@ -124,52 +159,52 @@ def ilqr(system: System, x0, inputs, time_step, running_cost, final_cost=None, *
         xN, X = jax.lax.scan(body, x0, (times, U))
         return jnp.concatenate([X, xN[None]])
 
-    def total(X, U, lam_u, lam_f, mu):
-        return (jnp.sum(jax.vmap(stage, (0, 0, 0, 0, None))(times, X[:-1], U, lam_u, mu))
-                + terminal(X[-1], lam_f, mu))
+    def total(X, U, lam_f, mu):
+        return jnp.sum(jax.vmap(stage)(times, X[:-1], U)) + terminal(X[-1], lam_f, mu)
 
-    def backward(X, U, lam_u, lam_f, mu, reg):
+    def backward(X, U, lam_f, mu, reg):
         fx, fu = jax.vmap(jax.jacfwd(step, (1, 2)))(times, X[:-1], U)
-        grads = jax.vmap(jax.grad(stage, (1, 2)), (0, 0, 0, 0, None))(times, X[:-1], U, lam_u, mu)
-        hess = jax.vmap(jax.hessian(stage, (1, 2)), (0, 0, 0, 0, None))(times, X[:-1], U, lam_u, mu)
+        grads = jax.vmap(jax.grad(stage, (1, 2)))(times, X[:-1], U)
+        hess = jax.vmap(jax.hessian(stage, (1, 2)))(times, X[:-1], U)
         Vx = jax.grad(terminal)(X[-1], lam_f, mu)
         Vxx = jax.hessian(terminal)(X[-1], lam_f, mu)
 
         def body(carry, per_step):
-            Vx, Vxx, ok, dv = carry
-            A, B, lx, lu, lxx, lux, luu = per_step
+            Vx, Vxx, ok, dv, warm = carry
+            A, B, lx, lu, lxx, lux, luu, t, x, u = per_step
+            (fxx, fxu), (_, fuu) = jax.hessian(lambda x, u: Vx @ step(t, x, u), (0, 1))(x, u)
+            lxx, lux, luu = lxx + fxx, lux + fxu.T, luu + fuu  # DDP: the dynamics' curvature
             Vreg = Vxx + reg * jnp.eye(n, dtype=dtype)
             Qx, Qu = lx + A.T @ Vx, lu + B.T @ Vx
             Qxx = lxx + A.T @ Vxx @ A
             Quu, Qux = luu + B.T @ Vxx @ B, lux + B.T @ Vxx @ A
             Quu_reg = luu + B.T @ Vreg @ B  # regularized for the gains only (Tassa et al. 2012, eq. 10-11)
-            chol = jnp.linalg.cholesky((Quu_reg + Quu_reg.T) / 2)
+            kff, free, chol = box_qp((Quu_reg + Quu_reg.T) / 2, Qu, u_lo - u, u_hi - u, warm)
             ok = ok & jnp.all(jnp.isfinite(chol))
-            solve = lambda r: jax.scipy.linalg.cho_solve((chol, True), r)  # noqa: E731
-            kff, K = -solve(Qu), -solve(lux + B.T @ Vreg @ A)
+            K = jnp.where(free[:, None], -jax.scipy.linalg.cho_solve((chol, True), lux + B.T @ Vreg @ A), 0.0)
             Vx = Qx + K.T @ Quu @ kff + K.T @ Qu + Qux.T @ kff
             Vxx = Qxx + K.T @ Quu @ K + K.T @ Qux + Qux.T @ K
             dv = dv + jnp.stack([kff @ Qu, kff @ Quu @ kff / 2])
-            return (Vx, (Vxx + Vxx.T) / 2, ok, dv), (kff, K)
+            return (Vx, (Vxx + Vxx.T) / 2, ok, dv, kff), (kff, K)
 
         (lxx, _), (lux, luu) = hess
-        (_, _, ok, dv), (kff, K) = jax.lax.scan(body, (Vx, Vxx, jnp.asarray(True), jnp.zeros(2, dtype)),
-                                                (fx, fu, *grads, lxx, lux, luu), reverse=True)
+        start = (Vx, Vxx, jnp.asarray(True), jnp.zeros(2, dtype), jnp.zeros(m, dtype))
+        (_, _, ok, dv, _), (kff, K) = jax.lax.scan(body, start, (fx, fu, *grads, lxx, lux, luu, times, X[:-1], U), reverse=True)
         return kff, K, ok, dv
 
     def forward(X, U, kff, K, alpha):
         def body(x, inputs):
             t, xb, ub, k, Kk = inputs
-            u = ub + alpha * k + Kk @ (x - xb)
+            u = jnp.clip(ub + alpha * k + Kk @ (x - xb), u_lo, u_hi)
             return step(t, x, u), (x, u)
         xN, (X_new, U_new) = jax.lax.scan(body, x0, (times, X[:-1], U, kff, K))
         return jnp.concatenate([X_new, xN[None]]), U_new
 
-    def inner_iteration(state, lam_u, lam_f, mu, inner_tol):
+    def inner_iteration(state, lam_f, mu, inner_tol):
         X, U, J, reg, it, _ = state
-        kff, K, ok, dv = backward(X, U, lam_u, lam_f, mu, reg)
+        kff, K, ok, dv = backward(X, U, lam_f, mu, reg)
         trials = jax.vmap(lambda a: forward(X, U, kff, K, a))(jnp.asarray(_ALPHAS, dtype))
-        costs = jax.vmap(lambda Xa, Ua: total(Xa, Ua, lam_u, lam_f, mu))(*trials)
+        costs = jax.vmap(lambda Xa, Ua: total(Xa, Ua, lam_f, mu))(*trials)
         expected = -(jnp.asarray(_ALPHAS, dtype) * dv[0] + jnp.asarray(_ALPHAS, dtype) ** 2 * dv[1])
         accept = ok & jnp.isfinite(costs) & ((J - costs) > 1e-4 * jnp.maximum(expected, 0.0)) & (costs < J)
         best = jnp.argmax(accept)  # the largest accepted step
@@ -190,28 +225,26 @@ def ilqr(system: System, x0, inputs, time_step, running_cost, final_cost=None, *
         return jnp.maximum(tol, 1e-3 * 0.1 ** outer.astype(dtype))
 
     def outer_iteration(state):
-        X, U, lam_u, lam_f, mu, it, outer = state
-        J = total(X, U, lam_u, lam_f, mu)
+        X, U, lam_f, mu, it, outer = state
+        J = total(X, U, lam_f, mu)
         inner = jax.lax.while_loop(
             lambda s: (~s[-1]) & (s[-2] < max_iterations),
-            lambda s: inner_iteration(s, lam_u, lam_f, mu, inner_tolerance(outer)),
+            lambda s: inner_iteration(s, lam_f, mu, inner_tolerance(outer)),
             (X, U, J, jnp.asarray(1e-6, dtype), it, jnp.asarray(False)))  # fresh regularization
         X, U, _, _, it, _ = inner
-        lam_u = jnp.maximum(0.0, lam_u + mu * jax.vmap(input_constraints)(U))
         lam_f = lam_f + mu * goal_constraint(X[-1])
-        return X, U, lam_u, lam_f, jnp.minimum(mu * penalty_growth, 1e8), it, outer + 1
+        return X, U, lam_f, jnp.minimum(mu * penalty_growth, 1e8), it, outer + 1
 
     def keep_going(state):
-        X, U, lam_u, lam_f, mu, it, outer = state
+        X, U, lam_f, mu, it, outer = state
         last_was_loose = inner_tolerance(outer - 1) > tol
         unfinished = (outer == 0) | (violation(X, U) > constraint_tol) | last_was_loose
         return (outer < max_outer) & (it < max_iterations) & unfinished
 
     U0 = jnp.clip(inputs, u_lo, u_hi)
     X0 = rollout(U0)
-    state = (X0, U0, jnp.zeros((N, 2 * m), dtype), jnp.zeros(n, dtype), jnp.asarray(penalty, dtype),
-             jnp.asarray(0), jnp.asarray(0))
-    X, U, lam_u, lam_f, mu, it, outer = jax.lax.while_loop(keep_going, outer_iteration, state)
+    state = (X0, U0, jnp.zeros(n, dtype), jnp.asarray(penalty, dtype), jnp.asarray(0), jnp.asarray(0))
+    X, U, lam_f, mu, it, outer = jax.lax.while_loop(keep_going, outer_iteration, state)
     cost = jnp.sum(jax.vmap(lambda t, x, u: h * running_cost(t, x, u))(times, X[:-1], U)) + final_cost(X[-1])
     viol = violation(X, U)
     converged = jnp.isfinite(cost) & (viol <= constraint_tol) & (it < max_iterations)
