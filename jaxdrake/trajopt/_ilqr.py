@@ -111,7 +111,8 @@ def ilqr(system: System, x0, inputs, time_step, running_cost, final_cost=None, *
     - `final_state`: x_N = final_state, enforced by the augmented Lagrangian (NaN entries free).
     - `input_bounds`: (u_min, u_max); the system's input limits by default.
     - `max_iterations`: the total budget of iLQR iterations, shared by `max_outer`
-      multiplier updates; `penalty` (the first) grows by `penalty_growth` per update, to 1e8; `tol`: relative cost change that ends an inner solve;
+      multiplier updates; `penalty` (the first) grows by `penalty_growth` per update, to 1e8; `tol`: relative cost change that ends an inner solve
+      (at least 100 eps of the float width: 1.2e-5 in float32);
       `constraint_tol`: the violation accepted at the end.
 
     Returns an `ILQRResult` (pure arrays: `jax.vmap` gives batches)."""
@@ -214,15 +215,19 @@ def ilqr(system: System, x0, inputs, time_step, running_cost, final_cost=None, *
         J_new = jnp.where(improved, costs[best], J)
         reg = jnp.where(improved, jnp.maximum(reg / 10, 1e-9), jnp.minimum(reg * 10, 1e10))
         small = improved & (J - J_new <= inner_tol * (1 + jnp.abs(J_new)))
-        done = small | (~improved & (reg >= 1e10))
+        # nothing left to gain at this float width: the model's own predicted decrease is rounding
+        flat = -(dv[0] + dv[1]) <= 10 * jnp.finfo(dtype).eps * (1 + jnp.abs(J))
+        done = small | (ok & flat) | (~improved & (reg >= 1e10))
         return X_new, U_new, J_new, reg, it + 1, done
 
     def violation(X, U):
         return jnp.maximum(jnp.max(jnp.maximum(jax.vmap(input_constraints)(U), 0.0), initial=0.0),
                            jnp.max(jnp.abs(goal_constraint(X[-1])), initial=0.0))
 
+    final_tol = max(tol, 100 * float(jnp.finfo(dtype).eps))  # never below what the float width resolves
+
     def inner_tolerance(outer):  # loose first, tighter after each multiplier update (as ALTRO)
-        return jnp.maximum(tol, 1e-3 * 0.1 ** outer.astype(dtype))
+        return jnp.maximum(final_tol, 1e-3 * 0.1 ** outer.astype(dtype))
 
     def outer_iteration(state):
         X, U, lam_f, mu, it, outer = state
@@ -237,7 +242,7 @@ def ilqr(system: System, x0, inputs, time_step, running_cost, final_cost=None, *
 
     def keep_going(state):
         X, U, lam_f, mu, it, outer = state
-        last_was_loose = inner_tolerance(outer - 1) > tol
+        last_was_loose = inner_tolerance(outer - 1) > final_tol
         unfinished = (outer == 0) | (violation(X, U) > constraint_tol) | last_was_loose
         return (outer < max_outer) & (it < max_iterations) & unfinished
 
