@@ -269,3 +269,28 @@ def test_box_qp_matches_scipys_bounded_minimizer():
         np.testing.assert_array_equal(np.asarray(free), ~on_bound)
         active += on_bound.sum()
     assert active >= 2
+
+
+@pytest.mark.parametrize("model", ["pendulum", pytest.param("acrobot", marks=pytest.mark.slow)])
+def test_hermite_simpson_structured_derivatives_equal_autodiff_of_the_defect(model):
+    """DirectCollocation's defect brings its own Jacobian and Hessian (chain rule around one
+    vmapped evaluation of f's derivatives at a segment's three points); they equal JAX's
+    derivatives of the defect itself, and central differences (check_derivatives). (The
+    acrobot's generic Hessian compiles for ~20 s: -m slow.)"""
+    from jaxdrake.trajopt._nlp import NonlinearProgram, Term
+
+    for plant in [jd.models.Pendulum() if model == "pendulum" else jd.models.Acrobot()]:
+        prog = trajopt.DirectCollocation(plant, 6, duration=2.0).add_input_bounds(-10, 10)
+        prog.set_initial_state(np.zeros(plant.num_states)).add_running_cost(lambda t, x, u: u @ u + x @ x)
+        nlp = prog.nlp
+        defect = nlp.constraints[0]
+        assert defect.jacobian is not None and defect.hessian is not None
+        plain = Term(defect.name, defect.fn, defect.idx, defect.lower, defect.upper)
+        generic = NonlinearProgram(nlp.num_variables, nlp.costs, [plain] + nlp.constraints[1:], nlp.lower, nlp.upper)
+        rng = np.random.default_rng(1)
+        z, lam = rng.normal(size=nlp.num_variables), rng.normal(size=nlp.num_constraints)
+        np.testing.assert_allclose(nlp.jacobian_values(z), generic.jacobian_values(z), atol=1e-12)
+        np.testing.assert_allclose(nlp.hessian_values(z, lam, 0.7), generic.hessian_values(z, lam, 0.7), atol=1e-12)
+        check = nlp.check_derivatives(z)
+        assert check["jacobian_error"] < 1e-6 * check["jacobian_scale"] and check["outside_pattern"] == 0
+        assert check["hessian_error"] < 1e-5 * check["hessian_scale"]

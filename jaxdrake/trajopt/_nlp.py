@@ -26,13 +26,17 @@ import numpy as np
 class Term:
     """`fn(v, k) -> (r,)` on `idx.shape[0]` instances; instance k reads `z[idx[k]]`. A cost
     term's values are summed; a constraint term's are bounded by `lower`/`upper` (each
-    (K, r))."""
+    (K, r)). A constraint term may bring its own derivatives, exploiting its structure:
+    `jacobian(v, k) -> (r, L)` and `hessian(v, k, lam) -> (L, L)` (of lam . fn); by default
+    autodiff of `fn`."""
 
     name: str
     fn: Callable
     idx: np.ndarray
     lower: np.ndarray | None = None
     upper: np.ndarray | None = None
+    jacobian: Callable | None = None
+    hessian: Callable | None = None
 
 
 def _triplets(rows, cols):
@@ -135,7 +139,7 @@ class NonlinearProgram:
             return jnp.concatenate([apply(t, t.fn, z).ravel() for t in constraints] or [jnp.zeros(0)])
 
         def jacobian_values(z):
-            raw = jnp.concatenate([apply(t, jax.jacfwd(t.fn), z).ravel() for t in constraints]
+            raw = jnp.concatenate([apply(t, t.jacobian or jax.jacfwd(t.fn), z).ravel() for t in constraints]
                                   or [jnp.zeros(0)])
             return jax.ops.segment_sum(raw, jac_slot, jac_nnz)
 
@@ -147,7 +151,8 @@ class NonlinearProgram:
                 K = t.idx.shape[0]
                 lam = multipliers[offset: offset + K * r].reshape(K, r)
                 offset += K * r
-                blocks.append(apply(t, jax.hessian(lambda v, k, l, fn=t.fn: l @ fn(v, k)), z, lam).ravel())
+                hessian = t.hessian or jax.hessian(lambda v, k, l, fn=t.fn: l @ fn(v, k))
+                blocks.append(apply(t, hessian, z, lam).ravel())
             return jax.ops.segment_sum(jnp.concatenate(blocks)[hess_lower], hess_slot, hess_nnz)
 
         with jax.enable_x64(True):

@@ -413,6 +413,64 @@ def _hermite_midpoint(x0, u0, x1, u1, t, h, system):
     return f0, f1, xc, uc
 
 
+def _hermite_simpson_derivatives(system, n, m, h):
+    r"""The Jacobian and the Lagrangian Hessian of the Hermite-Simpson defect
+    $c = x_1 - x_0 - \tfrac h6 (f_0 + 4 f_c + f_1)$, $x_c = \tfrac12(x_0 + x_1) + \tfrac h8 (f_0 - f_1)$,
+    $u_c = \tfrac12 (u_0 + u_1)$, over v = [w_0; w_1], $w_j = (x_j, u_j)$, by the chain rule
+    around ONE vmapped evaluation of f's derivatives at the segment's three points (autodiff of
+    the defect itself traces f's derivatives twice, the knots' and the midpoint's, and costs
+    twice the compile):
+    $\partial c = [-I\,0\,I\,0] - \tfrac h6 (J_0 P_0 + J_1 P_1 + 4 J_c\, \partial w_c)$,
+    $\nabla^2 (\lambda\cdot c) = -\tfrac h6 \big(P_0^T \nabla^2(\mu_0\cdot f)(w_0) P_0
+    + P_1^T \nabla^2(\mu_1\cdot f)(w_1) P_1 + 4\, \partial w_c^T \nabla^2(\lambda\cdot f)(w_c)\, \partial w_c\big)$
+    with $g = (\partial f/\partial x)(w_c)^T \lambda$, $\mu_{0,1} = \lambda \pm \tfrac h2 g$."""
+    L = n + m
+    eye_n, eye_m = jnp.eye(n), jnp.eye(m)
+
+    def f(t, w):
+        return system.dynamics(t, w[:n], w[n:])
+
+    def derivatives(t, w):  # f, its Jacobian and its second-derivative tensor at one point
+        def jacobian_with_value(w):
+            J, value = jax.jacfwd(lambda w: (f(t, w), f(t, w)), has_aux=True)(w)
+            return J, (J, value)
+
+        T, (J, value) = jax.jacfwd(jacobian_with_value, has_aux=True)(w)
+        return value, J, T
+
+    def points(v, k):
+        t0 = k * h
+        w0, w1 = v[:L], v[L:2 * L]
+        f0, f1 = jax.vmap(f)(jnp.stack([t0, t0 + h]), jnp.stack([w0, w1]))
+        wc = jnp.concatenate([(w0[:n] + w1[:n]) / 2 + h / 8 * (f0 - f1), (w0[n:] + w1[n:]) / 2])
+        return jnp.stack([t0, t0 + h, t0 + h / 2]), jnp.stack([w0, w1, wc])
+
+    def midpoint_jacobian(J0, J1):  # d w_c / d v, (L, 2L)
+        dx = jnp.concatenate([eye_n, jnp.zeros((n, m)), eye_n, jnp.zeros((n, m))], axis=1) / 2 + \
+            h / 8 * jnp.concatenate([J0, -J1], axis=1)
+        du = jnp.concatenate([jnp.zeros((m, n)), eye_m, jnp.zeros((m, n)), eye_m], axis=1) / 2
+        return jnp.concatenate([dx, du])
+
+    def jacobian(v, k):
+        times, W = points(v, k)
+        J = jax.vmap(lambda t, w: jax.jacfwd(f, 1)(t, w))(times, W)
+        Dc = midpoint_jacobian(J[0], J[1])
+        plain = jnp.concatenate([-eye_n, jnp.zeros((n, m)), eye_n, jnp.zeros((n, m))], axis=1)
+        return plain - h / 6 * (jnp.concatenate([J[0], J[1]], axis=1) + 4 * J[2] @ Dc)
+
+    def hessian(v, k, lam):
+        times, W = points(v, k)
+        _, J, T = jax.vmap(derivatives)(times, W)
+        Dc = midpoint_jacobian(J[0], J[1])
+        g = J[2][:, :n].T @ lam
+        H0 = jnp.einsum("i,ijk->jk", lam + h / 2 * g, T[0])
+        H1 = jnp.einsum("i,ijk->jk", lam - h / 2 * g, T[1])
+        knots = jnp.block([[H0, jnp.zeros((L, L))], [jnp.zeros((L, L)), H1]])
+        return -h / 6 * (knots + 4 * Dc.T @ jnp.einsum("i,ijk->jk", lam, T[2]) @ Dc)
+
+    return {"jacobian": jacobian, "hessian": hessian}
+
+
 class DirectCollocation(_TrajectoryProgram):
     r"""Direct collocation with Hermite-Simpson's rule (Drake's `DirectCollocation`): cubic
     state segments matching $f$ at the knots, first-order-hold inputs, the dynamics enforced
@@ -440,6 +498,13 @@ class DirectCollocation(_TrajectoryProgram):
     def _defect(t, x0, u0, x1, u1, h, system):
         f0, f1, xc, uc = _hermite_midpoint(x0, u0, x1, u1, t, h, system)
         return x1 - x0 - h / 6 * (f0 + 4 * system.dynamics(t + h / 2, xc, uc) + f1)
+
+    def _add_dynamics(self):
+        super()._add_dynamics()
+        if self.num_globals == 0:  # fixed duration, no free parameters: derivatives by structure
+            self._dynamics_term = dataclasses.replace(self._dynamics_term, **_hermite_simpson_derivatives(
+                self.system, self.num_states, self.num_inputs, self._duration_bounds[0] / (self.num_time_samples - 1)))
+            self._constraints[-1] = self._dynamics_term
 
     def _running_cost_term(self, fn):
         def simpson(t, x0, u0, x1, u1, h, system):
