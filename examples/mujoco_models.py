@@ -47,8 +47,8 @@ def main(out: pathlib.Path) -> pathlib.Path:
     for x, a in zip(np.asarray(runs), np.asarray(tilts)):
         axes[0].plot(ts, x[:, 1], label=f"{a:+.2f} rad")
         axes[1].plot(ts, x[:, 0])
-    movie = jd.viz.MujocoVisualizer(cartpole, camera="side", width=480, height=360).save(
-        jd.simulate(closed, (0.0, 3.0), jnp.array([0.0, 0.25, 0.0, 0.0])), out / "mujoco_cartpole.gif", fps=16)
+    movie = jd.viz.MujocoVisualizer(cartpole, camera="side", width=320, height=240).save(
+        jd.simulate(closed, (0.0, 2.0), jnp.array([0.0, 0.25, 0.0, 0.0])), out / "mujoco_cartpole.gif", fps=12)
     print(f"saved {movie} (MuJoCo's renderer)")
     axes[0].set(xlabel="t (s)", ylabel="pole angle (rad)", title="MJCF cart-pole balanced by LQR of its MJX update")
     axes[0].legend(fontsize=7, ncol=2)

@@ -147,10 +147,12 @@ def test_sos_program_reports_infeasibility_and_its_certificate_check_catches_lie
     assert residual > 1e-3 and eig < 0
 
 
-def test_searching_for_the_region_of_attraction_enlarges_it():
+def test_searching_for_the_region_of_attraction_enlarges_it(capsys):
     system = reversed_van_der_pol()
     quadratic = region_of_attraction(system, [0.0, 0.0])
-    search = search_region_of_attraction(system, [0.0, 0.0], degree=4, iterations=4)
+    search = search_region_of_attraction(system, [0.0, 0.0], degree=4, iterations=4, progress=True)
+    shown = capsys.readouterr().err  # the progress bar, on stderr, with the last beta
+    assert "region of attraction" in shown and f"beta={search.history[-1]:.6g}" in shown
     assert all(b2 >= b1 * (1 - 1e-6) for b1, b2 in zip(search.history, search.history[1:]))
     assert search.beta > 1.2 * quadratic  # the quartic region contains a larger ellipse
     # states in the new region (rejection-sampled from a box) converge in simulation

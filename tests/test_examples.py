@@ -16,8 +16,11 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 EXAMPLES = sorted(p for p in (ROOT / "examples").glob("*.py") if not p.name.startswith("_"))
 # a notebook that repeats its example script at a much larger batch runs with `-m slow` only
 # swing_up.py: 61 s of compiling four hybrid closed loops, whose swing-ups and switches
-# tests/test_control.py checks by default (run it with -m slow)
-SLOW = {"swing_up.ipynb", "lqr.ipynb", "swing_up.py"}  # lqr.ipynb: 45 s, extends lqr.py (run with -m slow)
+# tests/test_control.py checks by default; trajectory_optimization.py (54 s) and its notebook:
+# the swing-ups, TVLQR and iLQR batches that tests/test_trajopt.py checks by default;
+# mujoco_models.py (36 s of MJX compiles and EGL frames): what tests/test_mujoco.py checks
+SLOW = {"swing_up.ipynb", "lqr.ipynb", "swing_up.py",  # lqr.ipynb: 45 s, extends lqr.py (run with -m slow)
+        "trajectory_optimization.py", "trajectory_optimization.ipynb", "mujoco_models.py"}
 NOTEBOOKS = [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW else p
              for p in sorted((ROOT / "notebooks").glob("*.ipynb"))]
 WORKERS = 3

@@ -358,11 +358,9 @@ def test_a_mass_matrix_singular_at_run_time_is_named_with_its_joint():
     hollow = eqx.tree_at(lambda s: (s.tree.mass, s.tree.inertia), plant,
                          (tree.mass.at[1].set(0.0), tree.inertia.at[1].set(0.0)))
     x0 = jnp.array([0.3, 0.2, 0.0, 0.0])
-    with pytest.raises(jd.SimulationError, match=r"mass matrix H\(q\) of double_pendulum is singular .* joint\(s\) joint2"):
-        jd.simulate(hollow, (0.0, 1.0), x0)
     damper = jd.System.from_functions(output=lambda t, x, u: -0.1 * u[2:], num_states=0, num_inputs=4, num_outputs=2)
-    with pytest.raises(jd.SimulationError, match=r"joint\(s\) joint2 move no mass"):
-        jd.simulate(jd.feedback(hollow, damper), (0.0, 1.0), x0)
+    with pytest.raises(jd.SimulationError, match=r"mass matrix H\(q\) of double_pendulum is singular .* joint\(s\) joint2 move no mass"):
+        jd.simulate(jd.feedback(hollow, damper), (0.0, 1.0), x0, max_steps=100)
     assert plant.failure_hint(x0) is None
 
 

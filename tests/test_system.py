@@ -124,7 +124,10 @@ def test_linear_system_shape_errors():
 def test_jax_transformations_of_a_systems_methods_work_for_array_holding_systems():
     """`jax.jit(plant.dynamics)` as a user writes it: systems holding arrays (a URDF plant, a
     LinearSystem) hash by identity, so the bound method is a cacheable function."""
-    for plant in (jd.models.Acrobot(), jd.LinearSystem([[0.0, 1.0], [-2.0, -0.5]], [[0.0], [1.0]])):
+    acrobot = jd.models.Acrobot()
+    x, u = jnp.linspace(0.1, 0.4, 4), jnp.ones(1)
+    np.testing.assert_allclose(jax.jit(acrobot.dynamics)(0.0, x, u), acrobot.dynamics(0.0, x, u), rtol=1e-12)
+    for plant in (jd.LinearSystem([[0.0, 1.0], [-2.0, -0.5]], [[0.0], [1.0]]),):
         x, u = jnp.linspace(0.1, 0.4, plant.num_states), jnp.ones(plant.num_inputs)
         fast = jax.jit(plant.dynamics)
         np.testing.assert_allclose(fast(0.0, x, u), plant.dynamics(0.0, x, u), rtol=1e-12)

@@ -284,7 +284,7 @@ class RegionOfAttractionSearch:
 
 def search_region_of_attraction(system: System, x0, degree: int = 4, *, S=None, u0=None,
                                 taylor_degree: int = 3, iterations: int = 10, tolerance: float = 1e-3,
-                                solver: str | None = None) -> RegionOfAttractionSearch:
+                                solver: str | None = None, progress: bool = False) -> RegionOfAttractionSearch:
     r"""Search over V and the multipliers to enlarge a certified region of attraction (the
     notes' "searching for the region of attraction"; the expanding-interior alternation of
     Jarvis-Wloszek et al. 2003). With $p = \bar x^T S \bar x$ (S from the linearization's
@@ -299,6 +299,7 @@ def search_region_of_attraction(system: System, x0, degree: int = 4, *, S=None, 
     its largest certified level, as in `region_of_attraction`); (2) V fixed: s and $\beta$;
     (3) $\lambda$ and s fixed: V and $\beta$. Each step keeps the previous solution feasible,
     so $\beta$ never decreases; stop when it grows by less than `tolerance` (relative).
+    `progress`: a progress bar (tqdm) over the alternations, showing $\beta$.
     """
     f = polynomial_dynamics(system, x0, u0, taylor_degree)
     _equilibrium_check(f, x0)
@@ -313,6 +314,10 @@ def search_region_of_attraction(system: System, x0, degree: int = 4, *, S=None, 
     shape = _quadratic(S, names)
     V = shape
     history = []
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=iterations, desc="region of attraction", unit="alternation")
     for _ in range(iterations):
         # (1) V fixed: multiplier and largest level; normalise V to level 1.
         rho, lam, _ = _largest_level(V, f, solver)
@@ -338,8 +343,13 @@ def search_region_of_attraction(system: System, x0, degree: int = 4, *, S=None, 
         result = prog.solve(maximize=beta, solver=solver)
         V = result.value(V_new).pruned(1e-12)
         history.append(float(beta.value))
+        if bar is not None:
+            bar.update()
+            bar.set_postfix(beta=f"{history[-1]:.6g}")
         if len(history) > 1 and history[-1] - history[-2] <= tolerance * abs(history[-2]):
             break
+    if bar is not None:
+        bar.close()
     # certify the final V on its own (fresh multiplier), as `region_of_attraction` does
     rho, _, result = _largest_level(V, f, solver)
     check = result.check(100_000, scale=float(np.sqrt(max(history[-1], 1e-9) / np.linalg.eigvalsh(S).min())))
