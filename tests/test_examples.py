@@ -20,7 +20,7 @@ EXAMPLES = sorted(p for p in (ROOT / "examples").glob("*.py") if not p.name.star
 # the swing-ups, TVLQR and iLQR batches that tests/test_trajopt.py checks by default;
 # mujoco_models.py (36 s of MJX compiles and EGL frames): what tests/test_mujoco.py checks
 SLOW = {"swing_up.ipynb", "lqr.ipynb", "swing_up.py",  # lqr.ipynb: 45 s, extends lqr.py (run with -m slow)
-        "trajectory_optimization.py", "trajectory_optimization.ipynb", "mujoco_models.py"}
+        "trajectory_optimization.py", "trajectory_optimization.ipynb", "mujoco_models.py", "mujoco_models.ipynb"}
 NOTEBOOKS = [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW else p
              for p in sorted((ROOT / "notebooks").glob("*.ipynb"))]
 WORKERS = 3
