@@ -514,16 +514,20 @@ class DirectCollocation(_TrajectoryProgram):
         return self._segment_term("running cost", simpson)
 
     @functools.cached_property
-    def _knot_derivatives(self):
-        return jax.jit(lambda g, t, x, u: jax.vmap(self._unpack_globals(g)[2].dynamics)(t, x, u))
+    def _cubic_pieces(self):
+        """Every segment's Hermite cubic (pieces, 5, n) in the normalized time, from the knots
+        and their derivatives: one program, compiled once per trajectory program."""
+        def pieces(g, times, X, U):
+            F = jax.vmap(self._unpack_globals(g)[2].dynamics)(times, X, U)
+            h = times[1] - times[0]
+            x0, x1, f0, f1 = X[:-1], X[1:], h * F[:-1], h * F[1:]
+            zero = jnp.zeros_like(x0)
+            return jnp.stack([x0, f0, 3 * (x1 - x0) - 2 * f0 - f1, 2 * (x0 - x1) + f0 + f1, zero], axis=1)
+
+        return jax.jit(pieces)
 
     def _reconstruct(self, times, X, U, g):
-        F = self._knot_derivatives(g, jnp.asarray(times), X, U)
-        h = times[1] - times[0]
-        x0, x1, f0, f1 = X[:-1], X[1:], h * F[:-1], h * F[1:]
-        zero = jnp.zeros_like(x0)
-        cubic = jnp.stack([x0, f0, 3 * (x1 - x0) - 2 * f0 - f1, 2 * (x0 - x1) + f0 + f1, zero], axis=1)
-        states = Trajectory.from_pieces(times[:-1], times[1:], cubic)
+        states = Trajectory.from_pieces(times[:-1], times[1:], self._cubic_pieces(g, jnp.asarray(times), X, U))
         return states, Trajectory.from_samples(times, U, "linear")
 
 
