@@ -171,9 +171,8 @@ def _dare_gain(S, A, B, R):
 
 def _dare_terms(S, A, B, Q, R):
     """(F(S), the 1-norm scale of its terms) for the DARE."""
-    AtSA, BtSA = A.T @ S @ A, B.T @ S @ A
-    return AtSA - S - BtSA.T @ jnp.linalg.solve(R + B.T @ S @ B, BtSA) + Q, \
-        _norm1(AtSA) + _norm1(S) + _norm1(Q)
+    AtSA = A.T @ S @ A
+    return AtSA - S - (B.T @ S @ A).T @ _dare_gain(S, A, B, R) + Q, _norm1(AtSA) + _norm1(S) + _norm1(Q)
 
 
 def _dare_residual(S, A, B, Q, R):

@@ -18,7 +18,6 @@ then names `while_loop`): use `simulate(..., autodiff="forward")` with `jax.jacf
 
 from __future__ import annotations
 
-import ctypes.util
 import os
 import pathlib
 import sys
@@ -34,9 +33,10 @@ _POSITIONS = {0: ("x", "y", "z", "qw", "qx", "qy", "qz"), 1: ("qw", "qx", "qy", 
 _VELOCITIES = {0: ("vx", "vy", "vz", "wx", "wy", "wz"), 1: ("wx", "wy", "wz"), 2: ("dot",), 3: ("dot",)}
 
 
-if (sys.platform.startswith("linux") and not os.environ.get("DISPLAY") and "mujoco" not in sys.modules
-        and ctypes.util.find_library("EGL")):
-    os.environ.setdefault("MUJOCO_GL", "egl")  # MuJoCo renders offscreen without a display (Mesa's EGL)
+# MuJoCo renders offscreen without a display through EGL (where libEGL is missing, mujoco's
+# import skips its GL context and only rendering is unavailable)
+if sys.platform.startswith("linux") and not os.environ.get("DISPLAY") and "mujoco" not in sys.modules:
+    os.environ.setdefault("MUJOCO_GL", "egl")
 
 
 def _mujoco():

@@ -286,14 +286,13 @@ class RigidBodySystem(System):
     def failure_hint(self, x):
         """Names a singular mass matrix H(q) at x (the joints spanning its null space), the usual
         reason a rigid body's simulation stops at once: a link moving no mass or inertia."""
-        x = np.asarray(x, float)
+        tree, x = self.tree, np.asarray(x, float)
         if x.shape != (self.num_states,) or not np.all(np.isfinite(x)):
             return None
-        H = np.asarray(_mass_matrix(self.tree, jnp.asarray(x[: self.tree.nq])))
+        H = np.asarray(_mass_matrix(tree, jnp.asarray(x[: tree.nq])))
         eigenvalues, vectors = np.linalg.eigh((H + H.T) / 2)
         if np.all(np.isfinite(H)) and eigenvalues[0] > 1e-12 * max(eigenvalues[-1], 1e-300):
             return None
-        tree = self.tree
         owner = np.repeat(np.arange(len(tree.joint_names)), np.diff([*tree.v_starts, tree.nv]))
         moved = dict.fromkeys(tree.joint_names[owner[k]] for k in np.flatnonzero(np.abs(vectors[:, 0]) > 0.1))
         return (f"the mass matrix H(q) of {self.name} is singular at q = {np.round(x[: tree.nq], 6).tolist()} "
@@ -375,9 +374,10 @@ def _is_ancestor(parents, i, b):
     return b == i
 
 
-__all__ = ["CouplerConstraint", "LoopConstraint", "RigidBodySystem", "URDFError"]
-
-
 @jax.jit
 def _mass_matrix(tree, q):
+    """H(q), compiled (for `failure_hint`, outside any trace)."""
     return alg.mass_matrix(tree, q)
+
+
+__all__ = ["CouplerConstraint", "LoopConstraint", "RigidBodySystem", "URDFError"]

@@ -399,9 +399,15 @@ class _TrajectoryProgram:
             parameters=p, max_defect=float(np.max(np.abs(defects))), solver=result)
 
     def _add_dynamics(self):
-        self._dynamics_term = self._segment_term(f"{self.method} defects", self._defect,
-                                                 np.zeros(self.num_states), np.zeros(self.num_states))
+        term = self._segment_term(f"{self.method} defects", self._defect,
+                                  np.zeros(self.num_states), np.zeros(self.num_states))
+        self._dynamics_term = dataclasses.replace(term, **self._defect_derivatives())
         self._constraints.append(self._dynamics_term)
+
+    def _defect_derivatives(self) -> dict:
+        """The defect term's own `jacobian` / `hessian` where its structure gives them; none
+        (autodiff of the defect) by default."""
+        return {}
 
 
 def _hermite_midpoint(x0, u0, x1, u1, t, h, system):
@@ -430,20 +436,19 @@ def _hermite_simpson_derivatives(system, n, m, h):
     def f(t, w):
         return system.dynamics(t, w[:n], w[n:])
 
-    def derivatives(t, w):  # f, its Jacobian and its second-derivative tensor at one point
-        def jacobian_with_value(w):
-            J, value = jax.jacfwd(lambda w: (f(t, w), f(t, w)), has_aux=True)(w)
-            return J, (J, value)
+    def jacobian_and_tensor(t, w):  # f's Jacobian and second-derivative tensor at one point
+        def twice(w):  # the Jacobian, also as the auxiliary output (traced once)
+            J = jax.jacfwd(f, 1)(t, w)
+            return J, J
 
-        T, (J, value) = jax.jacfwd(jacobian_with_value, has_aux=True)(w)
-        return value, J, T
+        T, J = jax.jacfwd(twice, has_aux=True)(w)
+        return J, T
 
     def points(v, k):
         t0 = k * h
         w0, w1 = v[:L], v[L:2 * L]
-        f0, f1 = jax.vmap(f)(jnp.stack([t0, t0 + h]), jnp.stack([w0, w1]))
-        wc = jnp.concatenate([(w0[:n] + w1[:n]) / 2 + h / 8 * (f0 - f1), (w0[n:] + w1[n:]) / 2])
-        return jnp.stack([t0, t0 + h, t0 + h / 2]), jnp.stack([w0, w1, wc])
+        _, _, xc, uc = _hermite_midpoint(w0[:n], w0[n:], w1[:n], w1[n:], t0, h, system)
+        return jnp.stack([t0, t0 + h, t0 + h / 2]), jnp.stack([w0, w1, jnp.concatenate([xc, uc])])
 
     def midpoint_jacobian(J0, J1):  # d w_c / d v, (L, 2L)
         dx = jnp.concatenate([eye_n, jnp.zeros((n, m)), eye_n, jnp.zeros((n, m))], axis=1) / 2 + \
@@ -460,7 +465,7 @@ def _hermite_simpson_derivatives(system, n, m, h):
 
     def hessian(v, k, lam):
         times, W = points(v, k)
-        _, J, T = jax.vmap(derivatives)(times, W)
+        J, T = jax.vmap(jacobian_and_tensor)(times, W)
         Dc = midpoint_jacobian(J[0], J[1])
         g = J[2][:, :n].T @ lam
         H0 = jnp.einsum("i,ijk->jk", lam + h / 2 * g, T[0])
@@ -499,12 +504,11 @@ class DirectCollocation(_TrajectoryProgram):
         f0, f1, xc, uc = _hermite_midpoint(x0, u0, x1, u1, t, h, system)
         return x1 - x0 - h / 6 * (f0 + 4 * system.dynamics(t + h / 2, xc, uc) + f1)
 
-    def _add_dynamics(self):
-        super()._add_dynamics()
-        if self.num_globals == 0:  # fixed duration, no free parameters: derivatives by structure
-            self._dynamics_term = dataclasses.replace(self._dynamics_term, **_hermite_simpson_derivatives(
-                self.system, self.num_states, self.num_inputs, self._duration_bounds[0] / (self.num_time_samples - 1)))
-            self._constraints[-1] = self._dynamics_term
+    def _defect_derivatives(self):
+        if self.num_globals:  # a free duration or free parameters: autodiff of the defect
+            return {}
+        return _hermite_simpson_derivatives(self.system, self.num_states, self.num_inputs,
+                                            self._duration_bounds[0] / (self.num_time_samples - 1))
 
     def _running_cost_term(self, fn):
         def simpson(t, x0, u0, x1, u1, h, system):

@@ -135,14 +135,9 @@ class MeshcatVisualizer(Visualizer):
         """The world pose of every link (`links` order) in state x: (num_links, 4, 4)."""
         tree = self.tree
         q = x[: tree.nq]
-        Rs, ps = alg.body_poses(tree, q)
-        bodies = np.asarray(tree.frame_bodies)
-        on_body = np.maximum(bodies, 0)
-        R_f, p_f = jnp.asarray(tree.frame_rotation), jnp.asarray(tree.frame_translation)
-        fixed = jnp.asarray(bodies < 0)[:, None]
-        R = jnp.where(fixed[:, :, None], R_f, jnp.einsum("kij,kjl->kil", Rs[on_body], R_f))
-        p = jnp.where(fixed, p_f, jnp.einsum("kij,kj->ki", Rs[on_body], p_f) + ps[on_body])
-        bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0], R.dtype), (len(bodies), 1, 4))
+        poses = alg.body_poses(tree, q)
+        R, p = (jnp.stack(part) for part in zip(*(alg.frame_pose(tree, q, link, poses=poses) for link in self.links)))
+        bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0], R.dtype), (len(self.links), 1, 4))
         return jnp.concatenate([jnp.concatenate([R, p[:, :, None]], axis=2), bottom], axis=1)
 
     def frame_transforms(self, xs):
