@@ -409,6 +409,24 @@ def test_direct_feedthrough_is_inferred_from_the_output():
         jd.feedback(gain, gain)
 
 
+def test_a_loop_built_inside_jit_and_vmap_with_traced_controller_gains():
+    """feedback(plant, controller) built under jit(vmap) over the controller's gain, as a user
+    sweeping gains writes it: the plant's feedthrough is still inferred (it had been taken as
+    True inside a trace), the controller's output size comes from its function, and
+    x' = -k x gives x0 exp(-k t)."""
+    plant = jd.System.from_functions(dynamics=lambda t, x, u: u, num_states=1, num_inputs=1)
+
+    def final(k):
+        gain = jd.System.from_functions(output=lambda t, x, u, k: -k * u, num_states=0, num_inputs=1, params=k)
+        assert gain.num_outputs == 1
+        return jd.simulate(jd.feedback(plant, gain), (0.0, 1.5), jnp.ones(1), rtol=1e-10, atol=1e-12).final_state[0]
+
+    ks = jnp.array([0.5, 1.0, 3.0])
+    np.testing.assert_allclose(jax.jit(jax.vmap(final))(ks), np.exp(-1.5 * np.asarray(ks)), rtol=1e-8)
+    with pytest.raises(ValueError, match="atleast_1d"):
+        jd.System.from_functions(output=lambda t, x, u: u.sum(), num_states=0, num_inputs=2)
+
+
 def test_cascading_an_input_tape_with_a_system():
     """The notes' D.3.6 idiom: cascade(trajectory, system) simulates x' = -x + u(t) with a ramp
     tape u = t on [0, 1], then 1: x(2) = 1 + (e^-1 - 1) e^-1 from x(0) = 0."""

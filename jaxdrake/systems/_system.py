@@ -290,7 +290,8 @@ class System(eqx.Module):
         a discrete one, both a mixed one (then give `num_discrete_states`); `output` alone with
         `num_states=0` a static one (a controller u = k(t, y), say). If `params` (any
         pytree; its arrays are leaves of the system) is given, each function is called as
-        `f(t, x, u, params)`. Other keyword arguments are those of `System`.
+        `f(t, x, u, params)`. The number of outputs is that of `output`'s result unless
+        `num_outputs` or `output_frame` says otherwise. Other keyword arguments are those of `System`.
         """
         if dynamics is None and update is None and not (num_states == 0 and output is not None):
             raise ValueError("from_functions needs dynamics (continuous) and/or update (discrete), "
@@ -299,9 +300,23 @@ class System(eqx.Module):
             if dynamics is not None and update is not None:
                 raise ValueError("a mixed system (dynamics and update) needs num_discrete_states")
             num_discrete_states = num_states if dynamics is None and update is not None else 0
+        if output is not None and kwargs.get("num_outputs") is None and kwargs.get("output_frame") is None:
+            kwargs["num_outputs"] = _output_size(output, num_states, num_inputs, params)
         return FunctionSystem(dynamics, update, output, params=params, initial_state=initial_state,
                               num_continuous_states=num_states - num_discrete_states,
                               num_discrete_states=num_discrete_states, num_inputs=num_inputs, **kwargs)
+
+
+def _output_size(output: Callable, num_states: int, num_inputs: int, params: Any) -> int:
+    """The length of `output(t, x, u[, params])`, from its shapes alone (nothing evaluated)."""
+    dtype = jnp.zeros(()).dtype
+    args = (jax.ShapeDtypeStruct((), dtype), jax.ShapeDtypeStruct((num_states,), dtype),
+            jax.ShapeDtypeStruct((num_inputs,), dtype))
+    shape = jax.eval_shape(lambda *a: output(*a) if params is None else output(*a, params), *args).shape
+    if len(shape) != 1:
+        raise ValueError(f"from_functions: output must return a vector, got shape {shape} "
+                         "(wrap a scalar as jnp.atleast_1d(y), or give num_outputs)")
+    return shape[0]
 
 
 class Functions(eqx.Module):
@@ -363,7 +378,9 @@ def _output_reads_input(system: System) -> bool:
     shapes = (jax.ShapeDtypeStruct((), dtype), jax.ShapeDtypeStruct((system.num_states,), dtype),
               jax.ShapeDtypeStruct((system.num_inputs + system.num_noise_inputs,), dtype))
     try:
-        jaxpr = jax.make_jaxpr(system.output)(*shapes).jaxpr
+        # a fresh function, not the bound method: JAX caches traced functions by equality, and a
+        # bound method's equality compares the systems' arrays (equinox), which fails inside a trace
+        jaxpr = jax.make_jaxpr(lambda t, x, u: system.output(t, x, u))(*shapes).jaxpr
     except Exception:  # noqa: BLE001 -- not traceable on its own: assume it reads u
         return True
     reads_u = {jaxpr.invars[2]}
