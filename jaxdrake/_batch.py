@@ -16,6 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from ._progress import progress_bar
+
 
 def run_batch(fn, inputs, *, chunk_size: int | None = None, devices=None, progress: bool = False,
               gather: bool = True):
@@ -49,7 +51,7 @@ def run_batch(fn, inputs, *, chunk_size: int | None = None, devices=None, progre
     chunk = -(-min(chunk, size) // count) * count  # a multiple of the device count
     mapped, sharding = _program(fn, devices)
     starts = range(0, size, chunk)
-    bar = _bar(progress, len(starts))
+    bar = progress_bar(progress, len(starts), "batch", "chunk")
     pending, results = None, []
     for start in starts:
         stop = min(start + chunk, size)
@@ -92,10 +94,3 @@ def _collect(out, used, gather):
     if gather:
         return jax.tree.map(lambda a: np.asarray(a)[:used], out)
     return jax.tree.map(lambda a: a[:used] if used < a.shape[0] else a, out)
-
-
-def _bar(progress, total):
-    if not progress:
-        return None
-    from tqdm.auto import tqdm
-    return tqdm(total=total, desc="batch", unit="chunk")

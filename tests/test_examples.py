@@ -18,9 +18,11 @@ EXAMPLES = sorted(p for p in (ROOT / "examples").glob("*.py") if not p.name.star
 # swing_up.py: 61 s of compiling four hybrid closed loops, whose swing-ups and switches
 # tests/test_control.py checks by default; trajectory_optimization.py (54 s) and its notebook:
 # the swing-ups, TVLQR and iLQR batches that tests/test_trajopt.py checks by default;
-# mujoco_models.py (36 s of MJX compiles and EGL frames): what tests/test_mujoco.py checks
+# mujoco_models.py (36 s of MJX compiles and EGL frames) and mujoco_contacts.py (55 s, the humanoid
+# batch): what tests/test_mujoco.py checks (C MuJoCo agreement, the hopper under a controller)
 SLOW = {"swing_up.ipynb", "lqr.ipynb", "swing_up.py",  # lqr.ipynb: 45 s, extends lqr.py (run with -m slow)
-        "trajectory_optimization.py", "trajectory_optimization.ipynb", "mujoco_models.py", "mujoco_models.ipynb"}
+        "trajectory_optimization.py", "trajectory_optimization.ipynb", "mujoco_models.py", "mujoco_models.ipynb",
+        "mujoco_contacts.py", "mujoco_contacts.ipynb"}
 NOTEBOOKS = [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW else p
              for p in sorted((ROOT / "notebooks").glob("*.ipynb"))]
 WORKERS = 3

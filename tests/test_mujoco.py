@@ -3,6 +3,7 @@ runs; gradients against central differences; discrete LQR of the linearized upda
 the cart-pole. (MJX's step compiles for seconds: the batched, differentiated and LQR tests are
 `slow`.)"""
 
+import os
 import pathlib
 
 import jax
@@ -63,6 +64,37 @@ def test_contacts_equal_c_mujoco_to_the_solver_tolerance():
     np.testing.assert_allclose(ours[:80], expected[:80], rtol=0, atol=1e-14)
     np.testing.assert_allclose(ours, expected, rtol=0, atol=1e-6)
     assert expected[-1, 2] == pytest.approx(0.1, abs=1e-3)  # resting on the plane
+
+
+def test_a_hopper_with_contacts_under_a_jaxdrake_controller_equals_c_mujoco():
+    """The sprung one-legged hopper of tests/data, its leg force from a jaxdrake static
+    controller in feedback (thrust while rising in stance, the leg held in flight): 1000 steps
+    (2 s, touch-downs and lift-offs) equal C MuJoCo under the same control law,
+    evaluated in NumPy each step, to 1e-9."""
+    hopper = jd.MujocoSystem.from_xml(DATA / "mj_hopper.xml")
+
+    def thrust(height, leg, rise, legdot, where, clip):
+        return where(height - leg < 1e-3, where(rise > 0, clip(3000.0 * (0.2 - height) + 150.0, 0.0, 400.0), 0.0),
+                     -300.0 * leg - 20.0 * legdot)
+
+    controller = jd.System.from_functions(
+        output=lambda t, x, u: jnp.atleast_1d(thrust(*u, where=jnp.where, clip=jnp.clip)), num_states=0, num_inputs=4)
+    x0 = np.array([0.1, 0.0, 0.0, 0.0])
+    dt, n = hopper.sample_time, 1000
+    traj = jd.simulate(jd.feedback(hopper, controller), (0.0, n * dt), jnp.asarray(x0))
+    ours = np.asarray(traj.state(jnp.asarray(dt * np.arange(1, n + 1))))
+    model = hopper.mj_model
+    data = mujoco.MjData(model)
+    data.qpos[:] = x0[:2]
+    expected = []
+    for _ in range(n):
+        data.ctrl[:] = thrust(*data.qpos, *data.qvel, where=np.where, clip=np.clip)
+        mujoco.mj_step(model, data)
+        expected.append(np.concatenate([data.qpos, data.qvel]))
+    expected = np.asarray(expected)
+    foot = expected[:, 0] - expected[:, 1]
+    assert np.sum(np.diff((foot < 1e-3).astype(int)) == 1) >= 2 and foot.max() > 0.05  # it hops
+    np.testing.assert_allclose(ours, expected, rtol=0, atol=1e-9)
 
 
 @pytest.mark.slow
@@ -185,3 +217,21 @@ def test_mujoco_renderer_frames_put_the_cart_where_the_camera_sees_it(tmp_path):
     direct = vis.images(np.asarray(traj.state(jnp.arange(5) / 10)))
     assert np.mean(np.abs(frames[3][..., :3].astype(float) - direct[3])) < 8  # the GIF's palette
     assert np.mean(np.abs(direct[4].astype(float) - direct[0])) > 0.5  # the pole moved
+
+
+def test_rendering_works_when_mujoco_was_imported_before_jaxdrake():
+    """Without a display and with mujoco imported first (so it chose GLFW), a render still
+    works (switched to EGL) and equals the render of a process that imported jaxdrake first."""
+    import subprocess
+    import sys
+
+    script = ("import {first}, {second}, numpy; import jaxdrake as jd\n"
+              "h = jd.MujocoSystem.from_xml({path!r})\n"
+              "print(numpy.asarray(h.render(h.initial_state(), width=64, height=48), float).sum())")
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "DISPLAY")}
+    sums = [subprocess.run([sys.executable, "-c", script.format(first=a, second=b, path=str(DATA / "mj_hopper.xml"))],
+                           env=env, capture_output=True, text=True, timeout=120) for a, b in
+            [("mujoco", "jaxdrake"), ("jaxdrake", "mujoco")]]
+    assert [run.returncode for run in sums] == [0, 0], [run.stderr[-500:] for run in sums]
+    values = [float(run.stdout.split()[-1]) for run in sums]
+    assert values[0] == values[1] and values[0] > 0

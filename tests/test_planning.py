@@ -28,7 +28,8 @@ def exact_minimum_time(q, qdot):
 
 
 def test_double_integrator_min_time_agrees_with_drake_and_the_exact_minimum_time():
-    result = fitted_value_iteration(jd.models.DoubleIntegrator(), min_time_cost, [Q_GRID, QDOT_GRID], [U_GRID], 0.01)
+    result = fitted_value_iteration(jd.models.DoubleIntegrator(), min_time_cost, [Q_GRID, QDOT_GRID], [U_GRID], 0.01,
+                                    progress=True)
     J = np.asarray(result.J)
     assert J.shape == (31, 51) and float(result.max_change) <= 1e-4
     Q, QD = np.meshgrid(Q_GRID, QDOT_GRID, indexing="ij")

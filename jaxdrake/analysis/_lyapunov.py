@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._progress import progress_bar
 from ..control import solve_continuous_lyapunov
 from ..systems import Polynomial, PolynomialSystem, System, taylor_polynomial
 from ._sos import CertificateCheck, InfeasibleError, SolveError, SosProgram
@@ -314,10 +315,7 @@ def search_region_of_attraction(system: System, x0, degree: int = 4, *, S=None, 
     shape = _quadratic(S, names)
     V = shape
     history = []
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-        bar = tqdm(total=iterations, desc="region of attraction", unit="alternation")
+    bar = progress_bar(progress, iterations, "region of attraction", "alternation")
     for _ in range(iterations):
         # (1) V fixed: multiplier and largest level; normalise V to level 1.
         rho, lam, _ = _largest_level(V, f, solver)

@@ -39,6 +39,27 @@ if sys.platform.startswith("linux") and not os.environ.get("DISPLAY") and "mujoc
     os.environ.setdefault("MUJOCO_GL", "egl")
 
 
+def renderer(model, height: int, width: int):
+    """`mujoco.Renderer(model, height, width)`. Where mujoco was imported before jaxdrake on a
+    Linux machine without a display, it chose GLFW, which cannot open a context there: its
+    offscreen context is switched to EGL first (GLFW is never tried: a failed GLFW start can
+    abort the process)."""
+    mujoco, _ = _mujoco()
+    try:
+        if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
+            from mujoco.rendering.classic import gl_context
+
+            if getattr(gl_context.GLContext, "__module__", "").startswith("mujoco.glfw"):
+                import mujoco.egl
+
+                gl_context.GLContext = mujoco.egl.GLContext  # the module attribute the renderer reads
+        return mujoco.Renderer(model, height, width)
+    except Exception as error:  # noqa: BLE001 -- any GL start-up failure: name the remedy
+        raise RuntimeError(f"MuJoCo's renderer did not start ({error}). Without a display, set MUJOCO_GL=egl "
+                           "(or osmesa) before mujoco is first imported; EGL needs libEGL (Mesa's works on "
+                           "CPU-only machines)") from error
+
+
 def _mujoco():
     try:
         import mujoco
@@ -148,9 +169,9 @@ class MujocoSystem(System):
         x = np.asarray(x, float)
         data.qpos[:], data.qvel[:], data.act[:] = x[:nq], x[nq: nq + nv], x[nq + nv: nq + nv + self.sizes[2]]
         mujoco.mj_forward(self.mj_model, data)
-        with mujoco.Renderer(self.mj_model, height, width) as renderer:
-            renderer.update_scene(data, camera)
-            return renderer.render()
+        with renderer(self.mj_model, height, width) as scene:
+            scene.update_scene(data, camera)
+            return scene.render()
 
 
 def _name(mujoco, model, kind, i, fallback):

@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._progress import progress_bar
 from ..simulation import simulate
 from ..simulation._inputs import leaves_to_arrays
 from ..systems import Frame, System
@@ -159,7 +160,7 @@ def fitted_value_iteration(system: System, cost, state_grid, input_grid, dt, *, 
     indices, weights, stage = _transitions(system, cost, state_mesh, input_mesh, dt, periodic, solver, discrete)
     J = jnp.zeros(state_mesh.num_points, weights.dtype)
     change, done = jnp.inf, 0
-    bar = _progress_bar(progress, max_iterations)
+    bar = progress_bar(progress, max_iterations, "value iteration", "sweep")
     chunk = max_iterations if bar is None else 50
     while done < max_iterations and not float(change) <= tol:
         J, change, sweeps = _sweeps(J, indices, weights, stage, discount, tol,
@@ -214,13 +215,6 @@ def _sweeps(J, indices, weights, stage, discount, tol, count):
     J, change, k = jax.lax.while_loop(lambda c: (c[1] > tol) & (c[2] < count), sweep,
                                       (J, jnp.asarray(jnp.inf, J.dtype), 0))
     return J, change, k
-
-
-def _progress_bar(progress, total):
-    if not progress:
-        return None
-    from tqdm.auto import tqdm
-    return tqdm(total=total, desc="value iteration", unit="sweep")
 
 
 # ----- the grid world of chapter 9 -------------------------------------------------------------

@@ -2,7 +2,8 @@
 `animate`, `playback`, `save` to .gif / .mp4 / .html) with each frame an image of the model's
 scene at that state (`mj_forward`, then the offscreen renderer). On a machine without a
 display MuJoCo renders through EGL (Mesa's software EGL works on CPU-only machines); importing
-jaxdrake sets `MUJOCO_GL=egl` there, unless you chose a backend or imported mujoco before.
+jaxdrake sets `MUJOCO_GL=egl` there unless you chose a backend, and where mujoco was imported
+first (so chose GLFW) its offscreen context is switched to EGL.
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ from __future__ import annotations
 import equinox as eqx
 import numpy as np
 
-from ..multibody._mujoco import MujocoSystem, _mujoco
+from ..multibody._mujoco import MujocoSystem, _mujoco, renderer
 from ._visualizer import DRAW_PERIOD, Visualizer
 
 
@@ -39,18 +40,12 @@ class MujocoVisualizer(Visualizer):
         nq, nv, na = self.sizes
         data = mujoco.MjData(model)
         frames = []
-        try:
-            renderer = mujoco.Renderer(model, self.height, self.width)
-        except Exception as error:
-            raise RuntimeError(f"MuJoCo's renderer did not start ({error}). Without a display, set "
-                               "MUJOCO_GL=egl (or osmesa) before mujoco is first imported (importing "
-                               "jaxdrake first sets egl by default)") from error
-        with renderer:
+        with renderer(model, self.height, self.width) as scene:
             for x in np.asarray(xs, float)[:, : self.num_inputs]:  # a diagram's state starts with the plant's
                 data.qpos[:], data.qvel[:], data.act[:] = x[:nq], x[nq: nq + nv], x[nq + nv: nq + nv + na]
                 mujoco.mj_forward(model, data)
-                renderer.update_scene(data, self.camera)
-                frames.append(renderer.render().copy())
+                scene.update_scene(data, self.camera)
+                frames.append(scene.render().copy())
         return np.stack(frames)
 
     def _figure_with_image(self, image, ax=None):
