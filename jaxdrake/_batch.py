@@ -75,10 +75,17 @@ def run_batch(fn, inputs, *, chunk_size: int | None = None, devices=None, progre
 
 @functools.lru_cache(maxsize=64)
 def _program(fn, devices):
-    """The jitted, sharded `vmap(fn)` for these devices (kept: one compilation per chunk shape)."""
+    """The jitted, sharded `vmap(fn)` for these devices (kept: one compilation per chunk shape).
+    On several devices each runs `vmap(fn)` on its own slice (`shard_map`): a loop inside `fn`
+    (an adaptive simulation's `while`) then stops per device, without the all-reduce of its
+    condition across devices that one global program needs every iteration."""
     mesh = Mesh(np.asarray(devices), ("batch",))
-    sharding = NamedSharding(mesh, PartitionSpec("batch"))
-    return jax.jit(jax.vmap(fn), in_shardings=sharding, out_shardings=sharding), sharding
+    spec = PartitionSpec("batch")
+    sharding = NamedSharding(mesh, spec)
+    mapped = jax.vmap(fn)
+    if len(devices) > 1:  # check_vma=False: the event search's custom_vmap has no replication rule
+        mapped = jax.shard_map(mapped, mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)
+    return jax.jit(mapped, in_shardings=sharding, out_shardings=sharding), sharding
 
 
 def _padded(x, chunk):

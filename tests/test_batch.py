@@ -1,6 +1,7 @@
 """`jd.run_batch` on four CPU devices (a fresh process: the device count is fixed when JAX
 starts): chunked and sharded results equal one unsharded vmap, outputs left on the devices
-are sharded across all four, and a batch ten times a chunk keeps one chunk on the devices."""
+are sharded across all four, and a batch ten times a chunk keeps one chunk on the devices;
+value iteration with its mesh split across the four devices equals one device's, bit for bit."""
 
 import os
 import subprocess
@@ -36,6 +37,14 @@ SCRIPT = textwrap.dedent("""
     before = live_bytes()
     result = jd.run_batch(final_state, x0, chunk_size=100, progress=True)
     assert isinstance(result, np.ndarray) and live_bytes() - before <= 100 * 2 * 8, live_bytes() - before
+    # value iteration with its 2601 mesh points split across the four devices: equal to one device
+    from jaxdrake.planning import fitted_value_iteration
+    grids = [np.linspace(0, 2 * np.pi, 51), np.linspace(-8, 8, 51)]
+    problem = (pendulum, lambda x, u: (x[0] - np.pi) ** 2 + x[1] ** 2 + u[0] ** 2, grids, [np.linspace(-3, 3, 9)], 0.05)
+    one = fitted_value_iteration(*problem, periodic=[(0, 0.0, 2 * np.pi)], tol=1e-6, devices=jax.devices()[:1])
+    four = fitted_value_iteration(*problem, periodic=[(0, 0.0, 2 * np.pi)], tol=1e-6)
+    assert int(one.iterations) == int(four.iterations) > 100
+    assert np.array_equal(one.J, four.J) and np.array_equal(one.policy_table, four.policy_table)
     print("OK", np.max(np.abs(chunked - reference)))
 """)
 

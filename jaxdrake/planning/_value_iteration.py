@@ -20,6 +20,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .._progress import progress_bar
 from ..simulation import simulate
@@ -119,7 +120,7 @@ class ValueIterationResult(eqx.Module):
 
 def fitted_value_iteration(system: System, cost, state_grid, input_grid, dt, *, discount=1.0,
                            periodic=(), tol=1e-4, max_iterations: int = 100_000, solver="rk4",
-                           progress: bool = False) -> ValueIterationResult:
+                           progress: bool = False, devices=None) -> ValueIterationResult:
     r"""Fitted value iteration on a barycentric mesh (Drake's `FittedValueIteration`).
 
     - `system`: time-invariant, continuous (a transition is `simulate` over `dt` with u held,
@@ -131,6 +132,8 @@ def fitted_value_iteration(system: System, cost, state_grid, input_grid, dt, *, 
       into [low, high) before interpolation (a pendulum's angle: `(0, 0, 2 pi)`).
     - `tol`: stop when no value changes by more than this in a sweep; `progress`: a progress
       bar (tqdm) with the largest change.
+    - `devices`: the mesh points are split across these (default: every local device): each
+      computes its points' transitions and their updates; J is gathered every sweep.
     """
     if not isinstance(system, System):
         raise TypeError(f"fitted_value_iteration needs a jaxdrake.System, got {type(system).__name__}")
@@ -157,8 +160,10 @@ def fitted_value_iteration(system: System, cost, state_grid, input_grid, dt, *, 
                          f"{system.sample_times}, and no continuous state")
 
     system = leaves_to_arrays(system, jnp.result_type(float))  # new parameter values: no new compilation
-    indices, weights, stage = _transitions(system, cost, state_mesh, input_mesh, dt, periodic, solver, discrete)
-    J = jnp.zeros(state_mesh.num_points, weights.dtype)
+    points = _split_across(state_mesh.points(), tuple(jax.local_devices() if devices is None else devices))
+    indices, weights, stage = _transitions(system, cost, points, state_mesh, input_mesh, dt, periodic, solver,
+                                           discrete)
+    J = jnp.zeros(len(points), weights.dtype)  # the padding's values are never read (no index points there)
     change, done = jnp.inf, 0
     bar = progress_bar(progress, max_iterations, "value iteration", "sweep")
     chunk = max_iterations if bar is None else 50
@@ -172,9 +177,10 @@ def fitted_value_iteration(system: System, cost, state_grid, input_grid, dt, *, 
     if bar is not None:
         bar.close()
     best = jnp.argmin(stage + discount * jnp.einsum("smv,smv->sm", weights, J[indices]), axis=1)
-    table = input_mesh.points()[best].reshape(state_mesh.shape + (m,))
+    S = state_mesh.num_points
+    table = input_mesh.points()[best[:S]].reshape(state_mesh.shape + (m,))
     policy = MeshPolicy(state_mesh, table, periodic, system.state_frame, system.input_frame)
-    return ValueIterationResult(J=J.reshape(state_mesh.shape), policy_table=table, policy=policy,
+    return ValueIterationResult(J=J[:S].reshape(state_mesh.shape), policy_table=table, policy=policy,
                                 mesh=state_mesh, iterations=jnp.asarray(done), max_change=change)
 
 
@@ -184,11 +190,20 @@ def _wrap(x, periodic):
     return x
 
 
+def _split_across(points, devices):
+    """The mesh points on one device, or padded (copies of the last) to a multiple of the
+    device count and sharded along their first axis, so that what is computed from them is too."""
+    if len(devices) == 1:
+        return jax.device_put(points, devices[0])
+    points = jnp.concatenate([points, jnp.repeat(points[-1:], -len(points) % len(devices), axis=0)])
+    return jax.device_put(points, NamedSharding(Mesh(np.asarray(devices), ("points",)), PartitionSpec("points")))
+
+
 @eqx.filter_jit
-def _transitions(system, cost, state_mesh, input_mesh, dt, periodic, solver, discrete):
-    """Barycentric (indices, weights) of every next state, and the stage costs: (S, M, n + 1)
-    and (S, M), S mesh states by M mesh inputs."""
-    xs, us = state_mesh.points(), input_mesh.points()
+def _transitions(system, cost, xs, state_mesh, input_mesh, dt, periodic, solver, discrete):
+    """Barycentric (indices, weights) of the next state from each of the points xs (S, n) under
+    every mesh input, and the stage costs: (S, M, n + 1) and (S, M)."""
+    us = input_mesh.points()
 
     def next_state(x, u):
         if discrete:
