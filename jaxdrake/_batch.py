@@ -49,7 +49,7 @@ def run_batch(fn, inputs, *, chunk_size: int | None = None, devices=None, progre
     if chunk < 1:
         raise ValueError(f"run_batch: chunk_size must be a positive int, got {chunk_size}")
     chunk = -(-min(chunk, size) // count) * count  # a multiple of the device count
-    mapped, sharding = _program(fn, devices)
+    mapped, sharding = _program(fn, devices, gather)
     starts = range(0, size, chunk)
     bar = progress_bar(progress, len(starts), "batch", "chunk")
     pending, results = None, []
@@ -74,18 +74,23 @@ def run_batch(fn, inputs, *, chunk_size: int | None = None, devices=None, progre
 
 
 @functools.lru_cache(maxsize=64)
-def _program(fn, devices):
+def _program(fn, devices, gather):
     """The jitted, sharded `vmap(fn)` for these devices (kept: one compilation per chunk shape).
     On several devices each runs `vmap(fn)` on its own slice (`shard_map`): a loop inside `fn`
     (an adaptive simulation's `while`) then stops per device, without the all-reduce of its
-    condition across devices that one global program needs every iteration."""
+    condition across devices that one global program needs every iteration. Results to be
+    gathered are written to pinned host memory by the program itself on accelerators: a
+    separate copy would share the device-to-host queue with the next chunk's loop, whose
+    condition is read back every iteration, and stall it."""
     mesh = Mesh(np.asarray(devices), ("batch",))
     spec = PartitionSpec("batch")
     sharding = NamedSharding(mesh, spec)
     mapped = jax.vmap(fn)
     if len(devices) > 1:  # check_vma=False: the event search's custom_vmap has no replication rule
         mapped = jax.shard_map(mapped, mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)
-    return jax.jit(mapped, in_shardings=sharding, out_shardings=sharding), sharding
+    to_host = gather and devices[0].platform != "cpu"
+    out = sharding.with_memory_kind("pinned_host") if to_host else sharding
+    return jax.jit(mapped, in_shardings=sharding, out_shardings=out), sharding
 
 
 def _padded(x, chunk):
