@@ -14,7 +14,8 @@ def run(main, doc: str):
 
 def save_movie(plant, traj, out: pathlib.Path, name: str, fps: float = 16, plane=None) -> pathlib.Path:
     """A movie of `traj` drawn by the plant's visualizer (`jd.viz.visualizer_for`; a URDF
-    robot's 3-D scene for `.html`, its projection onto `plane` for `.gif` / `.mp4`)."""
+    robot in 3-D (MeshCat's scene for `.html`, MuJoCo's renderer for `.gif` / `.mp4`), or its
+    projection onto `plane`)."""
     import jaxdrake as jd
 
     path = jd.viz.visualizer_for(plant, plane=plane).save(traj, out / name, fps=fps)

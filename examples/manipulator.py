@@ -7,7 +7,8 @@ u = H (kp (q_d - q) - kd v) + C v + G + b v, which moves it to a target along de
 critically damped joint responses. Plots the joint angles of each run and the hand's path,
 writes the passive run as a movie projected onto the x-z plane and the computed-torque run as
 a 3-D MeshCat scene with its meshes (one offline .html file to open in a browser).
-Needs the example-robot-data package (installed with the test extras) and the viz extra.
+Needs the example-robot-data package (installed with the test extras), the viz extra and,
+for the 3-D .gif, the mujoco extra (MuJoCo renders it).
 
 Run:  python examples/manipulator.py [--out DIR]
       (saves manipulator.png, manipulator_passive.gif, manipulator_computed_torque.html)
@@ -63,7 +64,7 @@ def main(out: pathlib.Path) -> pathlib.Path:
         traj = jd.simulate(system, (0.0, T), x0, rtol=1e-7, atol=1e-9, max_steps=20000)
         print(f"{label}: {int(traj.num_steps)} steps, {time.perf_counter() - start:.1f} s with compilation")
         if label.startswith("passive"):
-            save_movie(plant, traj, out, "manipulator_passive.gif", plane="xz")
+            save_movie(plant, traj, out, "manipulator_passive.gif")  # 3-D, rendered by MuJoCo
         if label.startswith("computed"):
             save_movie(plant, traj, out, "manipulator_computed_torque.html")  # 3-D, in MeshCat
         qs = np.asarray(traj.state(ts))[:, :7]

@@ -176,5 +176,53 @@ def test_meshcat_html_export_is_offline_and_animates_the_skeleton_of_a_bare_urdf
     k = 7
     q = traj.state(k / 10)[:2]
     np.testing.assert_allclose(position["keys"][k]["value"], acrobot.frame_pose(q, "lower_link")[1], atol=1e-12)
-    with pytest.raises(ValueError, match="save\\(traj, 'robot.html'\\)"):
-        vis.save(traj, tmp_path / "acrobot.gif")
+
+
+def test_urdf_robot_movies_rendered_by_mujoco_put_links_where_the_camera_sees_them(tmp_path):
+    """A URDF robot's 3-D movie (MuJoCo renders its visuals, or here the skeleton of a bare
+    URDF, each link placed by frame_pose): the elbow and the hand of the acrobot are drawn (blue)
+    at their pinhole projections through the movie's camera (MuJoCo's free camera: lookat,
+    distance, azimuth, elevation, fovy 45 degrees), a point beside the arm is not; the .gif
+    decodes to round(T fps) frames that match direct renders; the Panda's meshes (.dae) render."""
+    pytest.importorskip("meshcat")
+    pytest.importorskip("mujoco")
+    import imageio.v3 as iio
+
+    acrobot = jd.models.Acrobot()
+    vis = jd.viz.MeshcatVisualizer(acrobot, width=320, height=240)
+    states = np.array([[0.4, 0.9, 0.0, 0.0], [2.5, -1.0, 0.0, 0.0]])
+    images = vis.images(states)
+    model, camera = vis._connection["puppet"]
+    az, el = np.radians(camera.azimuth), np.radians(camera.elevation)
+    forward = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    up = np.array([-np.sin(el) * np.cos(az), -np.sin(el) * np.sin(az), np.cos(el)])
+    right = np.cross(forward, up)
+    eye = np.asarray(camera.lookat) - camera.distance * forward
+    focal = (vis.height / 2) / np.tan(np.radians(model.vis.global_.fovy) / 2)
+
+    def pixel(point):
+        d = point - eye
+        return (vis.height / 2 - focal * (d @ up) / (d @ forward) - 0.5,
+                vis.width / 2 + focal * (d @ right) / (d @ forward) - 0.5)
+
+    def blue_near(image, point, radius=2):
+        row, col = (int(round(c)) for c in pixel(point))
+        patch = image[row - radius: row + radius + 1, col - radius: col + radius + 1].astype(int)
+        return bool(np.any(patch[..., 2] - patch[..., 0] > 40))
+
+    for x, image in zip(states, images):
+        q = jnp.asarray(x[:2])
+        elbow = np.asarray(acrobot.frame_pose(q, "lower_link")[1])
+        for point in np.asarray(vis.link_transforms(jnp.asarray(x)))[:, :3, 3]:  # base, elbow, hand
+            assert blue_near(image, point), point
+        beside = elbow + 0.6 * np.cross(elbow / np.linalg.norm(elbow), [0.0, 1.0, 0.0])
+        assert not blue_near(image, beside)
+    traj = jd.simulate(acrobot, (0.0, 0.5), jnp.asarray(states[0]))
+    frames = iio.imread(vis.save(traj, tmp_path / "acrobot.gif", fps=10), index=None)
+    assert frames.shape[:3] == (5, 240, 320)
+    direct = vis.images(np.asarray(traj.state(jnp.arange(5) / 10)))
+    assert np.mean(np.abs(frames[3][..., :3].astype(float) - direct[3])) < 8  # the GIF's palette
+    panda = jd.models.Panda()
+    robot = jd.viz.MeshcatVisualizer(panda, width=160, height=120).images(
+        jnp.concatenate([panda.tree.neutral_configuration(), jnp.zeros(7)])[None])[0]
+    assert robot.std() > 10  # meshes on the floor, not an empty frame

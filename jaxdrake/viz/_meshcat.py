@@ -9,7 +9,8 @@ world pose $T_\ell(q) = [R_\ell(q), p_\ell(q)]$ (`RigidBodySystem.frame_pose`, a
 vmappable JAX function, `link_transforms`). A trajectory becomes a MeshCat animation: frames at
 $t_k = t_0 + k/\mathrm{fps}$, played by the browser with its own controls; `save(traj,
 "robot.html")` writes the scene and the animation as one self-contained file (the viewer's
-JavaScript inlined, the commands base64-encoded).
+JavaScript inlined, the commands base64-encoded); `save(traj, "robot.gif")` (or `.mp4`) a movie
+of the same visuals rendered offscreen by MuJoCo (`_puppet.py`).
 """
 
 from __future__ import annotations
@@ -109,14 +110,18 @@ class MeshcatVisualizer(Visualizer):
     `SceneRecorder` window); by default one that starts its own server on 127.0.0.1 at the
     first draw (its address: `url()`). `urdf`: the file whose `<visual>` elements to show
     (default: the one the plant was loaded from). `prefix`: the scene path of this robot.
+    `save(traj, "robot.gif" or ".mp4")` writes a movie (`width` x `height`) rendered offscreen
+    by MuJoCo from the same visuals (`render`, `images`).
     """
 
     tree: KinematicTree
     links: tuple = eqx.field(static=True)
+    width: int = eqx.field(static=True)
+    height: int = eqx.field(static=True)
     _connection: dict = eqx.field(static=True)
 
     def __init__(self, plant: RigidBodySystem, *, urdf=None, scene=None, prefix: str | None = None,
-                 draw_period: float = DRAW_PERIOD):
+                 width: int = 640, height: int = 480, draw_period: float = DRAW_PERIOD):
         if not isinstance(plant, RigidBodySystem):
             raise TypeError(f"MeshcatVisualizer draws a RigidBodySystem (a URDF robot), not "
                             f"{type(plant).__name__}; use jaxdrake.viz.visualizer_for for the notes' plants")
@@ -126,6 +131,7 @@ class MeshcatVisualizer(Visualizer):
         _meshcat()
         super().__init__(plant, draw_period)
         self.tree, self.links = plant.tree, tuple(plant.tree.frame_names)
+        self.width, self.height = int(width), int(height)
         self._connection = {"urdf": pathlib.Path(urdf), "scene": scene,
                             "prefix": prefix or plant.name, "loaded": False}
 
@@ -163,20 +169,25 @@ class MeshcatVisualizer(Visualizer):
         """The address of the live viewer (open it in a browser)."""
         return self.scene.url()
 
-    def _load(self, robot):
-        import meshcat.geometry as g
+    def _urdf_visuals(self):
+        """({link: its <visual> elements}, {material name: material}, the mesh path resolver)
+        of the URDF, read by yourdfpy."""
         import yourdfpy
 
-        connection = self._connection
-        path = connection["urdf"]
+        path = self._connection["urdf"]
         model = yourdfpy.URDF.load(str(path), build_scene_graph=False, load_meshes=False,
                                    filename_handler=functools.partial(yourdfpy.filename_handler_magic, dir=str(path.parent)))
-        materials = {m.name: m for m in model.robot.materials}
-        visuals = {link.name: link.visuals for link in model.robot.links}
+        return ({link.name: link.visuals for link in model.robot.links}, {m.name: m for m in model.robot.materials},
+                model._filename_handler)
+
+    def _load(self, robot):
+        import meshcat.geometry as g
+
+        visuals, materials, resolve = self._urdf_visuals()
         if any(visuals.values()):
             for name in self.links:
                 for k, visual in enumerate(visuals.get(name, [])):
-                    geometry, placement = _geometry(visual, model._filename_handler)
+                    geometry, placement = _geometry(visual, resolve)
                     robot[name][f"visual{k}"].set_object(geometry, _material(visual, materials))
                     robot[name][f"visual{k}"].set_transform(placement)
             return
@@ -248,15 +259,36 @@ class MeshcatVisualizer(Visualizer):
         return self.url()
 
     def render(self, traj, fps=None):
-        raise ValueError("MeshcatVisualizer draws in the browser; save(traj, 'robot.html') writes the "
-                         "animated scene (for .gif / .mp4 movies use a planar visualizer: "
-                         "jaxdrake.viz.visualizer_for(plant, plane='xz'))")
+        """The movie's frames (n, height, width, 3): the robot's visuals rendered offscreen by
+        MuJoCo (needs `pip install 'jaxdrake[mujoco]'`), links placed by jaxdrake's kinematics."""
+        times, xs, _, fps = self.frames(traj, fps)
+        if xs.ndim == 3:
+            raise ValueError("MeshcatVisualizer renders one trajectory; index the batch (traj[i])")
+        if len(times) == 0:
+            raise ValueError(f"the trajectory is shorter than one frame (1/{fps:g} s)")
+        return self.images(xs)
+
+    def images(self, xs) -> np.ndarray:
+        """RGB images (n, height, width, 3) of the states xs (n, num_states), rendered by MuJoCo."""
+        from ._puppet import puppet_model, render_frames
+
+        connection = self._connection
+        if "puppet" not in connection:
+            visuals, materials, resolve = self._urdf_visuals()
+            skeleton = {} if any(visuals.values()) else self._skeleton()
+            neutral = self.frame_transforms(jnp.concatenate([self.tree.neutral_configuration(),
+                                                             jnp.zeros(self.tree.nv)])[None])[0]
+            connection["puppet"] = puppet_model(self.links, visuals, materials, resolve, skeleton, neutral,
+                                                 self.tree.has_floating_base)
+        model, camera = connection["puppet"]
+        return render_frames(model, camera, self.frame_transforms(xs), self.height, self.width)
 
     def save(self, traj, path, fps=None) -> pathlib.Path:
-        """Write the scene with the trajectory's animation as one self-contained `.html` file."""
+        """Write the scene with the trajectory's animation as one self-contained `.html` file,
+        or a `.gif` / `.mp4` movie rendered by MuJoCo."""
         path = pathlib.Path(path)
         if path.suffix.lower() != ".html":
-            self.render(traj, fps)
+            return super().save(traj, path, fps)
         meshcat = _meshcat()
         recorder = SceneRecorder()
         live = dict(self._connection)
