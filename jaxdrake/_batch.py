@@ -55,7 +55,7 @@ def run_batch(fn, inputs, *, chunk_size: int | None = None, devices=None, progre
     pending, results = None, []
     for start in starts:
         stop = min(start + chunk, size)
-        piece = [_padded(np.asarray(leaf[start:stop]) if not isinstance(leaf, jax.Array) else leaf[start:stop],
+        piece = [padded(np.asarray(leaf[start:stop]) if not isinstance(leaf, jax.Array) else leaf[start:stop],
                          chunk) for leaf in leaves]
         piece = jax.device_put(jax.tree.unflatten(treedef, piece), sharding)
         out = mapped(piece)  # dispatched; runs while the previous chunk is copied back
@@ -82,18 +82,22 @@ def _program(fn, devices, gather):
     gathered are written to pinned host memory by the program itself on accelerators: a
     separate copy would share the device-to-host queue with the next chunk's loop, whose
     condition is read back every iteration, and stall it."""
-    mesh = Mesh(np.asarray(devices), ("batch",))
-    spec = PartitionSpec("batch")
-    sharding = NamedSharding(mesh, spec)
+    sharding = batch_sharding(devices)
     mapped = jax.vmap(fn)
     if len(devices) > 1:  # check_vma=False: the event search's custom_vmap has no replication rule
-        mapped = jax.shard_map(mapped, mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)
+        mapped = jax.shard_map(mapped, mesh=sharding.mesh, in_specs=sharding.spec, out_specs=sharding.spec,
+                               check_vma=False)
     to_host = gather and devices[0].platform != "cpu"
     out = sharding.with_memory_kind("pinned_host") if to_host else sharding
     return jax.jit(mapped, in_shardings=sharding, out_shardings=out), sharding
 
 
-def _padded(x, chunk):
+def batch_sharding(devices) -> NamedSharding:
+    """Arrays split along their first axis across `devices` (a one-axis "batch" mesh)."""
+    return NamedSharding(Mesh(np.asarray(devices), ("batch",)), PartitionSpec("batch"))
+
+
+def padded(x, chunk):
     """x (n, ...) with its last row repeated up to `chunk` rows."""
     missing = chunk - x.shape[0]
     if missing == 0:

@@ -20,8 +20,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from .._batch import batch_sharding, padded
 from .._progress import progress_bar
 from ..simulation import simulate
 from ..simulation._inputs import leaves_to_arrays
@@ -195,8 +195,7 @@ def _split_across(points, devices):
     device count and sharded along their first axis, so that what is computed from them is too."""
     if len(devices) == 1:
         return jax.device_put(points, devices[0])
-    points = jnp.concatenate([points, jnp.repeat(points[-1:], -len(points) % len(devices), axis=0)])
-    return jax.device_put(points, NamedSharding(Mesh(np.asarray(devices), ("points",)), PartitionSpec("points")))
+    return jax.device_put(padded(points, -(-len(points) // len(devices)) * len(devices)), batch_sharding(devices))
 
 
 @eqx.filter_jit

@@ -307,12 +307,17 @@ class System(eqx.Module):
                               num_discrete_states=num_discrete_states, num_inputs=num_inputs, **kwargs)
 
 
+def _argument_shapes(num_states: int, num_inputs: int):
+    """Abstract (t, x, u) of the default float width: what a system's functions are traced with."""
+    dtype = jnp.zeros(()).dtype
+    return (jax.ShapeDtypeStruct((), dtype), jax.ShapeDtypeStruct((num_states,), dtype),
+            jax.ShapeDtypeStruct((num_inputs,), dtype))
+
+
 def _output_size(output: Callable, num_states: int, num_inputs: int, params: Any) -> int:
     """The length of `output(t, x, u[, params])`, from its shapes alone (nothing evaluated)."""
-    dtype = jnp.zeros(()).dtype
-    args = (jax.ShapeDtypeStruct((), dtype), jax.ShapeDtypeStruct((num_states,), dtype),
-            jax.ShapeDtypeStruct((num_inputs,), dtype))
-    shape = jax.eval_shape(lambda *a: output(*a) if params is None else output(*a, params), *args).shape
+    shape = jax.eval_shape(lambda *a: output(*a) if params is None else output(*a, params),
+                           *_argument_shapes(num_states, num_inputs)).shape
     if len(shape) != 1:
         raise ValueError(f"from_functions: output must return a vector, got shape {shape} "
                          "(wrap a scalar as jnp.atleast_1d(y), or give num_outputs)")
@@ -374,9 +379,7 @@ def _output_reads_input(system: System) -> bool:
     (dependencies followed equation by equation; a sub-program counts as one equation)."""
     if system.num_inputs == 0:
         return False
-    dtype = jnp.zeros(()).dtype
-    shapes = (jax.ShapeDtypeStruct((), dtype), jax.ShapeDtypeStruct((system.num_states,), dtype),
-              jax.ShapeDtypeStruct((system.num_inputs + system.num_noise_inputs,), dtype))
+    shapes = _argument_shapes(system.num_states, system.num_inputs + system.num_noise_inputs)
     try:
         # a fresh function, not the bound method: JAX caches traced functions by equality, and a
         # bound method's equality compares the systems' arrays (equinox), which fails inside a trace

@@ -59,16 +59,20 @@ def _transform(R, p):
     return T
 
 
+def urdf_color(visual, materials):
+    """The RGBA colour of a URDF <visual> (its own material's, else the named robot material's),
+    or None."""
+    if visual.material is not None:
+        for source in (visual.material, materials.get(visual.material.name)):
+            if source is not None and source.color is not None:
+                return np.asarray(source.color.rgba, float)
+    return None
+
+
 def _material(visual, materials):
     import meshcat.geometry as g
 
-    color = None
-    if visual.material is not None:
-        named = materials.get(visual.material.name)
-        for source in (visual.material, named):
-            if source is not None and source.color is not None:
-                color = np.asarray(source.color.rgba, float)
-                break
+    color = urdf_color(visual, materials)
     if color is None:
         return g.MeshLambertMaterial(color=_GREY)
     rgb = int(np.round(color[0] * 255)) << 16 | int(np.round(color[1] * 255)) << 8 | int(np.round(color[2] * 255))
@@ -202,11 +206,16 @@ class MeshcatVisualizer(Visualizer):
                 robot[name][f"rod{k}"].set_object(g.Cylinder(length, 0.015), g.MeshLambertMaterial(color=_SKELETON))
                 robot[name][f"rod{k}"].set_transform(_transform(np.column_stack([x, y, np.cross(x, y)]), offset / 2))
 
+    def _neutral_transforms(self):
+        """`link_transforms` at the neutral configuration, at rest (links, 4, 4)."""
+        tree = self.tree
+        return self.frame_transforms(jnp.concatenate([tree.neutral_configuration(), jnp.zeros(tree.nv)])[None])[0]
+
     def _skeleton(self):
         """{link: offsets (in its frame) of the origins of the links attached to it (child
         bodies' joints, fixed frames)} at the neutral configuration."""
         tree = self.tree
-        T = self.frame_transforms(jnp.concatenate([tree.neutral_configuration(), jnp.zeros(tree.nv)])[None])[0]
+        T = self._neutral_transforms()
         own = {b: k for k, b in enumerate(tree.frame_bodies) if b >= 0 and tree.frame_names[k] == tree.body_names[b]}
         rods = {}
         for k, b in enumerate(tree.frame_bodies):
@@ -239,9 +248,7 @@ class MeshcatVisualizer(Visualizer):
         `rate` times faster by the browser, with its own controls); returns it."""
         from meshcat.animation import Animation
 
-        times, xs, _, fps = self.frames(traj, fps)
-        if xs.ndim == 3:
-            raise ValueError("MeshcatVisualizer animates one trajectory; index the batch (traj[i])")
+        times, xs, _, fps = self.frames(traj, fps, single=True)
         transforms = self.frame_transforms(xs)
         scene = self.scene
         robot = scene[self._connection["prefix"]]
@@ -261,12 +268,7 @@ class MeshcatVisualizer(Visualizer):
     def render(self, traj, fps=None):
         """The movie's frames (n, height, width, 3): the robot's visuals rendered offscreen by
         MuJoCo (needs `pip install 'jaxdrake[mujoco]'`), links placed by jaxdrake's kinematics."""
-        times, xs, _, fps = self.frames(traj, fps)
-        if xs.ndim == 3:
-            raise ValueError("MeshcatVisualizer renders one trajectory; index the batch (traj[i])")
-        if len(times) == 0:
-            raise ValueError(f"the trajectory is shorter than one frame (1/{fps:g} s)")
-        return self.images(xs)
+        return self.images(self.frames(traj, fps, single=True)[1])
 
     def images(self, xs) -> np.ndarray:
         """RGB images (n, height, width, 3) of the states xs (n, num_states), rendered by MuJoCo."""
@@ -276,10 +278,8 @@ class MeshcatVisualizer(Visualizer):
         if "puppet" not in connection:
             visuals, materials, resolve = self._urdf_visuals()
             skeleton = {} if any(visuals.values()) else self._skeleton()
-            neutral = self.frame_transforms(jnp.concatenate([self.tree.neutral_configuration(),
-                                                             jnp.zeros(self.tree.nv)])[None])[0]
-            connection["puppet"] = puppet_model(self.links, visuals, materials, resolve, skeleton, neutral,
-                                                 self.tree.has_floating_base)
+            connection["puppet"] = puppet_model(self.links, visuals, materials, resolve, skeleton,
+                                                 self._neutral_transforms(), self.tree.has_floating_base)
         model, camera = connection["puppet"]
         return render_frames(model, camera, self.frame_transforms(xs), self.height, self.width)
 

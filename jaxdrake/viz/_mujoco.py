@@ -63,12 +63,7 @@ class MujocoVisualizer(Visualizer):
 
     def render(self, traj, fps=None):
         """The movie's frames (n, height, width, 3), rendered by MuJoCo."""
-        times, xs, _, fps = self.frames(traj, fps)
-        if xs.ndim == 3:
-            raise ValueError("MujocoVisualizer renders one trajectory; index the batch (traj[i])")
-        if len(times) == 0:
-            raise ValueError(f"the trajectory is shorter than one frame (1/{fps:g} s)")
-        return self.images(xs)
+        return self.images(self.frames(traj, fps, single=True)[1])
 
     def animate(self, traj, fps=None, rate: float = 1.0, ax=None):
         """A matplotlib `FuncAnimation` of the rendered frames."""

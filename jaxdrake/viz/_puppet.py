@@ -4,23 +4,18 @@ The robot's `<visual>` elements become a MuJoCo model with no dynamics of its ow
 each link is a mocap body (a body whose world pose is set directly) holding its visuals as
 geoms (boxes, spheres and cylinders as MuJoCo primitives; meshes of any format trimesh reads,
 `.dae` included, as MuJoCo meshes), over a checkered floor (at z = 0, or under the robot where
-it hangs below its base), with a camera that looks at the robot's neutral pose. A frame places every link at its pose $T_\\ell(q)$ (computed by
-jaxdrake, `MeshcatVisualizer.frame_transforms`) and renders (EGL without a display).
+it hangs below its base), with a camera that looks at the robot's neutral pose. A frame places
+every link at its pose $T_\\ell(q)$ (computed by jaxdrake, `MeshcatVisualizer.frame_transforms`)
+and renders (EGL without a display).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from ._meshcat import urdf_color
+
 _GREY = (0.63, 0.63, 0.66, 1.0)
-
-
-def _rgba(visual, materials):
-    if visual.material is not None:
-        for source in (visual.material, materials.get(visual.material.name)):
-            if source is not None and source.color is not None:
-                return tuple(float(c) for c in source.color.rgba)
-    return _GREY
 
 
 def _add_visual(mujoco, spec, body, visual, materials, resolve, name):
@@ -30,7 +25,9 @@ def _add_visual(mujoco, spec, body, visual, materials, resolve, name):
     origin = np.eye(4) if visual.origin is None else np.asarray(visual.origin, float)
     quat = np.zeros(4)
     mujoco.mju_mat2Quat(quat, np.ascontiguousarray(origin[:3, :3]).ravel())
-    geom = body.add_geom(pos=origin[:3, 3], quat=quat, rgba=_rgba(visual, materials), contype=0, conaffinity=0)
+    color = urdf_color(visual, materials)
+    geom = body.add_geom(pos=origin[:3, 3], quat=quat, rgba=_GREY if color is None else color, contype=0,
+                         conaffinity=0)
     shape = visual.geometry
     if shape.box is not None:
         geom.type, geom.size = mujoco.mjtGeom.mjGEOM_BOX, np.asarray(shape.box.size, float) / 2

@@ -156,13 +156,18 @@ class Visualizer(System):
         show.figure = fig
         return show
 
-    def frames(self, traj, fps=None):
-        """The frame times, states (n, [batch,] num_states) and mode labels of a trajectory."""
+    def frames(self, traj, fps=None, single: bool = False):
+        """The frame times, states (n, [batch,] num_states) and mode labels of a trajectory
+        (`single`: one trajectory only, not a vmapped batch)."""
         fps = 1 / self.draw_period if fps is None else float(fps)
         batched = np.ndim(traj.t_final) == 1
+        if batched and single:
+            raise ValueError(f"{type(self).__name__} draws one trajectory; index the batch (traj[i])")
         first = traj[0] if batched else traj
         t0, tf = float(first.t0), float(np.max(np.asarray(traj.t_final)))
         times = t0 + np.arange(int(round((tf - t0) * fps))) / fps
+        if len(times) == 0:
+            raise ValueError(f"the trajectory is shorter than one frame (1/{fps:g} s)")
         if batched:
             xs = np.swapaxes(np.asarray(jax.vmap(lambda member: member.state(jnp.asarray(times)))(traj)), 0, 1)
         else:
@@ -176,8 +181,6 @@ class Visualizer(System):
     def _scene(self, traj, fps, ax=None):
         """A figure holding the first frame, and `update(k)` that moves its artists to frame k."""
         times, xs, labels, fps = self.frames(traj, fps)
-        if len(times) == 0:
-            raise ValueError(f"the trajectory is shorter than one frame (1/{fps:g} s)")
         fig, ax = self._figure(ax)
         members = xs.shape[1] if xs.ndim == 3 else 1
         states = xs.reshape(len(times) * members, -1)
