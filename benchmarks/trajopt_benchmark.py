@@ -10,9 +10,10 @@ the costs agree to discretization error, not to the last digit. Times are warm (
 solve; our first solve also compiles, reported separately).
 
 Batched: pendulum swing-ups (100 steps of 0.05 s, |u| <= 2) from a spread of initial angles,
-one `jax.vmap`ped `trajopt.ilqr` program; problems per second, warm.
+one `jax.vmap`ped `trajopt.ilqr` program; problems per second, warm. With --chunk C, the same
+batch also through `jd.run_batch(chunk_size=C)` (the chunking overhead against one call).
 
-Run:  python benchmarks/trajopt_benchmark.py [--batch B] [--gpu]
+Run:  python benchmarks/trajopt_benchmark.py [--batch B] [--chunk C] [--gpu]
 """
 
 import time
@@ -81,7 +82,8 @@ def drake(name):
     return result.is_success(), result.get_optimal_cost(), times[-1], iterations
 
 
-def batched(batch):
+def batched(batch, chunk=None):
+    """Warm and first times of one vmapped call, or of `jd.run_batch` in chunks of `chunk`."""
     plant = jd.models.Pendulum(input_limits=(-2.0, 2.0))
 
     def solve(angle):
@@ -90,7 +92,11 @@ def batched(batch):
                             constraint_tol=1e-5)
 
     angles = jnp.linspace(-0.5, 0.5, batch)
-    run = jax.jit(jax.vmap(solve))
+    if chunk is None:
+        run = jax.jit(jax.vmap(solve))
+    else:
+        def run(members):
+            return jd.run_batch(solve, members, chunk_size=chunk)
     start = time.perf_counter()
     jax.block_until_ready(run(angles))
     first = time.perf_counter() - start
@@ -102,6 +108,7 @@ def batched(batch):
 
 def main():
     parser = argument_parser(__doc__, repeats=1, gpu_help="batched iLQR only (no Drake), on the GPU", batch=64)
+    parser.add_argument("--chunk", type=int, help="also run the batch through jd.run_batch in chunks of this size")
     args = parser.parse_args()
     if not args.gpu:
         jax.config.update("jax_enable_x64", True)
@@ -118,9 +125,12 @@ def main():
                 print(f"| {name} | jaxdrake + IPOPT ({hessian}) | {result.success} | {result.cost:.4f} | "
                       f"{result.iterations} | {result.solve_time * 1e3:.0f} ms (first solve {first:.1f} s) | "
                       f"{result.solve_time / drake_time:.2f} |", flush=True)
-    warm, first, converged, iterations = batched(args.batch)
-    print(f"batched iLQR: {args.batch} pendulum swing-ups in {warm * 1e3:.0f} ms warm ({first:.1f} s first), "
-          f"{args.batch / warm:.0f} problems/s, {converged} converged, up to {iterations} iterations")
+    for chunk in (None,) if args.chunk is None else (None, args.chunk):
+        warm, first, converged, iterations = batched(args.batch, chunk)
+        how = "one vmapped call" if chunk is None else f"jd.run_batch, chunks of {chunk}"
+        print(f"batched iLQR ({how}): {args.batch} pendulum swing-ups in {warm * 1e3:.0f} ms warm "
+              f"({first:.1f} s first), {args.batch / warm:.0f} problems/s, {converged} converged, "
+              f"up to {iterations} iterations")
 
 
 if __name__ == "__main__":

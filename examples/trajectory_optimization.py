@@ -7,7 +7,8 @@ Top row: the double integrator — minimum time from (-2, 0) (T against 2 sqrt 2
 input) and minimum effort from (1, 0) in T = 2 (u against the closed form -6/T^2 + 12 t/T^3).
 Middle row: each swing-up — the optimized angles (dots: knots), the open-loop replay from a
 perturbed start (dashed), and the TVLQR closed loop from the same start (solid).
-Bottom: 64 pendulum swing-ups from different initial angles, one vmapped iLQR program.
+Bottom: 64 pendulum swing-ups from different initial angles: one vmapped iLQR program run by
+`jd.run_batch` in two chunks of 32.
 
 Run:  python examples/trajectory_optimization.py [--out DIR]     (saves trajectory_optimization.png)
 """
@@ -85,9 +86,8 @@ def pendulum_batch(num=64):
         return trajopt.ilqr(plant, jnp.array([angle, 0.0]), jnp.zeros((100, 1)), 0.05, lambda t, x, u: u @ u,
                             final_state=jnp.array([np.pi, 0.0]), max_iterations=1000, constraint_tol=1e-5)
 
-    batch = jax.jit(jax.vmap(solve))
     start = time.perf_counter()
-    results = jax.block_until_ready(batch(angles))
+    results = jd.run_batch(solve, angles, chunk_size=32)  # one program, two chunks of 32
     print(f"iLQR batch: {num} pendulum swing-ups in {time.perf_counter() - start:.1f} s (with compilation), "
           f"{int(results.converged.sum())} converged, up to {int(results.iterations.max())} iterations")
     return angles, results
