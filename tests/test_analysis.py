@@ -142,7 +142,8 @@ def test_sos_program_reports_infeasibility_and_its_certificate_check_catches_lie
     result = prog.solve()
     assert result.check(20_000).ok
     assert sorted(map(tuple, record.basis)) == [(0, 1), (1, 0), (1, 1)]  # Newton polytope pruning
-    record.gram.value = -np.eye(3)  # a wrong Gram matrix is caught by the residuals
+    assert np.allclose(record.gram_value(), record.gram_value().T)
+    prog.space.solution = -prog.space.solution  # a wrong Gram matrix (-Q) is caught by the residuals
     residual, eig = result.residuals()
     assert residual > 1e-3 and eig < 0
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import dataclasses
 
-import cvxpy as cp
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -14,6 +13,7 @@ import numpy as np
 from .._progress import progress_bar
 from ..control import solve_continuous_lyapunov
 from ..systems import Polynomial, PolynomialSystem, System, taylor_polynomial
+from ._conic import ConicProgram
 from ._sos import CertificateCheck, InfeasibleError, SolveError, SosProgram
 
 
@@ -27,17 +27,21 @@ def common_lyapunov_function(As, epsilon: float = 1e-6, solver: str | None = Non
     n = As[0].shape[0]
     if any(A.shape != (n, n) for A in As):
         raise ValueError(f"common_lyapunov_function: all A must be ({n}, {n}), got {[A.shape for A in As]}")
-    P, t = cp.Variable((n, n), symmetric=True), cp.Variable()
-    eye = np.eye(n)
-    constraints = [P >> epsilon * eye, P << eye] + [A.T @ P + P @ A << -t * eye for A in As]
-    problem = cp.Problem(cp.Maximize(t), constraints)
-    problem.solve(solver=solver or "CLARABEL")
-    if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
-        raise SolveError(f"common_lyapunov_function: solver status {problem.status}", problem.status)
+    prog = ConicProgram()
+    P, t = prog.new_symmetric_matrix(n), prog.new_variable()
+    eye = np.eye(n).ravel()
+    t_eye = t.as_vector().mapped(eye[:, None])  # t I, row-major entries
+    prog.add_psd_constraint(P - epsilon * eye, n)
+    prog.add_psd_constraint(eye - P, n)
+    for A in As:  # -(A'P + PA) - t I >= 0, with vec(A'P) = (A' kron I) vec(P), vec(PA) = (I kron A') vec(P)
+        lyapunov = np.kron(A.T, np.eye(n)) + np.kron(np.eye(n), A.T)
+        prog.add_psd_constraint(-P.mapped(lyapunov) - t_eye, n)
+    prog.solve(maximize=t, solver=solver)
     if t.value < epsilon:
         raise InfeasibleError(f"no common quadratic Lyapunov function: the best margin is "
-                              f"t* = {float(t.value):.2e} < {epsilon:g}", "infeasible")
-    return np.asarray((P.value + P.value.T) / 2)
+                              f"t* = {t.value:.2e} < {epsilon:g}", "infeasible")
+    P_value = P.value.reshape(n, n)
+    return (P_value + P_value.T) / 2
 
 
 def _check_autonomous(system: System, where: str):
@@ -66,6 +70,8 @@ def polynomial_dynamics(system: System, x0, u0=None, degree: int = 3) -> Polynom
         raise ValueError(f"u0 must have shape ({m},), got {u0.shape}")
     z = list(Polynomial.variables_of(n, [f"x{i}" for i in range(n)]))
     if isinstance(system, PolynomialSystem) and system.e is None:
+        if m == 0 and not np.any(np.asarray(x0)):  # f itself, in the variables x0, x1, ...
+            return Polynomial(system.f.exponent_array, np.asarray(system.f.coefficients, float), z[0].variables)
         values = [zi + float(ci) for zi, ci in zip(z, x0)] + [Polynomial.constant(float(c), n, z[0].variables) for c in u0]
         return system.f.substitute(values)
     with jax.enable_x64(True):  # analysis runs in float64 whatever the user's default
@@ -126,7 +132,7 @@ class RegionOfAttraction:
 
 def region_of_attraction(system: System, x0, S=None, *, u0=None, taylor_degree: int = 3,
                          multiplier_degree: int | None = None, solver: str | None = None,
-                         num_check_samples: int = 100_000, return_certificate: bool = False):
+                         num_check_samples: int = 10_000, return_certificate: bool = False):
     r"""The largest level $\rho$ such that $\{x : V(x) \le \rho\}$, $V = (x - x_0)^T S (x - x_0)$,
     is certified to lie in the region of attraction of the equilibrium $x_0$.
 
@@ -210,7 +216,7 @@ def verify_region_of_attraction(system: System, x0, S, rho, *, u0=None, num_samp
 
 def global_lyapunov_function(system: System, x0, degree: int = 2, *, u0=None, epsilon: float = 1e-4,
                              dissipation: Polynomial | None = None, multiplier_degree: int | None = None,
-                             normalization=None, solver: str | None = None, num_check_samples: int = 100_000):
+                             normalization=None, solver: str | None = None, num_check_samples: int = 10_000):
     r"""Search for a global Lyapunov function of the polynomial system's equilibrium $x_0$:
     V of the given degree in x with the largest dissipation margin $t \le 1$ such that
 

@@ -3,7 +3,7 @@ r"""Multivariate polynomials and polynomial systems (notes, D.3.1: "(rational) p
 A `Polynomial` is $p(z) = \sum_k c_k z^{\alpha_k}$ with exponent rows $\alpha_k$ (static) and
 coefficients $c_k$ that are either numbers -- a JAX array of shape (m, *value_shape), so a
 vector field or a matrix is one polynomial, and a polynomial is a differentiable pytree -- or
-the decision variables of a convex program (a `cvxpy` expression of shape (m,), scalar
+the decision variables of a convex program (an `AffineExpression` of shape (m,), scalar
 polynomials only), which is how sums-of-squares programs write their unknowns. Arithmetic is
 exact on the coefficients; products of two decision polynomials (bilinear) are refused.
 """
@@ -21,13 +21,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._affine import AffineExpression
 from ._frame import Frame
 from ._system import System
 
 
 def is_decision(c) -> bool:
-    """Whether `c` is a cvxpy expression (decision variables), not a number."""
-    return type(c).__module__.startswith("cvxpy")
+    """Whether `c` is an affine expression of decision variables, not a number."""
+    return isinstance(c, AffineExpression)
 
 
 def _xp(*arrays):
@@ -43,6 +44,33 @@ def _numeric(c):
     return np.asarray(c, dtype=float)
 
 
+def unique_rows(E: np.ndarray):
+    """(unique rows of the int matrix E in lexicographic order, inverse indices): as
+    `np.unique(E, axis=0, return_inverse=True)`, by one integer key per row (several times faster)."""
+    E = np.asarray(E, int)
+    if not len(E) or not E.shape[1]:
+        return E[:min(len(E), 1)], np.zeros(len(E), int)
+    radix = E.max(0) + 1
+    if np.prod(radix.astype(float)) >= 2.0**62:  # keys would overflow: the general routine
+        unique, inverse = np.unique(E, axis=0, return_inverse=True)
+        return unique, inverse.ravel()
+    weights = np.concatenate([np.cumprod(radix[::-1])[::-1][1:], [1]])
+    keys, first, inverse = np.unique(E @ weights, return_index=True, return_inverse=True)
+    return E[first], inverse.ravel()
+
+
+def _names(names, n: int) -> tuple[str, ...]:
+    """The variables' names: given, or z0, z1, ..."""
+    return tuple(names) if names is not None else tuple(f"z{i}" for i in range(n))
+
+
+@functools.lru_cache(maxsize=4096)
+def _exponent_array(exponents: tuple, n: int) -> np.ndarray:
+    E = np.array(exponents, int).reshape(len(exponents), n)
+    E.flags.writeable = False
+    return E
+
+
 def _sparse(rows, cols, weights, shape):
     import scipy.sparse
 
@@ -50,6 +78,8 @@ def _sparse(rows, cols, weights, shape):
 
 
 def _concrete(c, what):
+    if is_decision(c):
+        raise TypeError(f"{what} needs numeric coefficients, not decision variables")
     try:
         return np.asarray(c, dtype=float)
     except jax.errors.TracerArrayConversionError:
@@ -68,24 +98,25 @@ def monomial_basis(num_variables: int, degree: int, min_degree: int = 0) -> np.n
     return np.array(rows, int).reshape(-1, num_variables)
 
 
-class Polynomial(eqx.Module):
+@jax.tree_util.register_pytree_node_class
+class Polynomial:
     r"""$p(z) = \sum_k c_k z^{\alpha_k}$ in `num_variables` indeterminates.
 
     Build from variables (`x, y = Polynomial.variables(2)`, then `x**2 + 3*x*y`), from exponent
     rows and coefficients, or by `taylor_polynomial`. Supports `+ - * **`, evaluation
     `p(z)` (z of shape (..., n); batched and differentiable), `derivative`, `jacobian`,
     `lie_derivative`, `substitute` and value indexing `p[i]` for vector / matrix polynomials.
+    A pytree: the coefficients are its leaf, the exponents and names static.
 
     **Arguments:**
 
     - `exponents`: (m, n) non-negative ints, one row per monomial (duplicates are merged).
-    - `coefficients`: (m, *value_shape) numbers, or a cvxpy expression of shape (m,).
+    - `coefficients`: (m, *value_shape) numbers, or an `AffineExpression` of decision
+      variables of shape (m,) (`SosProgram.new_free_polynomial` makes these).
     - `variables`: names of the n indeterminates (for printing); default z0, z1, ...
     """
 
-    coefficients: Any
-    exponents: tuple = eqx.field(static=True)
-    variables: tuple = eqx.field(static=True)
+    __slots__ = ("coefficients", "exponents", "variables")
 
     def __init__(self, exponents, coefficients, variables: Sequence[str] | None = None):
         E = np.asarray(exponents, dtype=int)
@@ -93,7 +124,7 @@ class Polynomial(eqx.Module):
             raise ValueError(f"Polynomial: exponents must be an (m, n) array of non-negative ints, "
                              f"got shape {E.shape}")
         n = E.shape[1]
-        variables = tuple(variables) if variables is not None else tuple(f"z{i}" for i in range(n))
+        variables = _names(variables, n)
         if len(variables) != n:
             raise ValueError(f"Polynomial: {len(variables)} variable names for {n} variables")
         if not is_decision(coefficients):
@@ -101,37 +132,64 @@ class Polynomial(eqx.Module):
         if coefficients.shape[:1] != (E.shape[0],) or (is_decision(coefficients) and coefficients.ndim != 1):
             raise ValueError(f"Polynomial: {E.shape[0]} monomials but coefficients of shape "
                              f"{coefficients.shape} (decision coefficients must be a vector)")
-        unique, inverse = (np.unique(E, axis=0, return_inverse=True) if len(E)
-                           else (E, np.zeros(0, int)))
+        self._set(E, coefficients, variables)
+
+    def _set(self, E, coefficients, variables):
+        unique, inverse = unique_rows(E)
         if len(unique) < len(E):  # merge repeated monomials
-            coefficients = _combine(coefficients, np.arange(len(E)), None, inverse.ravel(), len(unique))
+            coefficients = _combine(coefficients, np.arange(len(E)), None, inverse, len(unique))
             E = unique
         self.exponents = tuple(map(tuple, E.tolist()))
         self.coefficients = coefficients
-        self.variables = variables
+        self.variables = tuple(variables)
+
+    def __hash__(self):  # as an equinox Module: by field values (traced coefficients hash by identity)
+        return hash((self.coefficients, self.exponents, self.variables))
+
+    def __eq__(self, other):
+        return type(other) is type(self) and eqx.tree_equal(self, other)
+
+    def tree_flatten(self):
+        return (self.coefficients,), (self.exponents, self.variables)
+
+    @classmethod
+    def tree_unflatten(cls, static, children):
+        self = object.__new__(cls)
+        self.exponents, self.variables = static
+        self.coefficients = children[0]
+        return self
 
     # ----- construction ---------------------------------------------------------------------
 
     @classmethod
+    def _build(cls, E, coefficients, variables) -> Polynomial:
+        """The internal constructor of arithmetic results, whose exponent rows E are valid and
+        match the coefficients (repeated rows are merged)."""
+        self = object.__new__(cls)
+        self._set(np.asarray(E, int), coefficients if is_decision(coefficients) else _numeric(coefficients),
+                  variables)
+        return self
+
+    @classmethod
     def variables_of(cls, n: int, names: Sequence[str] | None = None) -> tuple[Polynomial, ...]:
         """The n indeterminates $z_0, \\dots, z_{n-1}$ as polynomials."""
-        return tuple(cls(np.eye(n, dtype=int)[i:i + 1], [1.0], names) for i in range(n))
+        names = _names(names, n)
+        return tuple(cls._build(np.eye(n, dtype=int)[i:i + 1], [1.0], names) for i in range(n))
 
     @classmethod
     def constant(cls, value, n: int, names: Sequence[str] | None = None) -> Polynomial:
-        value = value if is_decision(value) else _numeric(value)
         if is_decision(value):
-            import cvxpy as cp
-
-            value = cp.reshape(value, (1,), order="C")
-            return cls(np.zeros((1, n), int), value, names)
-        return cls(np.zeros((1, n), int), value[None], names)
+            if value.shape != ():
+                raise ValueError(f"a constant polynomial takes a scalar decision expression, got shape {value.shape}")
+            return cls._build(np.zeros((1, n), int), value.as_vector(), _names(names, n))
+        return cls._build(np.zeros((1, n), int), _numeric(value)[None], _names(names, n))
 
     # ----- facts ----------------------------------------------------------------------------
 
     @property
     def exponent_array(self) -> np.ndarray:
-        return np.array(self.exponents, int).reshape(len(self.exponents), len(self.variables))
+        """The exponent rows as a read-only (m, n) int array."""
+        return _exponent_array(self.exponents, len(self.variables))
 
     @property
     def num_variables(self) -> int:
@@ -157,7 +215,7 @@ class Polynomial(eqx.Module):
         """Drop monomials whose coefficients are all within `tol` of zero (numeric only)."""
         c = _concrete(self.coefficients, "pruned()")
         keep = np.abs(c.reshape(len(c), -1)).max(1, initial=0.0) > tol
-        return Polynomial(self.exponent_array[keep], c[keep], self.variables)
+        return Polynomial._build(self.exponent_array[keep], c[keep], self.variables)
 
     # ----- evaluation -----------------------------------------------------------------------
 
@@ -170,14 +228,19 @@ class Polynomial(eqx.Module):
             raise ValueError(f"Polynomial in {self.num_variables} variables evaluated at a point of "
                              f"shape {z.shape}")
         top = int(E.max(initial=0))
-        steps = xp.broadcast_to(z[..., None], z.shape + (top,))
-        powers = xp.cumprod(xp.concatenate([xp.ones_like(z)[..., None], steps], -1), -1)
-        picked = powers[..., np.arange(self.num_variables)[None, :], E]  # (..., m, n)
-        return xp.prod(picked, axis=-1)
+        columns = xp.moveaxis(z, -1, 0)
+        columns = np.ascontiguousarray(columns) if xp is np else columns
+        out = xp.ones((len(E),) + z.shape[:-1], dtype=z.dtype)
+        for i, zi in enumerate(columns):  # batch axes last, contiguous: 5x faster in numpy
+            powers = [xp.ones_like(zi)]
+            for _ in range(top):
+                powers.append(powers[-1] * zi)
+            out = out * xp.stack(powers)[E[:, i]]
+        return xp.moveaxis(out, 0, -1)
 
     def __call__(self, z):
         if self.is_decision:
-            return self.monomials(np.asarray(z, float)) @ self.coefficients
+            return self.coefficients.mapped(self.monomials(np.asarray(z, float)))
         xp = _xp(z, self.coefficients)
         return xp.tensordot(self.monomials(z), self.coefficients, axes=1)
 
@@ -200,13 +263,13 @@ class Polynomial(eqx.Module):
             shape = np.broadcast_shapes(a.shape[1:], b.shape[1:])
             a = xp.broadcast_to(a, a.shape[:1] + shape)
             b = xp.broadcast_to(b, b.shape[:1] + shape)
-            return Polynomial(E, xp.concatenate([a, b]), self.variables)
+            return Polynomial._build(E, xp.concatenate([a, b]), self.variables)
         return _from_parts(self, E, [(a, 0), (b, a.shape[0])])
 
     __radd__ = __add__
 
     def __neg__(self):
-        return Polynomial(self.exponent_array, -self.coefficients, self.variables)
+        return Polynomial._build(self.exponent_array, -self.coefficients, self.variables)
 
     def __sub__(self, other):
         return self + (-self._lift(other))
@@ -228,15 +291,15 @@ class Polynomial(eqx.Module):
             nd = max(a.ndim, b.ndim)
             a = a.reshape(a.shape[:1] + (1,) * (nd - a.ndim) + a.shape[1:])
             b = b.reshape(b.shape[:1] + (1,) * (nd - b.ndim) + b.shape[1:])
-            return Polynomial(E, a[i] * b[j], self.variables)
+            return Polynomial._build(E, a[i] * b[j], self.variables)
         if is_decision(b):  # make `a` the decision side
             a, b, i, j = b, a, j, i
         weights = _concrete(b, "a product")
         if weights.ndim != 1:
             raise ValueError("decision polynomials can only be multiplied by scalar polynomials")
-        unique, inverse = np.unique(E, axis=0, return_inverse=True)
-        coefficients = _combine(a, i, weights[j], inverse.ravel(), len(unique))
-        return Polynomial(unique, coefficients, self.variables)
+        unique, inverse = unique_rows(E)
+        coefficients = _combine(a, i, weights[j], inverse, len(unique))
+        return Polynomial._build(unique, coefficients, self.variables)
 
     __rmul__ = __mul__
 
@@ -257,12 +320,12 @@ class Polynomial(eqx.Module):
         if self.is_decision:
             raise TypeError("decision polynomials are scalar")
         index = index if isinstance(index, tuple) else (index,)
-        return Polynomial(self.exponent_array, self.coefficients[(slice(None),) + index], self.variables)
+        return Polynomial._build(self.exponent_array, self.coefficients[(slice(None),) + index], self.variables)
 
     def sum(self) -> Polynomial:
         """The sum of a vector / matrix polynomial's entries."""
         c = self.coefficients
-        return Polynomial(self.exponent_array, c.reshape(c.shape[0], -1).sum(1), self.variables)
+        return Polynomial._build(self.exponent_array, c.reshape(c.shape[0], -1).sum(1), self.variables)
 
     # ----- calculus and composition ---------------------------------------------------------
 
@@ -271,12 +334,12 @@ class Polynomial(eqx.Module):
         E = self.exponent_array
         keep = np.flatnonzero(E[:, i] > 0)
         if not len(keep):
-            return Polynomial(np.zeros((1, self.num_variables), int),
+            return Polynomial._build(np.zeros((1, self.num_variables), int),
                               _combine(self.coefficients, np.zeros(0, int), np.zeros(0), np.zeros(0, int), 1),
                               self.variables)
         D = E[keep].copy()
         D[:, i] -= 1
-        return Polynomial(D, _combine(self.coefficients, keep, E[keep, i].astype(float),
+        return Polynomial._build(D, _combine(self.coefficients, keep, E[keep, i].astype(float),
                                       np.arange(len(keep)), len(keep)), self.variables)
 
     def jacobian(self) -> Polynomial:
@@ -286,7 +349,7 @@ class Polynomial(eqx.Module):
         for i in range(n):
             d = self.derivative(i)
             unit = np.eye(n)[i]
-            term = Polynomial(d.exponent_array, d.coefficients[..., None] * unit, self.variables)
+            term = Polynomial._build(d.exponent_array, d.coefficients[..., None] * unit, self.variables)
             total = term if total is None else total + term
         return total
 
@@ -306,31 +369,36 @@ class Polynomial(eqx.Module):
         if len(values) != self.num_variables or not all(isinstance(q, Polynomial) for q in values):
             raise ValueError(f"substitute needs {self.num_variables} Polynomials, got {len(values)}")
         w = values[0]
+        E = self.exponent_array
+        powers = [[Polynomial.constant(1.0, w.num_variables, w.variables)] for _ in values]
+        for q, listed, top in zip(values, powers, E.max(0, initial=0)):
+            for _ in range(int(top)):
+                listed.append(listed[-1] * q)
         columns = []
-        for row in self.exponent_array:
-            term = Polynomial.constant(1.0, w.num_variables, w.variables)
-            for q, k in zip(values, row):
-                if k:
-                    term = term * q**int(k)
+        for row in E:
+            factors = [listed[k] for listed, k in zip(powers, row) if k]
+            term = factors[0] if factors else powers[0][0]
+            for factor in factors[1:]:
+                term = term * factor
             columns.append(term)
         E = np.concatenate([t.exponent_array for t in columns])
-        unique, inverse = np.unique(E, axis=0, return_inverse=True)
-        inverse, offsets = inverse.ravel(), np.cumsum([0] + [t.num_monomials for t in columns])
+        unique, inverse = unique_rows(E)
+        offsets = np.cumsum([0] + [t.num_monomials for t in columns])
         if self.is_decision:
             weights = np.concatenate([_concrete(t.coefficients, "substitute") for t in columns])
             cols = np.repeat(np.arange(len(columns)), np.diff(offsets))
             M = _sparse(inverse, cols, weights, (len(unique), len(columns)))
-            return Polynomial(unique, M @ self.coefficients, w.variables)
+            return Polynomial._build(unique, self.coefficients.mapped(M), w.variables)
         weights = [t.coefficients for t in columns]
         xp = _xp(self.coefficients, *weights)
         cols = np.repeat(np.arange(len(columns)), np.diff(offsets))
         if xp is np:
             M = _sparse(inverse, cols, np.concatenate(weights), (len(unique), len(columns)))
             c = self.coefficients
-            return Polynomial(unique, (M @ c.reshape(len(c), -1)).reshape((len(unique),) + c.shape[1:]),
+            return Polynomial._build(unique, (M @ c.reshape(len(c), -1)).reshape((len(unique),) + c.shape[1:]),
                               w.variables)
         M = jnp.zeros((len(unique), len(columns))).at[inverse, cols].add(jnp.concatenate(weights))
-        return Polynomial(unique, jnp.tensordot(M, self.coefficients, axes=1), w.variables)
+        return Polynomial._build(unique, jnp.tensordot(M, self.coefficients, axes=1), w.variables)
 
     # ----- display ---------------------------------------------------------------------------
 
@@ -352,7 +420,7 @@ def _combine(c, src, weights, dest, num):
     r"""new[k] = sum over rows r with dest[r] = k of weights[r] * c[src[r]] (weights None = 1)."""
     if is_decision(c):
         w = np.ones(len(src)) if weights is None else weights
-        return _sparse(dest, src, w, (num, c.shape[0])) @ c
+        return c.mapped(_sparse(dest, src, w, (num, c.shape[0])))
     rows = c[src]
     if weights is not None:
         rows = rows * np.asarray(weights).reshape((-1,) + (1,) * (c.ndim - 1))
@@ -365,14 +433,13 @@ def _combine(c, src, weights, dest, num):
 
 def _from_parts(p, E, parts):
     """The polynomial with monomials E whose coefficients stack `parts` (decision or numeric)."""
-    unique, inverse = np.unique(E, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
+    unique, inverse = unique_rows(E)
     total = 0
     for c, start in parts:
         m = c.shape[0]
         M = _sparse(inverse[start:start + m], np.arange(m), np.ones(m), (len(unique), m))
-        total = total + (M @ c if is_decision(c) else M @ _concrete(c, "a sum"))
-    return Polynomial(unique, total, p.variables)
+        total = total + (c.mapped(M) if is_decision(c) else M @ _concrete(c, "a sum"))
+    return Polynomial._build(unique, total, p.variables)
 
 
 def taylor_polynomial(fn, x0, degree: int, variables: Sequence[str] | None = None, args=()) -> Polynomial:
