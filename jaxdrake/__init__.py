@@ -4,7 +4,7 @@ from ._xla import prefer_fast_cpu_compilation
 
 prefer_fast_cpu_compilation()
 
-from . import control, models, multibody, planning, simulation, systems, trajectories, viz  # noqa: E402
+from . import analysis, control, models, multibody, planning, simulation, systems, trajectories, viz  # noqa: E402
 from .control import linearize
 from .multibody import CouplerConstraint, LoopConstraint, MujocoSystem, RigidBodySystem
 from .simulation import SimulatedTrajectory, SimulationError, SimulationStatus, simulate
@@ -19,14 +19,6 @@ __version__ = "0.1.0"
 
 __all__ = ["Diagram", "DiagramBuilder", "Frame", "HybridSystem", "LinearSystem", "SimulationError",
            "CouplerConstraint", "LoopConstraint", "MujocoSystem", "Polynomial", "PolynomialSystem", "RigidBodySystem", "SimulatedTrajectory", "SimulationStatus", "StochasticSystem", "System", "Trajectory", "TrajectorySource", "Transition",
-           "add_frame_conversion", "and_guards", "cascade", "control", "feedback", "linearize", "models", "multibody", "not_guard",
+           "add_frame_conversion", "analysis", "and_guards", "cascade", "control", "feedback", "linearize", "models", "multibody", "not_guard",
            "parallel", "planning", "run_batch", "simulate", "simulation", "systems", "trajectories", "viz"]
 
-
-def __getattr__(name):
-    # `jd.analysis` imports cvxpy (about 2 s), so it loads on first use, not with jaxdrake.
-    if name == "analysis":
-        import importlib
-
-        return importlib.import_module(".analysis", __name__)
-    raise AttributeError(f"module 'jaxdrake' has no attribute {name!r}")

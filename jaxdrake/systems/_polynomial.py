@@ -139,7 +139,7 @@ class Polynomial:
         if len(unique) < len(E):  # merge repeated monomials
             coefficients = _combine(coefficients, np.arange(len(E)), None, inverse, len(unique))
             E = unique
-        self.exponents = tuple(map(tuple, E.tolist()))
+        self.exponents = _rows_tuple(E)
         self.coefficients = coefficients
         self.variables = tuple(variables)
 
@@ -162,12 +162,15 @@ class Polynomial:
     # ----- construction ---------------------------------------------------------------------
 
     @classmethod
-    def _build(cls, E, coefficients, variables) -> Polynomial:
+    def _build(cls, E, coefficients, variables, unique: bool = False) -> Polynomial:
         """The internal constructor of arithmetic results, whose exponent rows E are valid and
-        match the coefficients (repeated rows are merged)."""
+        match the coefficients (repeated rows are merged, unless `unique` says there are none)."""
         self = object.__new__(cls)
-        self._set(np.asarray(E, int), coefficients if is_decision(coefficients) else _numeric(coefficients),
-                  variables)
+        coefficients = coefficients if is_decision(coefficients) else _numeric(coefficients)
+        if unique:
+            self.exponents, self.coefficients, self.variables = _rows_tuple(E), coefficients, tuple(variables)
+        else:
+            self._set(np.asarray(E, int), coefficients, variables)
         return self
 
     @classmethod
@@ -256,15 +259,17 @@ class Polynomial:
 
     def __add__(self, other):
         other = self._lift(other)
-        E = np.concatenate([self.exponent_array, other.exponent_array])
+        unique, inverse = _sum_structure(self.exponents, other.exponents, self.num_variables)
         a, b = self.coefficients, other.coefficients
         if not (is_decision(a) or is_decision(b)):
             xp = _xp(a, b)
             shape = np.broadcast_shapes(a.shape[1:], b.shape[1:])
             a = xp.broadcast_to(a, a.shape[:1] + shape)
             b = xp.broadcast_to(b, b.shape[:1] + shape)
-            return Polynomial._build(E, xp.concatenate([a, b]), self.variables)
-        return _from_parts(self, E, [(a, 0), (b, a.shape[0])])
+            both = xp.concatenate([a, b])
+            return Polynomial._build(unique, _combine(both, np.arange(len(both)), None, inverse, len(unique)),
+                                     self.variables, unique=True)
+        return _from_parts(self, unique, inverse, [(a, 0), (b, a.shape[0])])
 
     __radd__ = __add__
 
@@ -279,10 +284,7 @@ class Polynomial:
 
     def __mul__(self, other):
         other = self._lift(other)
-        Ea, Eb = self.exponent_array, other.exponent_array
-        i, j = np.meshgrid(np.arange(len(Ea)), np.arange(len(Eb)), indexing="ij")
-        i, j = i.ravel(), j.ravel()
-        E = Ea[i] + Eb[j]
+        i, j, unique, inverse = _product_structure(self.exponents, other.exponents, self.num_variables)
         a, b = self.coefficients, other.coefficients
         if is_decision(a) and is_decision(b):
             raise ValueError("product of two polynomials with decision-variable coefficients is "
@@ -291,15 +293,16 @@ class Polynomial:
             nd = max(a.ndim, b.ndim)
             a = a.reshape(a.shape[:1] + (1,) * (nd - a.ndim) + a.shape[1:])
             b = b.reshape(b.shape[:1] + (1,) * (nd - b.ndim) + b.shape[1:])
-            return Polynomial._build(E, a[i] * b[j], self.variables)
+            products = a[i] * b[j]
+            return Polynomial._build(unique, _combine(products, np.arange(len(products)), None, inverse, len(unique)),
+                                     self.variables, unique=True)
         if is_decision(b):  # make `a` the decision side
             a, b, i, j = b, a, j, i
         weights = _concrete(b, "a product")
         if weights.ndim != 1:
             raise ValueError("decision polynomials can only be multiplied by scalar polynomials")
-        unique, inverse = unique_rows(E)
         coefficients = _combine(a, i, weights[j], inverse, len(unique))
-        return Polynomial._build(unique, coefficients, self.variables)
+        return Polynomial._build(unique, coefficients, self.variables, unique=True)
 
     __rmul__ = __mul__
 
@@ -431,15 +434,40 @@ def _combine(c, src, weights, dest, num):
     return out
 
 
-def _from_parts(p, E, parts):
-    """The polynomial with monomials E whose coefficients stack `parts` (decision or numeric)."""
-    unique, inverse = unique_rows(E)
+def _from_parts(p, unique, inverse, parts):
+    """The polynomial with monomials `unique` whose coefficients sum `parts` (decision or
+    numeric, stacked in order) into the rows `inverse` says."""
     total = 0
     for c, start in parts:
         m = c.shape[0]
         M = _sparse(inverse[start:start + m], np.arange(m), np.ones(m), (len(unique), m))
         total = total + (c.mapped(M) if is_decision(c) else M @ _concrete(c, "a sum"))
-    return Polynomial._build(unique, total, p.variables)
+    return Polynomial._build(unique, total, p.variables, unique=True)
+
+
+@functools.lru_cache(maxsize=4096)
+def _sum_structure(a: tuple, b: tuple, n: int):
+    """(unique rows, inverse) of the exponents of a + b (kept per structure)."""
+    unique, inverse = unique_rows(np.concatenate([_exponent_array(a, n), _exponent_array(b, n)]))
+    unique.flags.writeable = inverse.flags.writeable = False
+    return unique, inverse
+
+
+@functools.lru_cache(maxsize=4096)
+def _product_structure(a: tuple, b: tuple, n: int):
+    """(i, j, unique rows, inverse): the monomials of a * b are a[i] + b[j], merged (kept per
+    structure)."""
+    Ea, Eb = _exponent_array(a, n), _exponent_array(b, n)
+    i, j = np.meshgrid(np.arange(len(Ea)), np.arange(len(Eb)), indexing="ij")
+    i, j = i.ravel(), j.ravel()
+    unique, inverse = unique_rows(Ea[i] + Eb[j])
+    for array in (i, j, unique, inverse):
+        array.flags.writeable = False
+    return i, j, unique, inverse
+
+
+def _rows_tuple(E) -> tuple:
+    return tuple(map(tuple, np.asarray(E).tolist()))
 
 
 def taylor_polynomial(fn, x0, degree: int, variables: Sequence[str] | None = None, args=()) -> Polynomial:
