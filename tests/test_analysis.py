@@ -161,3 +161,24 @@ def test_searching_for_the_region_of_attraction_enlarges_it(capsys):
     inside = box[np.asarray(search.V(box)) <= 1.0][:256]
     final = jax.vmap(lambda x0: jd.simulate(system, (0.0, 30.0), x0).final_state)(jnp.asarray(inside))
     assert len(inside) > 100 and np.abs(np.asarray(final)).max() < 1e-3
+
+
+@pytest.mark.parametrize("solver", ["CLARABEL", "SCS"])
+def test_conic_program_solves_an_lmi_and_an_lp_to_their_closed_forms(solver):
+    """min t s.t. [[t, 1], [1, t]] PSD is t = 1; max x + y on x, y >= 0, x + 2y <= 4, 3x + y <= 6
+    is the vertex (8/5, 6/5), value 14/5. The PSD block goes through each solver's own
+    triangle layout (Clarabel's upper, SCS's lower)."""
+    from jaxdrake.analysis import ConicProgram
+
+    prog = ConicProgram()
+    t = prog.new_variable()
+    prog.add_psd_constraint(t * np.eye(2).ravel() + np.array([0.0, 1.0, 1.0, 0.0]), 2)
+    prog.solve(minimize=t, solver=solver)
+    assert abs(t.value - 1.0) < 1e-5
+    prog = ConicProgram()
+    xy = prog.new_variable(2)
+    for constraint in (xy >= 0, xy[0] + 2 * xy[1] <= 4, 3 * xy[0] + xy[1] <= 6):
+        prog.add_constraint(constraint)
+    result = prog.solve(maximize=xy.sum(), solver=solver)
+    np.testing.assert_allclose(xy.value, [1.6, 1.2], atol=1e-5)
+    assert abs(result.objective - 2.8) < 1e-5

@@ -29,13 +29,12 @@ def common_lyapunov_function(As, epsilon: float = 1e-6, solver: str | None = Non
         raise ValueError(f"common_lyapunov_function: all A must be ({n}, {n}), got {[A.shape for A in As]}")
     prog = ConicProgram()
     P, t = prog.new_symmetric_matrix(n), prog.new_variable()
-    eye = np.eye(n).ravel()
-    t_eye = t.as_vector().mapped(eye[:, None])  # t I, row-major entries
+    eye = np.eye(n).ravel()  # matrices as their row-major entries
     prog.add_psd_constraint(P - epsilon * eye, n)
     prog.add_psd_constraint(eye - P, n)
     for A in As:  # -(A'P + PA) - t I >= 0, with vec(A'P) = (A' kron I) vec(P), vec(PA) = (I kron A') vec(P)
         lyapunov = np.kron(A.T, np.eye(n)) + np.kron(np.eye(n), A.T)
-        prog.add_psd_constraint(-P.mapped(lyapunov) - t_eye, n)
+        prog.add_psd_constraint(-P.mapped(lyapunov) - t * eye, n)
     prog.solve(maximize=t, solver=solver)
     if t.value < epsilon:
         raise InfeasibleError(f"no common quadratic Lyapunov function: the best margin is "

@@ -131,8 +131,12 @@ class AffineExpression:
         return (-self) + other
 
     def __mul__(self, number):
+        """By a number, or a scalar expression by a vector of numbers (a vector expression)."""
         if isinstance(number, AffineExpression):
             raise ValueError("the product of two decision expressions is not affine")
+        if np.ndim(number) == 1 and self.scalar:
+            column = np.asarray(number, float)[:, None]
+            return AffineExpression(self.space, scipy.sparse.csr_matrix(column) @ self.A, column[:, 0] * self.b[0])
         k = float(number)
         return AffineExpression(self.space, k * self.A, k * self.b, self.scalar)
 
