@@ -6,16 +6,24 @@ from __future__ import annotations
 import pathlib
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..multibody import RigidBodySystem
 
 URDF_DIR = pathlib.Path(__file__).parent / "urdf"
 
 
-def _planar_inertia(I):
+def _planar_inertia(xp, I):
     """A rotational inertia I about the y axis (the axis of the planar joints)."""
-    return jnp.diag(jnp.stack([I, I, 0.0 * I]))
+    return xp.diag(xp.stack([I, I, 0.0 * I]))
+
+
+def _numbers_module(*values):
+    """numpy for plain numbers (building a model compiles nothing), jax.numpy when a parameter
+    is a JAX array or tracer (models built under jit / vmap / grad)."""
+    return jnp if any(isinstance(v, jax.Array) for v in values) else np
 
 
 def Acrobot(m1=1.0, m2=1.0, l1=1.0, l2=2.0, lc1=0.5, lc2=1.0, Ic1=0.083, Ic2=0.33, b1=0.1, b2=0.1,
@@ -24,16 +32,17 @@ def Acrobot(m1=1.0, m2=1.0, l1=1.0, l2=2.0, lc1=0.5, lc2=1.0, Ic1=0.083, Ic2=0.3
     hanging from a passive shoulder, the elbow actuated. State $[q_1, q_2, \dot q_1, \dot q_2]$,
     angles from hanging straight down, $q_2$ relative to the upper link; `Ic1`, `Ic2` are the
     moments of inertia about the centres of mass. `l2` places the hand frame."""
+    xp = _numbers_module(m1, m2, l1, l2, lc1, lc2, Ic1, Ic2, b1, b2, g)
     plant = RigidBodySystem.from_urdf(URDF_DIR / "acrobot.urdf")
     tree = plant.tree
+    values = (xp.stack([m1, m2]) * 1.0,
+              xp.array([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]]) * xp.stack([lc1, lc2])[:, None],
+              xp.stack([_planar_inertia(xp, Ic1), _planar_inertia(xp, Ic2)]),
+              xp.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0]]) * l1,
+              xp.stack([b1, b2]) * 1.0, xp.array([0.0, 0.0, -1.0]) * g,
+              _hand_frame(xp, tree, "hand", l2))
     tree = eqx.tree_at(lambda t: (t.mass, t.com, t.inertia, t.origin_translation, t.damping, t.gravity,
-                                  t.frame_translation),
-                       tree, (jnp.stack([m1, m2]) * 1.0,
-                              jnp.array([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]]) * jnp.stack([lc1, lc2])[:, None],
-                              jnp.stack([_planar_inertia(Ic1), _planar_inertia(Ic2)]),
-                              jnp.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0]]) * l1,
-                              jnp.stack([b1, b2]) * 1.0, jnp.array([0.0, 0.0, -1.0]) * g,
-                              _hand_frame(tree, "hand", l2)))
+                                  t.frame_translation), tree, tuple(map(jnp.asarray, values)))
     return eqx.tree_at(lambda p: p.tree, plant, tree)
 
 
@@ -42,11 +51,13 @@ def CartPole(mc=10.0, mp=1.0, l=0.5, g=9.81) -> RigidBodySystem:
     of mass `mc` pushed along x, a pole with a point mass `mp` at distance `l`, theta from
     hanging straight down. State $[x, \theta, \dot x, \dot\theta]$, input the force on the cart
     (unlimited, as in the notes: the URDF's effort limit is not applied)."""
+    xp = _numbers_module(mc, mp, l, g)
     plant = RigidBodySystem.from_urdf(URDF_DIR / "cartpole.urdf", effort_limits=False)
     tree = plant.tree
+    values = (xp.stack([mc, mp]) * 1.0, xp.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0]]) * l,
+              xp.array([0.0, 0.0, -1.0]) * g, _hand_frame(xp, tree, "pole_tip", l))
     tree = eqx.tree_at(lambda t: (t.mass, t.com, t.gravity, t.frame_translation), tree,
-                       (jnp.stack([mc, mp]) * 1.0, jnp.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0]]) * l,
-                        jnp.array([0.0, 0.0, -1.0]) * g, _hand_frame(tree, "pole_tip", l)))
+                       tuple(map(jnp.asarray, values)))
     return eqx.tree_at(lambda p: p.tree, plant, tree)
 
 
@@ -56,8 +67,12 @@ def DoublePendulum() -> RigidBodySystem:
     return RigidBodySystem.from_urdf(URDF_DIR / "double_pendulum.urdf")
 
 
-def _hand_frame(tree, name, length):
+def _hand_frame(xp, tree, name, length):
     k = tree.frame_names.index(name)
+    if xp is np:
+        frames = np.array(tree.frame_translation)
+        frames[k] = np.array([0.0, 0.0, -1.0]) * length
+        return frames
     return tree.frame_translation.at[k].set(jnp.array([0.0, 0.0, -1.0]) * length)
 
 

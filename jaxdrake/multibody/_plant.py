@@ -329,16 +329,17 @@ def _limit_gains(tree, limited, period):
     configuration) for the limited joints, 0 for the others."""
     if not period > 0:
         raise ValueError(f"limit_period must be a positive time in seconds, got {period}")
-    if not limited:
-        return jnp.zeros(tree.nv), jnp.zeros(tree.nv)
-    iv = np.array([v for _, v in limited])
-    try:
-        inertia = jnp.asarray(_neutral_joint_inertias(tree))[iv]
-    except jax.errors.TracerArrayConversionError:  # traced leaves: the same number, traced
-        inertia = jnp.diagonal(alg.mass_matrix(tree, tree.neutral_configuration()))[iv]
     omega = 2 * np.pi / period
-    zeros = jnp.zeros(tree.nv, inertia.dtype)
-    return zeros.at[iv].set(inertia * omega ** 2), zeros.at[iv].set(2 * inertia * omega)
+    iv = np.array([v for _, v in limited], int)
+    try:  # on the host (nothing to compile) ...
+        inertia = np.asarray(_neutral_joint_inertias(tree))[iv] if limited else np.zeros(0)
+        stiffness, damping = np.zeros(tree.nv), np.zeros(tree.nv)
+        stiffness[iv], damping[iv] = inertia * omega ** 2, 2 * inertia * omega
+        return jnp.asarray(stiffness), jnp.asarray(damping)
+    except jax.errors.TracerArrayConversionError:  # ... or, for traced leaves, the same numbers traced
+        inertia = jnp.diagonal(alg.mass_matrix(tree, tree.neutral_configuration()))[iv]
+        zeros = jnp.zeros(tree.nv, inertia.dtype)
+        return zeros.at[iv].set(inertia * omega ** 2), zeros.at[iv].set(2 * inertia * omega)
 
 
 def _neutral_joint_inertias(tree):

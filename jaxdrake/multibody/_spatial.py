@@ -11,7 +11,9 @@ leading axes.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 def skew(w):
@@ -23,9 +25,11 @@ def skew(w):
 
 
 def rpy(r, p, y):
-    """URDF's fixed-axis roll-pitch-yaw: R = Rz(yaw) Ry(pitch) Rx(roll)."""
-    cr, sr, cp, sp, cy, sy = jnp.cos(r), jnp.sin(r), jnp.cos(p), jnp.sin(p), jnp.cos(y), jnp.sin(y)
-    return jnp.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+    """URDF's fixed-axis roll-pitch-yaw: R = Rz(yaw) Ry(pitch) Rx(roll) (numpy for numbers, as
+    when a URDF is read: no JAX program to compile; jax.numpy for arrays and tracers)."""
+    xp = jnp if any(isinstance(a, jax.Array) for a in (r, p, y)) else np
+    cr, sr, cp, sp, cy, sy = xp.cos(r), xp.sin(r), xp.cos(p), xp.sin(p), xp.cos(y), xp.sin(y)
+    return xp.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
                       [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
                       [-sp, cp * sr, cp * cr]])
 

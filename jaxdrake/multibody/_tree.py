@@ -441,21 +441,21 @@ def _build_tree(robot_name, root, links, joints, floating_base, gravity, path):
     _check_every_joint_moves_mass(bodies, path)
     for name, (body, R, p) in link_body.items():
         frames.append((name, body, R, p))
-    arr = lambda key: jnp.asarray(np.array([b[key] for b in bodies], float))
+    floats = lambda values: jnp.asarray(np.asarray(values, float))  # converted on the host: nothing to compile
+    arr = lambda key: floats([b[key] for b in bodies])
     dofs = lambda b: 1 if b["type"] != "floating" else 6
-    per_dof = lambda key: jnp.asarray(np.concatenate([[b[key]] * dofs(b) for b in bodies]), float)
-    per_q = lambda key: jnp.asarray(np.concatenate([[b[key]] * (1 if b["type"] != "floating" else 7)
-                                                    for b in bodies]), float)
+    per_dof = lambda key: floats(np.concatenate([[b[key]] * dofs(b) for b in bodies]))
+    per_q = lambda key: floats(np.concatenate([[b[key]] * (1 if b["type"] != "floating" else 7) for b in bodies]))
     return KinematicTree(
         robot_name=robot_name, body_names=tuple(b["link"] for b in bodies), joint_names=tuple(b["joint"] for b in bodies),
         joint_types=tuple(b["type"] for b in bodies), parents=tuple(b["parent"] for b in bodies),
         frame_names=tuple(f[0] for f in frames), frame_bodies=tuple(f[1] for f in frames),
         axes=arr("axis"), origin_rotation=arr("R"), origin_translation=arr("p"),
-        mass=jnp.asarray([b["inertial"][0] for b in bodies], float),
-        com=jnp.asarray(np.array([b["inertial"][1] for b in bodies]), float),
-        inertia=jnp.asarray(np.array([b["inertial"][2] for b in bodies]), float),
-        frame_rotation=jnp.asarray(np.array([f[2] for f in frames]), float),
-        frame_translation=jnp.asarray(np.array([f[3] for f in frames]), float),
+        mass=floats([b["inertial"][0] for b in bodies]),
+        com=floats([b["inertial"][1] for b in bodies]),
+        inertia=floats([b["inertial"][2] for b in bodies]),
+        frame_rotation=floats([f[2] for f in frames]),
+        frame_translation=floats([f[3] for f in frames]),
         damping=per_dof("damping"), friction=per_dof("friction"),
         position_lower=per_q("lower"), position_upper=per_q("upper"), effort_limit=per_dof("effort"),
         gravity=jnp.asarray(gravity, float))

@@ -28,7 +28,7 @@ class Term:
     term's values are summed; a constraint term's are bounded by `lower`/`upper` (each
     (K, r)). A constraint term may bring its own derivatives, exploiting its structure:
     `jacobian(v, k) -> (r, L)` and `hessian(v, k, lam) -> (L, L)` (of lam . fn); by default
-    autodiff of `fn`."""
+    autodiff of `fn`. `size`: r when known (else found by tracing `fn`)."""
 
     name: str
     fn: Callable
@@ -37,6 +37,7 @@ class Term:
     upper: np.ndarray | None = None
     jacobian: Callable | None = None
     hessian: Callable | None = None
+    size: int | None = None
 
 
 def _triplets(rows, cols):
@@ -71,6 +72,8 @@ class NonlinearProgram:
 
     @staticmethod
     def _output_size(term: Term) -> int:
+        if term.size is not None:
+            return term.size
         v = jax.ShapeDtypeStruct((term.idx.shape[1],), jnp.float64)
         out = jax.eval_shape(term.fn, v, jax.ShapeDtypeStruct((), jnp.int32))
         if out.ndim != 1:

@@ -401,7 +401,7 @@ class _TrajectoryProgram:
     def _add_dynamics(self):
         term = self._segment_term(f"{self.method} defects", self._defect,
                                   np.zeros(self.num_states), np.zeros(self.num_states))
-        self._dynamics_term = dataclasses.replace(term, **self._defect_derivatives())
+        self._dynamics_term = dataclasses.replace(term, size=self.num_states, **self._defect_derivatives())
         self._constraints.append(self._dynamics_term)
 
     def _defect_derivatives(self) -> dict:
