@@ -112,8 +112,12 @@ def _over_depths(step, init, depths, *, reverse=False):
 
 def _to_slots(L, x, fill):
     """Per one-dof body (level order) -> padded per depth and slot (depths, width, ...)."""
-    return jnp.concatenate([x, jnp.broadcast_to(fill, (1,) + x.shape[1:]).astype(x.dtype)])[
-        L.slots - L.first_scanned]
+    return _with_fill(x, fill)[L.slots - L.first_scanned]
+
+
+def _with_fill(x, fill):
+    """x (k, ...) with one more row, `fill`: the value an empty slot reads."""
+    return jnp.concatenate([x, jnp.broadcast_to(fill, (1,) + x.shape[1:]).astype(x.dtype)])
 
 
 def _from_slots(L, x):
@@ -285,11 +289,20 @@ def aba(tree: KinematicTree, q, v, tau, *, gravity: bool = True):
     p_A = force_cross(V, _apply_inertia(inertia, V))
     tau_level = tau[L.level_dofs]
 
+    dtype, zero6 = q.dtype, jnp.zeros(6, q.dtype)
+    unit = jnp.zeros(6, dtype).at[0].set(1.0)  # empty slots: an identity inertia along e_1, D = 1
+    # per one-dof body, with one padding row for empty slots; each depth gathers its rows inside
+    # the loop (stacking them per depth beforehand was a transposing copy of every inertia:
+    # 45% of the time on a GPU)
+    I_A1, p_A1, S1p, c1, tau1 = (_with_fill(x, fill) for x, fill in (
+        (I_A[f:], jnp.eye(6, dtype=dtype)), (p_A[f:], zero6), (S1, unit), (c[f:], zero6),
+        (tau_level[6 * f:], jnp.zeros((), dtype))))
+
     def backward(passed, depth):
         """One depth, deepest first: the articulated inertia and bias of its bodies (their
         own plus what their children passed up), and what they pass to their parents."""
-        (Ia_in, pa_in), (IA, pA, s, c, t, parent, valid) = passed, depth
-        IA, pA = IA + Ia_in, pA + pa_in
+        (Ia_in, pa_in), (rows, parent, valid) = passed, depth
+        IA, pA, s, c, t = I_A1[rows] + Ia_in, p_A1[rows] + pa_in, S1p[rows], c1[rows], tau1[rows]
         U = _mv(IA, s)
         D_inv = 1.0 / _dot(s, U)
         u = t - _dot(s, pA)
@@ -299,12 +312,7 @@ def aba(tree: KinematicTree, q, v, tau, *, gravity: bool = True):
         up = (_to_parents(L, parent, Ia * valid[:, None, None]), _to_parents(L, parent, pa * valid[:, None]))
         return up, (U, D_inv, u)
 
-    slots = lambda x, fill: _to_slots(L, x[f:], fill)
-    dtype, zero6 = q.dtype, jnp.zeros(6, q.dtype)
-    unit = jnp.zeros(6, dtype).at[0].set(1.0)  # empty slots: an identity inertia along e_1, D = 1
-    depths = (slots(I_A, jnp.eye(6, dtype=dtype)), slots(p_A, zero6), _to_slots(L, S1, unit),
-              slots(c, zero6), _to_slots(L, tau_level[6 * f:], jnp.zeros((), dtype)),
-              L.parent_of_slot, L.valid)
+    depths = (jnp.asarray(L.slots - L.first_scanned), L.parent_of_slot, L.valid)
     init = (jnp.zeros((L.width, 6, 6), dtype), jnp.zeros((L.width, 6), dtype))
     (Ia_root, pa_root), (U, D_inv, u) = _over_depths(backward, init, depths, reverse=True)
 
@@ -317,13 +325,13 @@ def aba(tree: KinematicTree, q, v, tau, *, gravity: bool = True):
 
     def forward(A_above, depth):
         """One depth, root first: joint accelerations and body accelerations."""
-        c, U, D_inv, u, s, parent = depth
-        A = _from_parents(L, parent, A_above) + c
+        rows, U, D_inv, u, parent = depth
+        A = _from_parents(L, parent, A_above) + c1[rows]
         qdd = D_inv * (u - _dot(U, A))
-        return A + s * qdd[:, None], qdd
+        return A + S1p[rows] * qdd[:, None], qdd
 
     _, qdd = _over_depths(forward, jnp.broadcast_to(A_root, (L.width, 6)),
-                          (depths[3], U, D_inv, u, depths[2], L.parent_of_slot))
+                          (depths[0], U, D_inv, u, L.parent_of_slot))
     qdd = _from_slots(L, qdd)
     if f:
         qdd = jnp.concatenate([qdd_root, qdd])
