@@ -355,7 +355,7 @@ def search_region_of_attraction(system: System, x0, degree: int = 4, *, S=None, 
         bar.close()
     # certify the final V on its own (fresh multiplier), as `region_of_attraction` does
     rho, _, result = _largest_level(V, f, solver)
-    check = result.check(100_000, scale=float(np.sqrt(max(history[-1], 1e-9) / np.linalg.eigvalsh(S).min())))
+    check = result.check(scale=float(np.sqrt(max(history[-1], 1e-9) / np.linalg.eigvalsh(S).min())))
     if rho < 1 - 1e-6 or not check.ok:
         raise SolveError(f"the final V is not certified at level 1 (rho = {rho:.6g}, "
                          f"{check.num_violations} sampled violations)", result.status, result.solver)
