@@ -151,3 +151,23 @@ def test_float32_polynomial_system_and_conversion_run():
         xdot = poly.dynamics(0.0, jnp.array([0.1, 0.995, 0.3], jnp.float32), jnp.zeros(1, jnp.float32))
         assert xdot.dtype == jnp.float32
         np.testing.assert_allclose(xdot[2], -19.62 * 0.1 - 0.4 * 0.3, rtol=1e-5)
+
+
+def test_affine_expressions_evaluate_like_the_numbers_they_stand_for():
+    """Arithmetic on decision expressions (scalars broadcast against vectors, numbers on either
+    side, indexing, matrix maps) gives, at any value of the decision vector, what the same
+    arithmetic gives on the numbers."""
+    from jaxdrake.systems._affine import DecisionSpace
+
+    space = DecisionSpace()
+    t, x = space.new(), space.new(3)
+    y = RNG.normal(size=4)
+    space.solution = y
+    tv, xv = y[0], y[1:]
+    M = RNG.normal(size=(2, 3))
+    cases = [(t + x, tv + xv), (x + t, xv + tv), (t + np.array([1.0, 2.0]), tv + np.array([1.0, 2.0])),
+             (np.array([1.0, 2.0]) - t, np.array([1.0, 2.0]) - tv), (t * np.array([1.0, 2.0]), tv * np.array([1.0, 2.0])),
+             (x[1] - 2.0 * t, xv[1] - 2 * tv), ((x - 1.0).sum(), (xv - 1).sum()), (M @ x, M @ xv), (x / 4.0, xv / 4)]
+    for expression, number in cases:
+        assert expression.shape == np.shape(number)
+        np.testing.assert_allclose(expression.value, number, rtol=1e-14)

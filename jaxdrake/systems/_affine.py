@@ -102,17 +102,23 @@ class AffineExpression:
             (A, b), (A2, b2) = self.rows(size), other.rows(size)
             if A.shape[0] != A2.shape[0] and 1 not in (A.shape[0], A2.shape[0]):
                 raise ValueError(f"shapes {self.shape} and {other.shape} do not match")
-            if A2.shape[0] != A.shape[0] and A2.shape[0] == 1:  # broadcast a scalar
-                A2, b2 = scipy.sparse.vstack([A2] * A.shape[0]).tocsr(), np.repeat(b2, A.shape[0])
+            rows = max(A.shape[0], A2.shape[0])  # a one-row side (a scalar) is broadcast
+            (A, b), (A2, b2) = ((scipy.sparse.vstack([M] * rows).tocsr(), np.repeat(v, rows)) if M.shape[0] < rows
+                                else (M, v) for M, v in ((A, b), (A2, b2)))
             return A, b, A2, b2
         number = np.asarray(other, float)
-        if number.ndim > 1 or (number.ndim == 1 and number.shape[0] not in (1, self.A.shape[0])):
+        if number.ndim > 1 or (number.ndim == 1 and number.shape[0] not in (1, self.A.shape[0])
+                               and not self.scalar):
             raise ValueError(f"cannot combine a decision expression of shape {self.shape} with "
                              f"numbers of shape {number.shape}")
+        if self.scalar and number.ndim == 1:  # a scalar expression plus a vector of numbers
+            rows = number.shape[0]
+            return scipy.sparse.vstack([self.A] * rows).tocsr(), np.repeat(self.b, rows), None, number
         return self.A, self.b, None, np.broadcast_to(number, self.b.shape)
 
     def _new(self, A, b, other=None):
-        scalar = self.scalar and (not isinstance(other, AffineExpression) or other.scalar)
+        """The result of combining with `other`: a scalar only if both sides are."""
+        scalar = self.scalar and (other.scalar if isinstance(other, AffineExpression) else np.ndim(other) == 0)
         return AffineExpression(self.space, A, b, scalar)
 
     def __add__(self, other):
