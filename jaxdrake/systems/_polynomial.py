@@ -14,7 +14,6 @@ import functools
 import math
 from collections.abc import Sequence
 from itertools import combinations_with_replacement
-from typing import Any
 
 import equinox as eqx
 import jax
@@ -55,7 +54,7 @@ def unique_rows(E: np.ndarray):
         unique, inverse = np.unique(E, axis=0, return_inverse=True)
         return unique, inverse.ravel()
     weights = np.concatenate([np.cumprod(radix[::-1])[::-1][1:], [1]])
-    keys, first, inverse = np.unique(E @ weights, return_index=True, return_inverse=True)
+    _, first, inverse = np.unique(E @ weights, return_index=True, return_inverse=True)
     return E[first], inverse.ravel()
 
 
