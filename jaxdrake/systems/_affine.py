@@ -93,28 +93,31 @@ class AffineExpression:
 
     __rmatmul__ = mapped
 
-    def _other(self, other):
-        """(A, b) of `other` with this expression's row count and the wider column count."""
+    def _aligned(self, other):
+        """(A, b, A2, b2): this expression's rows and `other`'s (A2 None for numbers) over a
+        common set of columns, a one-row side (a scalar) repeated to the other's length."""
         if isinstance(other, AffineExpression):
             if other.space is not self.space:
                 raise ValueError("decision expressions of two different programs cannot be combined")
             size = max(self.A.shape[1], other.A.shape[1])
             (A, b), (A2, b2) = self.rows(size), other.rows(size)
-            if A.shape[0] != A2.shape[0] and 1 not in (A.shape[0], A2.shape[0]):
-                raise ValueError(f"shapes {self.shape} and {other.shape} do not match")
-            rows = max(A.shape[0], A2.shape[0])  # a one-row side (a scalar) is broadcast
-            (A, b), (A2, b2) = ((scipy.sparse.vstack([M] * rows).tocsr(), np.repeat(v, rows)) if M.shape[0] < rows
-                                else (M, v) for M, v in ((A, b), (A2, b2)))
-            return A, b, A2, b2
-        number = np.asarray(other, float)
-        if number.ndim > 1 or (number.ndim == 1 and number.shape[0] not in (1, self.A.shape[0])
-                               and not self.scalar):
-            raise ValueError(f"cannot combine a decision expression of shape {self.shape} with "
-                             f"numbers of shape {number.shape}")
-        if self.scalar and number.ndim == 1:  # a scalar expression plus a vector of numbers
-            rows = number.shape[0]
-            return scipy.sparse.vstack([self.A] * rows).tocsr(), np.repeat(self.b, rows), None, number
-        return self.A, self.b, None, np.broadcast_to(number, self.b.shape)
+            lengths = (A.shape[0], A2.shape[0])
+        else:
+            A, b, A2, b2 = self.A, self.b, None, np.asarray(other, float)
+            if b2.ndim > 1:
+                raise ValueError(f"cannot combine a decision expression of shape {self.shape} with "
+                                 f"numbers of shape {b2.shape}")
+            lengths = (A.shape[0], b2.size)
+        rows = max(lengths)
+        if min(lengths) not in (1, rows):
+            raise ValueError(f"shapes {self.shape} and {np.shape(other)} do not match")
+        if A.shape[0] < rows:
+            A, b = _times_column(A, b, np.ones(rows))
+        if A2 is None:
+            return A, b, None, np.broadcast_to(b2, (rows,))
+        if A2.shape[0] < rows:
+            A2, b2 = _times_column(A2, b2, np.ones(rows))
+        return A, b, A2, b2
 
     def _new(self, A, b, other=None):
         """The result of combining with `other`: a scalar only if both sides are."""
@@ -122,7 +125,7 @@ class AffineExpression:
         return AffineExpression(self.space, A, b, scalar)
 
     def __add__(self, other):
-        A, b, A2, b2 = self._other(other)
+        A, b, A2, b2 = self._aligned(other)
         return self._new(A if A2 is None else A + A2, b + b2, other)
 
     __radd__ = __add__
@@ -141,8 +144,7 @@ class AffineExpression:
         if isinstance(number, AffineExpression):
             raise ValueError("the product of two decision expressions is not affine")
         if np.ndim(number) == 1 and self.scalar:
-            column = np.asarray(number, float)[:, None]
-            return AffineExpression(self.space, scipy.sparse.csr_matrix(column) @ self.A, column[:, 0] * self.b[0])
+            return AffineExpression(self.space, *_times_column(self.A, self.b, np.asarray(number, float)))
         k = float(number)
         return AffineExpression(self.space, k * self.A, k * self.b, self.scalar)
 
@@ -159,8 +161,7 @@ class AffineExpression:
                                 scalar=np.ndim(rows) == 0)
 
     def sum(self) -> AffineExpression:
-        ones = np.ones(self.A.shape[0])
-        return AffineExpression(self.space, scipy.sparse.csr_matrix(ones[None]) @ self.A, [ones @ self.b], True)
+        return self.mapped(np.ones(self.A.shape[0]))
 
     # ----- constraints ---------------------------------------------------------------------------
 
@@ -174,6 +175,11 @@ class AffineExpression:
         return LinearConstraint(self - other, "nonnegative")
 
     __hash__ = None
+
+
+def _times_column(A, b, column):
+    """The one-row (A, b) times the numbers `column`: one row per number."""
+    return scipy.sparse.csr_matrix(column[:, None]) @ A, column * b[0]
 
 
 class LinearConstraint:
