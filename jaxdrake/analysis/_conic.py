@@ -85,15 +85,18 @@ class ConicProgram:
                              f"matrix as one decision expression, got {matrix!r}")
         self.psd_constraints.append((matrix, size))
 
-    def _verify(self, result) -> str | None:
+    def _verify(self, result, tolerance: float) -> str | None:
         """A reason to distrust a solver's optimal answer, or None (subclasses check more)."""
         return None
 
-    def solve(self, minimize=None, maximize=None, solver: str | None = None, verbose: bool = False):
+    def solve(self, minimize=None, maximize=None, solver: str | None = None, verbose: bool = False,
+              tolerance: float = 1e-6):
         """Solve; return a checked result or raise `InfeasibleError` / `SolveError`.
 
         `minimize` / `maximize`: a scalar decision expression (default: feasibility).
-        `solver`: "CLARABEL" or "SCS"; default Clarabel, with SCS tried when it fails."""
+        `solver`: "CLARABEL" or "SCS"; default Clarabel, with SCS tried when it fails.
+        `tolerance`: of the answer's own checks (an `SosProgram`'s coefficient residuals and
+        Gram eigenvalues, relative to their scale)."""
         if minimize is not None and maximize is not None:
             raise ValueError("give minimize or maximize, not both")
         objective = maximize if maximize is not None else minimize
@@ -117,7 +120,7 @@ class ConicProgram:
                 messages.append(f"{name}: status {words}")
                 continue
             self.space.solution = y
-            doubt = self._verify(result)
+            doubt = self._verify(result, tolerance)
             if doubt is None:
                 return result
             messages.append(f"{name}: status {words}, {doubt}")

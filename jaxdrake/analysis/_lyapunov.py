@@ -13,8 +13,8 @@ import numpy as np
 from .._progress import progress_bar
 from ..control import solve_continuous_lyapunov
 from ..systems import Polynomial, PolynomialSystem, System, taylor_polynomial
-from ._conic import ConicProgram
-from ._sos import CertificateCheck, InfeasibleError, SolveError, SosProgram
+from ._conic import ConicProgram, InfeasibleError, SolveError
+from ._sos import CertificateCheck, SosProgram
 
 
 def common_lyapunov_function(As, epsilon: float = 1e-6, solver: str | None = None) -> np.ndarray:

@@ -26,7 +26,7 @@ import scipy.sparse
 from ..systems import Polynomial, monomial_basis
 from ..systems._polynomial import unique_rows
 from ..systems._affine import AffineExpression
-from ._conic import ConicProgram, ConicResult, InfeasibleError, SolveError  # noqa: F401  (re-exported)
+from ._conic import ConicProgram, ConicResult, InfeasibleError
 
 
 def gram_basis(exponents: np.ndarray) -> np.ndarray:
@@ -78,6 +78,54 @@ class CertificateCheck:
         return self.num_violations == 0
 
 
+class SosResult(ConicResult):
+    """A solved `SosProgram`: `status`, `solver`, `solve_time`, `objective`, `value(...)`
+    (numbers, or a numeric `Polynomial` for a decision polynomial), `residuals()`,
+    `check(num_samples)`."""
+
+    def value(self, item):
+        if isinstance(item, Polynomial):
+            if not item.is_decision:
+                return item
+            return Polynomial(item.exponent_array, np.asarray(item.coefficients.value, float), item.variables)
+        return super().value(item)
+
+    def residuals(self) -> tuple[float, float]:
+        """(largest |coefficient of p - m'Qm| relative to p's scale, least Gram eigenvalue
+        relative to the Gram's scale) over all SOS constraints."""
+        worst_residual, worst_eig = 0.0, np.inf
+        for record in self.program.sos_constraints:
+            c = np.asarray(self.value(record.polynomial).coefficients, float)
+            Q = record.gram_value()
+            P, G = record.rows
+            scale = max(1.0, np.abs(c).max(initial=0.0))
+            worst_residual = max(worst_residual, np.abs(P @ c - G @ Q.ravel()).max(initial=0.0) / scale)
+            worst_eig = min(worst_eig, np.linalg.eigvalsh((Q + Q.T) / 2).min() / max(1.0, np.abs(Q).max()))
+        return worst_residual, (0.0 if worst_eig == np.inf else worst_eig)
+
+    def check(self, num_samples: int = 10_000, scale: float = 1.0, tolerance: float = 1e-6,
+              seed: int = 0) -> CertificateCheck:
+        """Evaluate every certified polynomial at `num_samples` Gaussian points (standard
+        deviation `scale`) and count where p < 0 (SOS constraints) or p != 0 (equalities)
+        beyond `tolerance` times the sum of |terms| at that point."""
+        if num_samples <= 0:
+            return CertificateCheck(0, 0, 0.0, tolerance)
+        rng = np.random.default_rng(seed)
+        z = rng.normal(scale=scale, size=(num_samples, self.program.num_variables))
+        worst, violations = 0.0, 0
+        for p, kind in ([(r.polynomial, "sos") for r in self.program.sos_constraints]
+                        + [(e, "eq") for e in self.program.equalities]):
+            p = self.value(p)
+            c = np.asarray(p.coefficients, float)
+            for start in range(0, num_samples, 4096):  # chunks whose monomials stay in cache: 6x faster
+                monomials = np.asarray(p.monomials(z[start:start + 4096]))
+                values, size = monomials @ c, np.abs(monomials) @ np.abs(c) + 1e-300
+                gap = (-values if kind == "sos" else np.abs(values)) / size
+                violations += int(np.sum(gap > tolerance))
+                worst = max(worst, float(gap.max()))
+        return CertificateCheck(num_samples, violations, worst, tolerance)
+
+
 class SosProgram(ConicProgram):
     r"""A sums-of-squares program in `num_variables` indeterminates z.
 
@@ -96,17 +144,14 @@ class SosProgram(ConicProgram):
     `.value` after the solve.
     """
 
+    result_type = SosResult
+
     def __init__(self, num_variables: int, variables=None):
         super().__init__()
         self.z = Polynomial.variables_of(num_variables, variables)
         self.variables = self.z[0].variables
         self.sos_constraints: list[SosConstraint] = []
         self.equalities: list[Polynomial] = []
-        self.tolerance = 1e-6
-
-    @property
-    def result_type(self):
-        return SosResult
 
     @property
     def num_variables(self) -> int:
@@ -159,23 +204,11 @@ class SosProgram(ConicProgram):
             raise ValueError(f"polynomial in {p.num_variables} variables, program has {self.num_variables}")
         return p
 
-    def solve(self, minimize=None, maximize=None, solver: str | None = None, verbose: bool = False,
-              tolerance: float = 1e-6) -> SosResult:
-        """Solve the SDP; return a checked `SosResult` or raise `InfeasibleError` / `SolveError`.
-
-        `minimize` / `maximize`: a scalar decision expression. `solver`: "CLARABEL" or "SCS"
-        (default Clarabel, SCS when it fails). `tolerance`: the largest accepted coefficient
-        residual and Gram eigenvalue violation, relative to the coefficients' scale.
-        """
-        self.tolerance = tolerance
-        return super().solve(minimize, maximize, solver, verbose)
-
-    def _verify(self, result) -> str | None:
+    def _verify(self, result, tolerance: float) -> str | None:
         residual, eig = result.residuals()
-        if residual <= self.tolerance and eig >= -self.tolerance:
+        if residual <= tolerance and eig >= -tolerance:
             return None
-        return (f"coefficient residual {residual:.2e}, least Gram eigenvalue {eig:.2e} "
-                f"(tolerance {self.tolerance:.0e})")
+        return f"coefficient residual {residual:.2e}, least Gram eigenvalue {eig:.2e} (tolerance {tolerance:.0e})"
 
 
 def _identity_rows(E, basis):
@@ -190,51 +223,3 @@ def _identity_rows(E, basis):
     G = scipy.sparse.csr_matrix((np.ones(N * N), (inverse[len(E):], np.arange(N * N))),
                                 shape=(len(unique), N * N))
     return P, G
-
-
-class SosResult(ConicResult):
-    """A solved `SosProgram`: `status`, `solver`, `solve_time`, `objective`, `value(...)`
-    (numbers, or a numeric `Polynomial` for a decision polynomial), `residuals()`,
-    `check(num_samples)`."""
-
-    def value(self, item):
-        if isinstance(item, Polynomial):
-            if not item.is_decision:
-                return item
-            return Polynomial(item.exponent_array, np.asarray(item.coefficients.value, float), item.variables)
-        return super().value(item)
-
-    def residuals(self) -> tuple[float, float]:
-        """(largest |coefficient of p - m'Qm| relative to p's scale, least Gram eigenvalue
-        relative to the Gram's scale) over all SOS constraints."""
-        worst_residual, worst_eig = 0.0, np.inf
-        for record in self.program.sos_constraints:
-            c = np.asarray(self.value(record.polynomial).coefficients, float)
-            Q = record.gram_value()
-            P, G = record.rows
-            scale = max(1.0, np.abs(c).max(initial=0.0))
-            worst_residual = max(worst_residual, np.abs(P @ c - G @ Q.ravel()).max(initial=0.0) / scale)
-            worst_eig = min(worst_eig, np.linalg.eigvalsh((Q + Q.T) / 2).min() / max(1.0, np.abs(Q).max()))
-        return worst_residual, (0.0 if worst_eig == np.inf else worst_eig)
-
-    def check(self, num_samples: int = 10_000, scale: float = 1.0, tolerance: float = 1e-6,
-              seed: int = 0) -> CertificateCheck:
-        """Evaluate every certified polynomial at `num_samples` Gaussian points (standard
-        deviation `scale`) and count where p < 0 (SOS constraints) or p != 0 (equalities)
-        beyond `tolerance` times the sum of |terms| at that point."""
-        if num_samples <= 0:
-            return CertificateCheck(0, 0, 0.0, tolerance)
-        rng = np.random.default_rng(seed)
-        z = rng.normal(scale=scale, size=(num_samples, self.program.num_variables))
-        worst, violations = 0.0, 0
-        for p, kind in ([(r.polynomial, "sos") for r in self.program.sos_constraints]
-                        + [(e, "eq") for e in self.program.equalities]):
-            p = self.value(p)
-            c = np.asarray(p.coefficients, float)
-            for start in range(0, num_samples, 4096):  # chunks whose monomials stay in cache: 6x faster
-                monomials = np.asarray(p.monomials(z[start:start + 4096]))
-                values, size = monomials @ c, np.abs(monomials) @ np.abs(c) + 1e-300
-                gap = (-values if kind == "sos" else np.abs(values)) / size
-                violations += int(np.sum(gap > tolerance))
-                worst = max(worst, float(gap.max()))
-        return CertificateCheck(num_samples, violations, worst, tolerance)
