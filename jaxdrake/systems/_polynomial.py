@@ -260,15 +260,14 @@ class Polynomial:
         other = self._lift(other)
         unique, inverse = _sum_structure(self.exponents, other.exponents, self.num_variables)
         a, b = self.coefficients, other.coefficients
-        if not (is_decision(a) or is_decision(b)):
+        if not (is_decision(a) or is_decision(b)):  # numbers: a common value shape
             xp = _xp(a, b)
             shape = np.broadcast_shapes(a.shape[1:], b.shape[1:])
-            a = xp.broadcast_to(a, a.shape[:1] + shape)
-            b = xp.broadcast_to(b, b.shape[:1] + shape)
-            both = xp.concatenate([a, b])
-            return Polynomial._build(unique, _combine(both, np.arange(len(both)), None, inverse, len(unique)),
-                                     self.variables, unique=True)
-        return _from_parts(self, unique, inverse, [(a, 0), (b, a.shape[0])])
+            a, b = xp.broadcast_to(a, a.shape[:1] + shape), xp.broadcast_to(b, b.shape[:1] + shape)
+        m = a.shape[0]
+        total = (_combine(a, np.arange(m), None, inverse[:m], len(unique))
+                 + _combine(b, np.arange(b.shape[0]), None, inverse[m:], len(unique)))
+        return Polynomial._build(unique, total, self.variables, unique=True)
 
     __radd__ = __add__
 
@@ -383,24 +382,17 @@ class Polynomial:
             for factor in factors[1:]:
                 term = term * factor
             columns.append(term)
-        E = np.concatenate([t.exponent_array for t in columns])
-        unique, inverse = unique_rows(E)
-        offsets = np.cumsum([0] + [t.num_monomials for t in columns])
-        if self.is_decision:
-            weights = np.concatenate([_concrete(t.coefficients, "substitute") for t in columns])
-            cols = np.repeat(np.arange(len(columns)), np.diff(offsets))
-            M = _sparse(inverse, cols, weights, (len(unique), len(columns)))
-            return Polynomial._build(unique, self.coefficients.mapped(M), w.variables)
+        unique, inverse = unique_rows(np.concatenate([t.exponent_array for t in columns]))
+        cols = np.repeat(np.arange(len(columns)), [t.num_monomials for t in columns])
         weights = [t.coefficients for t in columns]
-        xp = _xp(self.coefficients, *weights)
-        cols = np.repeat(np.arange(len(columns)), np.diff(offsets))
-        if xp is np:
-            M = _sparse(inverse, cols, np.concatenate(weights), (len(unique), len(columns)))
-            c = self.coefficients
-            return Polynomial._build(unique, (M @ c.reshape(len(c), -1)).reshape((len(unique),) + c.shape[1:]),
-                              w.variables)
+        c = self.coefficients
+        if self.is_decision or _xp(c, *weights) is np:  # new coefficients = M c, M sparse
+            M = _sparse(inverse, cols, np.concatenate([_concrete(t, "substitute") for t in weights]),
+                        (len(unique), len(columns)))
+            new = c.mapped(M) if self.is_decision else (M @ c.reshape(len(c), -1)).reshape((len(unique),) + c.shape[1:])
+            return Polynomial._build(unique, new, w.variables, unique=True)
         M = jnp.zeros((len(unique), len(columns))).at[inverse, cols].add(jnp.concatenate(weights))
-        return Polynomial._build(unique, jnp.tensordot(M, self.coefficients, axes=1), w.variables)
+        return Polynomial._build(unique, jnp.tensordot(M, c, axes=1), w.variables, unique=True)
 
     # ----- display ---------------------------------------------------------------------------
 
@@ -431,17 +423,6 @@ def _combine(c, src, weights, dest, num):
     out = np.zeros((num,) + c.shape[1:])
     np.add.at(out, np.asarray(dest, int), rows)
     return out
-
-
-def _from_parts(p, unique, inverse, parts):
-    """The polynomial with monomials `unique` whose coefficients sum `parts` (decision or
-    numeric, stacked in order) into the rows `inverse` says."""
-    total = 0
-    for c, start in parts:
-        m = c.shape[0]
-        M = _sparse(inverse[start:start + m], np.arange(m), np.ones(m), (len(unique), m))
-        total = total + (c.mapped(M) if is_decision(c) else M @ _concrete(c, "a sum"))
-    return Polynomial._build(unique, total, p.variables, unique=True)
 
 
 @functools.lru_cache(maxsize=4096)
