@@ -6,10 +6,10 @@ from __future__ import annotations
 import pathlib
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._numbers import array_module
 from ..multibody import RigidBodySystem
 
 URDF_DIR = pathlib.Path(__file__).parent / "urdf"
@@ -20,19 +20,13 @@ def _planar_inertia(xp, I):
     return xp.diag(xp.stack([I, I, 0.0 * I]))
 
 
-def _numbers_module(*values):
-    """numpy for plain numbers (building a model compiles nothing), jax.numpy when a parameter
-    is a JAX array or tracer (models built under jit / vmap / grad)."""
-    return jnp if any(isinstance(v, jax.Array) for v in values) else np
-
-
 def Acrobot(m1=1.0, m2=1.0, l1=1.0, l2=2.0, lc1=0.5, lc2=1.0, Ic1=0.083, Ic2=0.33, b1=0.1, b2=0.1,
             g=9.81) -> RigidBodySystem:
     r"""The acrobot (Underactuated ch. 3) from `acrobot.urdf`, with Drake's defaults: two links
     hanging from a passive shoulder, the elbow actuated. State $[q_1, q_2, \dot q_1, \dot q_2]$,
     angles from hanging straight down, $q_2$ relative to the upper link; `Ic1`, `Ic2` are the
     moments of inertia about the centres of mass. `l2` places the hand frame."""
-    xp = _numbers_module(m1, m2, l1, l2, lc1, lc2, Ic1, Ic2, b1, b2, g)
+    xp = array_module(m1, m2, l1, l2, lc1, lc2, Ic1, Ic2, b1, b2, g)
     plant = RigidBodySystem.from_urdf(URDF_DIR / "acrobot.urdf")
     tree = plant.tree
     values = (xp.stack([m1, m2]) * 1.0,
@@ -51,7 +45,7 @@ def CartPole(mc=10.0, mp=1.0, l=0.5, g=9.81) -> RigidBodySystem:
     of mass `mc` pushed along x, a pole with a point mass `mp` at distance `l`, theta from
     hanging straight down. State $[x, \theta, \dot x, \dot\theta]$, input the force on the cart
     (unlimited, as in the notes: the URDF's effort limit is not applied)."""
-    xp = _numbers_module(mc, mp, l, g)
+    xp = array_module(mc, mp, l, g)
     plant = RigidBodySystem.from_urdf(URDF_DIR / "cartpole.urdf", effort_limits=False)
     tree = plant.tree
     values = (xp.stack([mc, mp]) * 1.0, xp.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0]]) * l,

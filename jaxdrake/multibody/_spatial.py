@@ -11,9 +11,9 @@ leading axes.
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
-import numpy as np
+
+from .._numbers import array_module
 
 
 def skew(w):
@@ -27,7 +27,7 @@ def skew(w):
 def rpy(r, p, y):
     """URDF's fixed-axis roll-pitch-yaw: R = Rz(yaw) Ry(pitch) Rx(roll) (numpy for numbers, as
     when a URDF is read: no JAX program to compile; jax.numpy for arrays and tracers)."""
-    xp = jnp if any(isinstance(a, jax.Array) for a in (r, p, y)) else np
+    xp = array_module(r, p, y)
     cr, sr, cp, sp, cy, sy = xp.cos(r), xp.sin(r), xp.cos(p), xp.sin(p), xp.cos(y), xp.sin(y)
     return xp.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
                       [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],

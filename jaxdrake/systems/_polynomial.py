@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._numbers import array_module
 from ._affine import AffineExpression
 from ._frame import Frame
 from ._system import System
@@ -28,12 +29,6 @@ from ._system import System
 def is_decision(c) -> bool:
     """Whether `c` is an affine expression of decision variables, not a number."""
     return isinstance(c, AffineExpression)
-
-
-def _xp(*arrays):
-    """numpy for concrete numbers (fast, no compilation), jax.numpy once a JAX array or tracer
-    is involved (under jit / grad, a polynomial's coefficients are traced)."""
-    return jnp if any(isinstance(a, jax.Array) for a in arrays) else np
 
 
 def _numeric(c):
@@ -223,7 +218,7 @@ class Polynomial:
 
     def monomials(self, z):
         """The monomial values $z^{\\alpha_k}$, shape (..., m), by products of powers."""
-        xp = _xp(z)
+        xp = array_module(z)
         z = xp.asarray(z, dtype=float) if xp is np else z
         E = self.exponent_array
         if z.shape[-1:] != (self.num_variables,):
@@ -243,7 +238,7 @@ class Polynomial:
     def __call__(self, z):
         if self.is_decision:
             return self.coefficients.mapped(self.monomials(np.asarray(z, float)))
-        xp = _xp(z, self.coefficients)
+        xp = array_module(z, self.coefficients)
         return xp.tensordot(self.monomials(z), self.coefficients, axes=1)
 
     # ----- arithmetic -----------------------------------------------------------------------
@@ -261,7 +256,7 @@ class Polynomial:
         unique, inverse = _sum_structure(self.exponents, other.exponents, self.num_variables)
         a, b = self.coefficients, other.coefficients
         if not (is_decision(a) or is_decision(b)):  # numbers: a common value shape
-            xp = _xp(a, b)
+            xp = array_module(a, b)
             shape = np.broadcast_shapes(a.shape[1:], b.shape[1:])
             a, b = xp.broadcast_to(a, a.shape[:1] + shape), xp.broadcast_to(b, b.shape[:1] + shape)
         m = a.shape[0]
@@ -386,7 +381,7 @@ class Polynomial:
         cols = np.repeat(np.arange(len(columns)), [t.num_monomials for t in columns])
         weights = [t.coefficients for t in columns]
         c = self.coefficients
-        if self.is_decision or _xp(c, *weights) is np:  # new coefficients = M c, M sparse
+        if self.is_decision or array_module(c, *weights) is np:  # new coefficients = M c, M sparse
             M = _sparse(inverse, cols, np.concatenate([_concrete(t, "substitute") for t in weights]),
                         (len(unique), len(columns)))
             new = c.mapped(M) if self.is_decision else (M @ c.reshape(len(c), -1)).reshape((len(unique),) + c.shape[1:])
@@ -418,7 +413,7 @@ def _combine(c, src, weights, dest, num):
     rows = c[src]
     if weights is not None:
         rows = rows * np.asarray(weights).reshape((-1,) + (1,) * (c.ndim - 1))
-    if _xp(c) is jnp:
+    if array_module(c) is jnp:
         return jax.ops.segment_sum(rows, jnp.asarray(dest, int), num_segments=num)
     out = np.zeros((num,) + c.shape[1:])
     np.add.at(out, np.asarray(dest, int), rows)
@@ -469,7 +464,7 @@ def taylor_polynomial(fn, x0, degree: int, variables: Sequence[str] | None = Non
         index = tuple(np.repeat(np.arange(n), alpha))
         scale = float(np.prod([math.factorial(int(a)) for a in alpha]))
         coefficients.append(tensors[len(index)][(Ellipsis,) + index] / scale)
-    centered = Polynomial(E, _xp(*coefficients).stack(coefficients), variables)
+    centered = Polynomial(E, array_module(*coefficients).stack(coefficients), variables)
     shift = [v - c for v, c in zip(Polynomial.variables_of(n, centered.variables), x0)]
     return centered.substitute(shift)
 
@@ -598,7 +593,7 @@ def _stack(parts: Sequence[Polynomial]) -> Polynomial:
     sizes = [p.shape[0] for p in parts]
     total, start = None, 0
     for p, k in zip(parts, sizes):
-        c = _xp(p.coefficients).pad(p.coefficients, ((0, 0), (start, sum(sizes) - start - k)))
+        c = array_module(p.coefficients).pad(p.coefficients, ((0, 0), (start, sum(sizes) - start - k)))
         term = Polynomial(p.exponent_array, c, p.variables)
         total, start = (term if total is None else total + term), start + k
     return total
@@ -606,8 +601,8 @@ def _stack(parts: Sequence[Polynomial]) -> Polynomial:
 
 def _block_diagonal(a: Polynomial, b: Polynomial) -> Polynomial:
     na, nb = a.shape[0], b.shape[0]
-    pa = Polynomial(a.exponent_array, _xp(a.coefficients).pad(a.coefficients, ((0, 0), (0, nb), (0, nb))), a.variables)
-    pb = Polynomial(b.exponent_array, _xp(b.coefficients).pad(b.coefficients, ((0, 0), (na, 0), (na, 0))), b.variables)
+    pa = Polynomial(a.exponent_array, array_module(a.coefficients).pad(a.coefficients, ((0, 0), (0, nb), (0, nb))), a.variables)
+    pb = Polynomial(b.exponent_array, array_module(b.coefficients).pad(b.coefficients, ((0, 0), (na, 0), (na, 0))), b.variables)
     return pa + pb
 
 
