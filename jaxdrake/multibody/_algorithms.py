@@ -112,7 +112,12 @@ def _over_depths(step, init, depths, *, reverse=False):
 
 def _to_slots(L, x, fill):
     """Per one-dof body (level order) -> padded per depth and slot (depths, width, ...)."""
-    return _with_fill(x, fill)[L.slots - L.first_scanned]
+    return _with_fill(x, fill)[_slot_rows(L)]
+
+
+def _slot_rows(L):
+    """(depths, width): the row of each slot in the per-one-dof-body arrays (with their fill row)."""
+    return L.slots - L.first_scanned
 
 
 def _with_fill(x, fill):
@@ -312,7 +317,7 @@ def aba(tree: KinematicTree, q, v, tau, *, gravity: bool = True):
         up = (_to_parents(L, parent, Ia * valid[:, None, None]), _to_parents(L, parent, pa * valid[:, None]))
         return up, (U, D_inv, u)
 
-    depths = (jnp.asarray(L.slots - L.first_scanned), L.parent_of_slot, L.valid)
+    depths = (jnp.asarray(_slot_rows(L)), L.parent_of_slot, L.valid)
     init = (jnp.zeros((L.width, 6, 6), dtype), jnp.zeros((L.width, 6), dtype))
     (Ia_root, pa_root), (U, D_inv, u) = _over_depths(backward, init, depths, reverse=True)
 
