@@ -443,9 +443,9 @@ def _build_tree(robot_name, root, links, joints, floating_base, gravity, path):
         frames.append((name, body, R, p))
     floats = lambda values: jnp.asarray(np.asarray(values, float))  # converted on the host: nothing to compile
     arr = lambda key: floats([b[key] for b in bodies])
-    dofs = lambda b: 1 if b["type"] != "floating" else 6
-    per_dof = lambda key: floats(np.concatenate([[b[key]] * dofs(b) for b in bodies]))
-    per_q = lambda key: floats(np.concatenate([[b[key]] * (1 if b["type"] != "floating" else 7) for b in bodies]))
+    repeated = lambda key, floating: floats(np.concatenate([[b[key]] * (floating if b["type"] == "floating" else 1)
+                                                            for b in bodies]))
+    per_dof, per_q = (lambda key: repeated(key, 6)), (lambda key: repeated(key, 7))  # a floating base: 6 / 7
     return KinematicTree(
         robot_name=robot_name, body_names=tuple(b["link"] for b in bodies), joint_names=tuple(b["joint"] for b in bodies),
         joint_types=tuple(b["type"] for b in bodies), parents=tuple(b["parent"] for b in bodies),
@@ -458,7 +458,7 @@ def _build_tree(robot_name, root, links, joints, floating_base, gravity, path):
         frame_translation=floats([f[3] for f in frames]),
         damping=per_dof("damping"), friction=per_dof("friction"),
         position_lower=per_q("lower"), position_upper=per_q("upper"), effort_limit=per_dof("effort"),
-        gravity=jnp.asarray(gravity, float))
+        gravity=floats(gravity))
 
 
 def _check_every_joint_moves_mass(bodies, path):
