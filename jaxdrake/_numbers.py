@@ -1,4 +1,4 @@
-"""Which array module a computation on given values should use."""
+"""Which array module a computation on given values should use, and host numbers to arrays."""
 
 from __future__ import annotations
 
@@ -11,3 +11,12 @@ def array_module(*values):
     """numpy for concrete numbers (fast, nothing compiled: building models and programs),
     jax.numpy once a JAX array or tracer is involved (under jit / vmap / grad)."""
     return jnp if any(isinstance(v, jax.Array) for v in values) else np
+
+
+def device_array(values, dtype=None):
+    """`values` as a JAX array: host numbers through `jax.device_put`, which compiles nothing
+    (`jnp.asarray` of a numpy array compiles a staging program per new shape, ~10-25 ms each
+    in a fresh process); JAX arrays and tracers through `jnp.asarray`."""
+    if isinstance(values, jax.Array):
+        return jnp.asarray(values, dtype)
+    return jax.device_put(np.asarray(values, dtype))

@@ -80,6 +80,28 @@ def test_minimum_time_bang_bang():
     np.testing.assert_allclose(np.abs(exact.knot_inputs[:-1, 0]), 1.0, atol=1e-5)
 
 
+def test_simpson_cost_ignoring_the_state_skips_the_midpoint_dynamics_without_changing_it():
+    """A running cost that does not read x needs no midpoint state (a dynamics evaluation):
+    its value and gradient equal those of the same cost made to read x (times zero), and the
+    Simpson midpoint of a state-reading cost is the Hermite cubic's (x_0+x_1)/2 + h/8 (f_0-f_1)."""
+    def objective(cost):
+        prog = trajopt.DirectCollocation(jd.models.Pendulum(), 6, duration=1.0).add_running_cost(cost)
+        z = np.random.default_rng(3).standard_normal(prog.num_variables)
+        return prog.nlp.objective(z), prog.nlp.gradient(z), prog, z
+
+    plain, plain_gradient, _, _ = objective(lambda t, x, u: u @ u)
+    reading, reading_gradient, _, _ = objective(lambda t, x, u: u @ u + 0.0 * x[0])
+    np.testing.assert_allclose(plain, reading, rtol=1e-14)
+    np.testing.assert_allclose(plain_gradient, reading_gradient, rtol=1e-14, atol=1e-14)
+    value, _, prog, z = objective(lambda t, x, u: x[1])  # Simpson of the angular velocity
+    X, h = z[:12].reshape(6, 2), 1.0 / 5
+    U = z[12:18].reshape(6, 1)
+    with jax.enable_x64(True):
+        F = np.stack([np.asarray(prog.system.dynamics(0.0, X[k], U[k])) for k in range(6)])
+    midpoint = (X[:-1, 1] + X[1:, 1]) / 2 + h / 8 * (F[:-1, 1] - F[1:, 1])
+    np.testing.assert_allclose(value, np.sum(h / 6 * (X[:-1, 1] + 4 * midpoint + X[1:, 1])), rtol=1e-12)
+
+
 def test_jacobian_sparse_and_matches_finite_differences():
     """A pendulum with free duration and a free mass: every block, including the global
     columns, against central differences; the pattern covers every non-zero."""

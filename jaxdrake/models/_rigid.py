@@ -9,7 +9,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from .._numbers import array_module
+from .._numbers import array_module, device_array
 from ..multibody import RigidBodySystem
 
 URDF_DIR = pathlib.Path(__file__).parent / "urdf"
@@ -36,7 +36,7 @@ def Acrobot(m1=1.0, m2=1.0, l1=1.0, l2=2.0, lc1=0.5, lc2=1.0, Ic1=0.083, Ic2=0.3
               xp.stack([b1, b2]) * 1.0, xp.array([0.0, 0.0, -1.0]) * g,
               _hand_frame(xp, tree, "hand", l2))
     tree = eqx.tree_at(lambda t: (t.mass, t.com, t.inertia, t.origin_translation, t.damping, t.gravity,
-                                  t.frame_translation), tree, tuple(map(jnp.asarray, values)))
+                                  t.frame_translation), tree, tuple(map(device_array, values)))
     return eqx.tree_at(lambda p: p.tree, plant, tree)
 
 

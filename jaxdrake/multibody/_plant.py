@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._numbers import device_array
 from ..systems import Frame, System
 from ..systems._system import _static
 from . import _algorithms as alg
@@ -105,7 +106,7 @@ class RigidBodySystem(System):
             if tree.joint_types[i] == "floating":
                 raise ValueError(f"{tree.robot_name}: the floating base cannot be actuated by a joint input")
             B[tree.v_starts[i], col] = 1.0
-        self.tree, self.B = tree, jnp.asarray(B)
+        self.tree, self.B = tree, device_array(B)
         effort = np.asarray(tree.effort_limit)[np.argmax(B, axis=0)] if B.size else np.zeros(0)
         limits = (-effort, effort) if effort_limits and np.any(np.isfinite(effort)) else None
         self.loops = tuple(loops)
@@ -335,7 +336,7 @@ def _limit_gains(tree, limited, period):
         inertia = np.asarray(_neutral_joint_inertias(tree))[iv] if limited else np.zeros(0)
         stiffness, damping = np.zeros(tree.nv), np.zeros(tree.nv)
         stiffness[iv], damping[iv] = inertia * omega ** 2, 2 * inertia * omega
-        return jnp.asarray(stiffness), jnp.asarray(damping)
+        return device_array(stiffness), device_array(damping)
     except jax.errors.TracerArrayConversionError:  # ... or, for traced leaves, the same numbers traced
         inertia = jnp.diagonal(alg.mass_matrix(tree, tree.neutral_configuration()))[iv]
         zeros = jnp.zeros(tree.nv, inertia.dtype)

@@ -29,6 +29,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from .._numbers import device_array
 from ._spatial import rpy
 
 JOINT_DOFS = {"revolute": (1, 1), "prismatic": (1, 1), "floating": (7, 6)}
@@ -441,7 +442,7 @@ def _build_tree(robot_name, root, links, joints, floating_base, gravity, path):
     _check_every_joint_moves_mass(bodies, path)
     for name, (body, R, p) in link_body.items():
         frames.append((name, body, R, p))
-    floats = lambda values: jnp.asarray(np.asarray(values, float))  # converted on the host: nothing to compile
+    floats = lambda values: device_array(values, float)  # converted on the host: nothing to compile
     arr = lambda key: floats([b[key] for b in bodies])
     repeated = lambda key, floating: floats(np.concatenate([[b[key]] * (floating if b["type"] == "floating" else 1)
                                                             for b in bodies]))

@@ -14,6 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._numbers import array_module, device_array
+
 NUM_COEFFICIENTS = 5  # pieces are polynomials of degree <= 4 in the normalized time theta
 
 # Reversing a piece: sum_j c_j theta^j with theta = 1 - theta' has the coefficients
@@ -77,8 +79,9 @@ class Trajectory(eqx.Module):
         `interpolation`: `"linear"` (first-order hold) or `"zoh"` (zero-order hold: `values[k]`
         on $[t_k, t_{k+1})$). `values` has shape (len(ts), n) or (len(ts),).
         """
-        ts = jnp.asarray(ts, dtype=float)
-        values = jnp.asarray(values, dtype=ts.dtype)
+        xp = array_module(ts, values)  # numbers stay on the host: nothing compiled
+        ts = xp.asarray(ts, dtype=float)
+        values = xp.asarray(values, dtype=ts.dtype)
         if values.ndim == 1:
             values = values[:, None]
         if ts.ndim != 1 or ts.shape[0] < 2 or values.shape[0] != ts.shape[0]:
@@ -86,7 +89,7 @@ class Trajectory(eqx.Module):
                              f"got ts {ts.shape}, values {values.shape}")
         if not isinstance(ts, jax.core.Tracer) and np.any(np.diff(np.asarray(ts)) <= 0):
             raise ValueError("from_samples needs strictly increasing times")
-        zeros = jnp.zeros_like(values[:-1])
+        zeros = xp.zeros_like(values[:-1])
         if interpolation == "linear":
             c = [values[:-1], values[1:] - values[:-1]]
             side = "left"
@@ -97,9 +100,9 @@ class Trajectory(eqx.Module):
             raise ValueError(f"unknown interpolation {interpolation!r}; use 'linear' or 'zoh'")
         c += [zeros] * (NUM_COEFFICIENTS - len(c))
         if interpolation == "zoh":  # the last sample holds from t_N on: a zero-length piece
-            ts = jnp.concatenate([ts, ts[-1:]])
-            c = [jnp.concatenate([ci, v[None]]) for ci, v in zip(c, [values[-1]] + [values[-1] * 0] * 4)]
-        return cls.from_pieces(ts[:-1], ts[1:], jnp.stack(c, axis=1), side=side)
+            ts = xp.concatenate([ts, ts[-1:]])
+            c = [xp.concatenate([ci, v[None]]) for ci, v in zip(c, [values[-1]] + [values[-1] * 0] * 4)]
+        return cls.from_pieces(ts[:-1], ts[1:], xp.stack(c, axis=1), side=side)
 
     @classmethod
     def from_pieces(cls, t_start, t_end, coefficients, num_segments=None, *,
@@ -107,13 +110,13 @@ class Trajectory(eqx.Module):
         """A trajectory from its pieces: piece i covers $(t^{start}_i, t^{end}_i]$ with
         `coefficients[i]` (shape (5, n)) in the normalized time; only the first `num_segments`
         are used (default all). `side`: the limit taken at a jump."""
-        coefficients = jnp.asarray(coefficients)
+        coefficients = device_array(coefficients)
         if coefficients.ndim != 3 or coefficients.shape[1] != NUM_COEFFICIENTS:
             raise ValueError(f"from_pieces needs coefficients of shape (pieces, {NUM_COEFFICIENTS}, n), "
                              f"got {coefficients.shape}")
         size = coefficients.shape[0]
-        return cls(t_start=jnp.asarray(t_start, coefficients.dtype), t_end=jnp.asarray(t_end, coefficients.dtype),
-                   coefficients=coefficients, num_segments=jnp.asarray(size if num_segments is None else num_segments),
+        return cls(t_start=device_array(t_start, coefficients.dtype), t_end=device_array(t_end, coefficients.dtype),
+                   coefficients=coefficients, num_segments=device_array(size if num_segments is None else num_segments),
                    side=check_side(side))
 
     def __getitem__(self, i) -> "Trajectory":

@@ -116,9 +116,8 @@ class NonlinearProgram:
 
     def _compile(self):
         costs, constraints = self.costs, self.constraints
-        jac_slot, jac_nnz = jnp.asarray(self._jac_slot), self._jac_nnz
-        hess_lower, hess_slot, hess_nnz = (jnp.asarray(self._hess_lower), jnp.asarray(self._hess_slot),
-                                           self._hess_nnz)
+        jac_slot, jac_nnz = self._jac_slot, self._jac_nnz
+        hess_lower, hess_slot, hess_nnz = self._hess_lower, self._hess_slot, self._hess_nnz
         sizes = self._sizes
 
         def apply(term, fn, z, *extra):
@@ -167,7 +166,7 @@ class NonlinearProgram:
 
     def _call(self, fn, *args):
         with jax.enable_x64(True):
-            return np.asarray(fn(*(jnp.asarray(a, jnp.float64) for a in args)), float)
+            return np.asarray(fn(*(np.asarray(a, np.float64) for a in args)), float)
 
     def objective(self, z) -> float:
         return float(self._call(self._objective, z))

@@ -393,7 +393,7 @@ class _TrajectoryProgram:
         times = np.linspace(0.0, T, N)
         defects = self.nlp.constraint_values(z)[: (N - 1) * n]  # the dynamics term comes first
         with jax.enable_x64(True):
-            states, inputs = self._reconstruct(times, jnp.asarray(X), jnp.asarray(U), jnp.asarray(g))
+            states, inputs = self._reconstruct(times, X, U, g)
         return TrajectoryOptimizationResult(
             states=states, inputs=inputs, times=times, knot_states=X, knot_inputs=U, duration=T,
             parameters=p, max_defect=float(np.max(np.abs(defects))), solver=result)
@@ -410,62 +410,81 @@ class _TrajectoryProgram:
         return {}
 
 
-def _hermite_midpoint(x0, u0, x1, u1, t, h, system):
-    """(f0, f1, x_c, u_c); both knots' dynamics in one vmapped call, so the traced program (and
-    its derivatives) holds one copy of the vector field for them, not two."""
-    f0, f1 = jax.vmap(system.dynamics)(jnp.stack([t, t + h]), jnp.stack([x0, x1]), jnp.stack([u0, u1]))
-    xc = (x0 + x1) / 2 + h / 8 * (f0 - f1)
-    uc = (u0 + u1) / 2
-    return f0, f1, xc, uc
+def _knots_then_midpoint(evaluate, w0, w1, t, h, n):
+    r"""`evaluate(times, W) -> (F, ...)` (F: f at the rows of W, then anything else) at a
+    segment's knots $w_j = (x_j, u_j)$, then at its midpoint $w_c = (x_c, u_c)$,
+    $x_c = \tfrac12(x_0 + x_1) + \tfrac h8 (f_0 - f_1)$, $u_c = \tfrac12(u_0 + u_1)$, which
+    needs the knots' f first. A two-step loop, so the traced program holds ONE copy of
+    `evaluate` (the vector field, or its derivatives) instead of two, at half the compile time;
+    the second step evaluates the midpoint twice (a loop step's shapes are fixed). Returns the
+    knots' outputs (leading axis 2), the midpoint's, and w_c."""
+    def step(points, _):
+        times, W = points
+        out = evaluate(times, W)
+        xc = (W[0, :n] + W[1, :n]) / 2 + h / 8 * (out[0][0] - out[0][1])
+        wc = jnp.concatenate([xc, (W[0, n:] + W[1, n:]) / 2])
+        return (jnp.full(2, t + h / 2, W.dtype), jnp.stack([wc, wc])), (out, wc)
+
+    start = (jnp.stack([t, t + h]).astype(w0.dtype), jnp.stack([w0, w1]))
+    _, (out, wc) = jax.lax.scan(step, start, length=2)
+    return jax.tree.map(lambda a: a[0], out), jax.tree.map(lambda a: a[1][0], out), wc[0]
+
+
+def _dynamics_at(system, n):
+    """(times, W) -> (f at each row of W,): the `evaluate` of `_knots_then_midpoint`."""
+    return lambda times, W: (jax.vmap(system.dynamics)(times, W[:, :n], W[:, n:]),)
+
+
+def _reads_state(fn, n, m) -> bool:
+    """Whether `fn(t, x, u)`'s traced program references x at all (conservatively: any use)."""
+    with jax.enable_x64(True):
+        closed = jax.make_jaxpr(fn)(0.0, np.zeros(n), np.zeros(m))
+    x = closed.jaxpr.invars[1]
+    return x in closed.jaxpr.outvars or any(x in eqn.invars for eqn in closed.jaxpr.eqns)
 
 
 def _hermite_simpson_derivatives(system, n, m, h):
     r"""The Jacobian and the Lagrangian Hessian of the Hermite-Simpson defect
     $c = x_1 - x_0 - \tfrac h6 (f_0 + 4 f_c + f_1)$, $x_c = \tfrac12(x_0 + x_1) + \tfrac h8 (f_0 - f_1)$,
     $u_c = \tfrac12 (u_0 + u_1)$, over v = [w_0; w_1], $w_j = (x_j, u_j)$, by the chain rule
-    around ONE vmapped evaluation of f's derivatives at the segment's three points (autodiff of
-    the defect itself traces f's derivatives twice, the knots' and the midpoint's, and costs
-    twice the compile):
+    around ONE traced copy of f's derivatives (the Jacobian: at the knots then the midpoint by
+    `_knots_then_midpoint`; the Hessian: f's tensors at the three points in one vmapped call).
+    Autodiff of the defect itself traces f's derivatives twice, the knots' and the midpoint's,
+    and costs twice the compile:
     $\partial c = [-I\,0\,I\,0] - \tfrac h6 (J_0 P_0 + J_1 P_1 + 4 J_c\, \partial w_c)$,
     $\nabla^2 (\lambda\cdot c) = -\tfrac h6 \big(P_0^T \nabla^2(\mu_0\cdot f)(w_0) P_0
     + P_1^T \nabla^2(\mu_1\cdot f)(w_1) P_1 + 4\, \partial w_c^T \nabla^2(\lambda\cdot f)(w_c)\, \partial w_c\big)$
     with $g = (\partial f/\partial x)(w_c)^T \lambda$, $\mu_{0,1} = \lambda \pm \tfrac h2 g$."""
     L = n + m
-    eye_n, eye_m = jnp.eye(n), jnp.eye(m)
+    eye_n, eye_m = np.eye(n), np.eye(m)
 
     def f(t, w):
         return system.dynamics(t, w[:n], w[n:])
 
-    def jacobian_and_tensor(t, w):  # f's Jacobian and second-derivative tensor at one point
-        def twice(w):  # the Jacobian, also as the auxiliary output (traced once)
-            J = jax.jacfwd(f, 1)(t, w)
-            return J, J
+    def value_and_jacobian(t, w):  # (f, its Jacobian): f traced once
+        J, value = jax.jacfwd(lambda w: (lambda y: (y, y))(f(t, w)), has_aux=True)(w)
+        return value, J
 
-        T, J = jax.jacfwd(twice, has_aux=True)(w)
-        return J, T
-
-    def points(v, k):
-        t0 = k * h
-        w0, w1 = v[:L], v[L:2 * L]
-        _, _, xc, uc = _hermite_midpoint(w0[:n], w0[n:], w1[:n], w1[n:], t0, h, system)
-        return jnp.stack([t0, t0 + h, t0 + h / 2]), jnp.stack([w0, w1, jnp.concatenate([xc, uc])])
+    def value_jacobian_tensor(t, w):  # (f, its Jacobian, its second-derivative tensor)
+        T, (value, J) = jax.jacfwd(lambda w: (lambda y, J: (J, (y, J)))(*value_and_jacobian(t, w)),
+                                   has_aux=True)(w)
+        return value, J, T
 
     def midpoint_jacobian(J0, J1):  # d w_c / d v, (L, 2L)
-        dx = jnp.concatenate([eye_n, jnp.zeros((n, m)), eye_n, jnp.zeros((n, m))], axis=1) / 2 + \
+        dx = np.concatenate([eye_n, np.zeros((n, m)), eye_n, np.zeros((n, m))], axis=1) / 2 + \
             h / 8 * jnp.concatenate([J0, -J1], axis=1)
-        du = jnp.concatenate([jnp.zeros((m, n)), eye_m, jnp.zeros((m, n)), eye_m], axis=1) / 2
+        du = np.concatenate([np.zeros((m, n)), eye_m, np.zeros((m, n)), eye_m], axis=1) / 2
         return jnp.concatenate([dx, du])
 
     def jacobian(v, k):
-        times, W = points(v, k)
-        J = jax.vmap(lambda t, w: jax.jacfwd(f, 1)(t, w))(times, W)
-        Dc = midpoint_jacobian(J[0], J[1])
-        plain = jnp.concatenate([-eye_n, jnp.zeros((n, m)), eye_n, jnp.zeros((n, m))], axis=1)
-        return plain - h / 6 * (jnp.concatenate([J[0], J[1]], axis=1) + 4 * J[2] @ Dc)
+        (_, J), (_, Jc), _ = _knots_then_midpoint(jax.vmap(value_and_jacobian), v[:L], v[L:2 * L], k * h, h, n)
+        plain = np.concatenate([-eye_n, np.zeros((n, m)), eye_n, np.zeros((n, m))], axis=1)
+        return plain - h / 6 * (jnp.concatenate([J[0], J[1]], axis=1) + 4 * Jc @ midpoint_jacobian(J[0], J[1]))
 
-    def hessian(v, k, lam):
-        times, W = points(v, k)
-        J, T = jax.vmap(jacobian_and_tensor)(times, W)
+    def hessian(v, k, lam):  # the tensors dominate: all three points in one vmapped call
+        w0, w1, t0 = v[:L], v[L:2 * L], k * h
+        _, _, wc = _knots_then_midpoint(_dynamics_at(system, n), w0, w1, t0, h, n)
+        _, J, T = jax.vmap(value_jacobian_tensor)(jnp.stack([t0, t0 + h, t0 + h / 2]), jnp.stack([w0, w1, wc]))
         Dc = midpoint_jacobian(J[0], J[1])
         g = J[2][:, :n].T @ lam
         H0 = jnp.einsum("i,ijk->jk", lam + h / 2 * g, T[0])
@@ -499,10 +518,10 @@ class DirectCollocation(_TrajectoryProgram):
         super().__init__(system, num_time_samples, duration=duration, parameters=parameters,
                          parameter_bounds=parameter_bounds)
 
-    @staticmethod
-    def _defect(t, x0, u0, x1, u1, h, system):
-        f0, f1, xc, uc = _hermite_midpoint(x0, u0, x1, u1, t, h, system)
-        return x1 - x0 - h / 6 * (f0 + 4 * system.dynamics(t + h / 2, xc, uc) + f1)
+    def _defect(self, t, x0, u0, x1, u1, h, system):
+        (F,), (fc,), _ = _knots_then_midpoint(_dynamics_at(system, self.num_states), jnp.concatenate([x0, u0]),
+                                              jnp.concatenate([x1, u1]), t, h, self.num_states)
+        return x1 - x0 - h / 6 * (F[0] + 4 * fc + F[1])
 
     def _defect_derivatives(self):
         if self.num_globals:  # a free duration or free parameters: autodiff of the defect
@@ -511,8 +530,16 @@ class DirectCollocation(_TrajectoryProgram):
                                             self._duration_bounds[0] / (self.num_time_samples - 1))
 
     def _running_cost_term(self, fn):
+        reads_state = _reads_state(fn, self.num_states, self.num_inputs)
+
         def simpson(t, x0, u0, x1, u1, h, system):
-            _, _, xc, uc = _hermite_midpoint(x0, u0, x1, u1, t, h, system)
+            n = self.num_states
+            if reads_state:
+                _, _, wc = _knots_then_midpoint(_dynamics_at(system, n), jnp.concatenate([x0, u0]),
+                                                jnp.concatenate([x1, u1]), t, h, n)
+                xc, uc = wc[:n], wc[n:]
+            else:  # the midpoint state costs dynamics evaluations, and fn ignores it
+                xc, uc = (x0 + x1) / 2, (u0 + u1) / 2
             return h / 6 * (fn(t, x0, u0) + 4 * fn(t + h / 2, xc, uc) + fn(t + h, x1, u1))
 
         return self._segment_term("running cost", simpson)
@@ -531,7 +558,7 @@ class DirectCollocation(_TrajectoryProgram):
         return jax.jit(pieces)
 
     def _reconstruct(self, times, X, U, g):
-        states = Trajectory.from_pieces(times[:-1], times[1:], self._cubic_pieces(g, jnp.asarray(times), X, U))
+        states = Trajectory.from_pieces(times[:-1], times[1:], self._cubic_pieces(g, times, X, U))
         return states, Trajectory.from_samples(times, U, "linear")
 
 
@@ -619,7 +646,7 @@ class MultipleShooting(_TrajectoryProgram):
     def _reconstruct(self, times, X, U, g):
         h = times[1] - times[0]
         samples = times[:-1, None] + np.linspace(0.0, 1.0, 9)[None, :-1] * h
-        values = self._segment_samples(g, jnp.asarray(times[:-1]), h, X[:-1], U[:-1], U[1:], jnp.asarray(samples))
+        values = self._segment_samples(g, times[:-1], h, X[:-1], U[:-1], U[1:], samples)
         states = Trajectory.from_samples(np.append(samples.ravel(), times[-1]),
                                          jnp.concatenate([values.reshape(-1, self.num_states), X[-1:]]), "linear")
         return states, Trajectory.from_samples(times, U, "linear")
