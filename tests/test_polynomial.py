@@ -153,11 +153,16 @@ def test_float32_polynomial_system_and_conversion_run():
         np.testing.assert_allclose(xdot[2], -19.62 * 0.1 - 0.4 * 0.3, rtol=1e-5)
 
 
-def test_affine_expressions_evaluate_like_the_numbers_they_stand_for():
+@pytest.mark.parametrize("dense_columns", [256, 0, 2])
+def test_affine_expressions_evaluate_like_the_numbers_they_stand_for(dense_columns, monkeypatch):
     """Arithmetic on decision expressions (scalars broadcast against vectors, numbers on either
     side, indexing, matrix maps) gives, at any value of the decision vector, what the same
-    arithmetic gives on the numbers."""
+    arithmetic gives on the numbers: with dense maps (a small program), sparse ones, and a
+    dense expression meeting a sparse one (the program grew past the dense limit)."""
+    from jaxdrake.systems import _affine
     from jaxdrake.systems._affine import DecisionSpace
+
+    monkeypatch.setattr(_affine, "DENSE_COLUMNS", dense_columns)
 
     space = DecisionSpace()
     t, x = space.new(), space.new(3)
@@ -165,7 +170,8 @@ def test_affine_expressions_evaluate_like_the_numbers_they_stand_for():
     space.solution = y
     tv, xv = y[0], y[1:]
     M = RNG.normal(size=(2, 3))
-    cases = [(t + x, tv + xv), (x + t, xv + tv), (t + np.array([1.0, 2.0]), tv + np.array([1.0, 2.0])),
+    merged = x.combined(np.array([0, 0, 1]), np.array([2, 0, 1]), np.array([2.0, -1.0, 3.0]), 2)
+    cases = [(merged, [2 * xv[2] - xv[0], 3 * xv[1]]), (t + x, tv + xv), (x + t, xv + tv), (t + np.array([1.0, 2.0]), tv + np.array([1.0, 2.0])),
              (np.array([1.0, 2.0]) - t, np.array([1.0, 2.0]) - tv), (t * np.array([1.0, 2.0]), tv * np.array([1.0, 2.0])),
              (x[1] - 2.0 * t, xv[1] - 2 * tv), ((x - 1.0).sum(), (xv - 1).sum()), (M @ x, M @ xv), (x / 4.0, xv / 4)]
     for expression, number in cases:

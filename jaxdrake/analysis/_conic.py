@@ -140,12 +140,17 @@ class ConicProgram:
             S = _triangle_selection(N, psd_order)
             psd.append((S @ A, S @ b))
         blocks = equal + nonnegative + psd
-        A = (scipy.sparse.vstack([-a for a, _ in blocks], format="csc") if blocks
-             else scipy.sparse.csc_matrix((0, size)))
+        if not blocks:
+            A = scipy.sparse.csc_matrix((0, size))
+        elif scipy.sparse.issparse(blocks[0][0]):
+            A = scipy.sparse.vstack([-a for a, _ in blocks], format="csc")
+        else:  # a small program's dense rows
+            A = scipy.sparse.csc_matrix(-np.concatenate([a for a, _ in blocks]))
         b = np.concatenate([b for _, b in blocks]) if blocks else np.zeros(0)
         q = np.zeros(size)
         if objective is not None:
-            q = sign * objective.rows(size)[0].toarray().ravel()
+            row = objective.rows(size)[0]
+            q = sign * (row.toarray() if scipy.sparse.issparse(row) else row).ravel()
         counts = (sum(a.shape[0] for a, _ in equal), sum(a.shape[0] for a, _ in nonnegative))
         return q, A, b, counts + (tuple(N for _, N in self.psd_constraints),)
 

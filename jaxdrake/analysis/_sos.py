@@ -19,6 +19,7 @@ answer holds), the coefficient-matching residuals and the Gram matrices' least e
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 import scipy.sparse
@@ -110,20 +111,38 @@ class SosResult(ConicResult):
         beyond `tolerance` times the sum of |terms| at that point."""
         if num_samples <= 0:
             return CertificateCheck(0, 0, 0.0, tolerance)
-        rng = np.random.default_rng(seed)
-        z = rng.normal(scale=scale, size=(num_samples, self.program.num_variables))
+        z = _sample_points(num_samples, self.program.num_variables, float(scale), seed)
+        polynomials = ([(self.value(r.polynomial), "sos") for r in self.program.sos_constraints]
+                       + [(self.value(e), "eq") for e in self.program.equalities])
+        if not polynomials:
+            return CertificateCheck(num_samples, 0, 0.0, tolerance)
+        # every polynomial's coefficients over the union of their monomials: one monomial
+        # matrix per chunk of points serves them all
+        union, where = unique_rows(np.concatenate([p.exponent_array for p, _ in polynomials]))
+        columns = [np.asarray(p.coefficients, float).reshape(p.num_monomials, -1) for p, _ in polynomials]
+        C = np.zeros((len(union), sum(c.shape[1] for c in columns)))
+        row, col = 0, 0
+        for c in columns:
+            C[where[row:row + len(c)], col:col + c.shape[1]] += c
+            row, col = row + len(c), col + c.shape[1]
+        inequality = np.concatenate([np.full(c.shape[1], kind == "sos") for c, (_, kind) in zip(columns, polynomials)])
+        basis = Polynomial._build(union, np.zeros(len(union)), polynomials[0][0].variables, unique=True)
         worst, violations = 0.0, 0
-        for p, kind in ([(r.polynomial, "sos") for r in self.program.sos_constraints]
-                        + [(e, "eq") for e in self.program.equalities]):
-            p = self.value(p)
-            c = np.asarray(p.coefficients, float)
-            for start in range(0, num_samples, 4096):  # chunks whose monomials stay in cache: 6x faster
-                monomials = np.asarray(p.monomials(z[start:start + 4096]))
-                values, size = monomials @ c, np.abs(monomials) @ np.abs(c) + 1e-300
-                gap = (-values if kind == "sos" else np.abs(values)) / size
-                violations += int(np.sum(gap > tolerance))
-                worst = max(worst, float(gap.max()))
+        for start in range(0, num_samples, 1024):  # chunks small enough to stay in cache (and, freed,
+            monomials = basis.monomials(z[start:start + 1024])  # to be reused without page faults)
+            values, size = monomials @ C, np.abs(monomials) @ np.abs(C) + 1e-300
+            gap = np.where(inequality, -values, np.abs(values)) / size
+            violations += int(np.sum(gap > tolerance))
+            worst = max(worst, float(gap.max()))
         return CertificateCheck(num_samples, violations, worst, tolerance)
+
+
+@functools.lru_cache(maxsize=16)
+def _sample_points(num_samples: int, n: int, scale: float, seed: int) -> np.ndarray:
+    """The check's Gaussian points (kept: a family of programs is checked on the same points)."""
+    z = np.random.default_rng(seed).normal(scale=scale, size=(num_samples, n))
+    z.flags.writeable = False
+    return z
 
 
 class SosProgram(ConicProgram):

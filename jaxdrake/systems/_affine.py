@@ -1,9 +1,11 @@
 r"""Decision variables of a convex program, as affine expressions $A y + b$ of one vector y.
 
 A `DecisionSpace` hands out blocks of y; an `AffineExpression` (a scalar or a vector) is a
-sparse $A$ and a dense $b$, so the sums, scalings and (sparse) matrix products that polynomial
-arithmetic performs on decision coefficients stay sparse linear algebra, and a program is
-assembled for its conic solver without a modelling layer in between. Comparisons
+matrix $A$ and a dense $b$, so the sums, scalings and matrix products that polynomial
+arithmetic performs on decision coefficients are linear algebra, and a program is assembled
+for its conic solver without a modelling layer in between. $A$ is a dense array while the
+program has at most `DENSE_COLUMNS` decisions (numpy on small matrices costs microseconds,
+each scipy.sparse construction tens of them) and sparse (CSR) beyond. Comparisons
 (`==`, `<=`, `>=`) make `LinearConstraint`s; after a solve, `expr.value` is the number.
 """
 
@@ -11,6 +13,19 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse
+
+DENSE_COLUMNS = 256
+
+
+def _matrix(A, size: int):
+    """A with `size` columns (zero columns for variables made after it): a dense array while
+    size <= DENSE_COLUMNS, CSR beyond."""
+    if size <= DENSE_COLUMNS:
+        A = A.toarray() if scipy.sparse.issparse(A) else A
+        return A if A.shape[1] == size else np.concatenate([A, np.zeros((A.shape[0], size - A.shape[1]))], 1)
+    A = A.tocsr() if scipy.sparse.issparse(A) else scipy.sparse.csr_matrix(A)
+    return A if A.shape[1] == size else scipy.sparse.csr_matrix((A.data, A.indices, A.indptr),
+                                                                shape=(A.shape[0], size))
 
 
 class DecisionSpace:
@@ -29,7 +44,8 @@ class DecisionSpace:
         count = shape[0] if shape else 1
         start, self.size = self.size, self.size + count
         A = scipy.sparse.csr_matrix((np.ones(count), (np.arange(count), start + np.arange(count))),
-                                    shape=(count, self.size))
+                                    shape=(count, self.size)) if self.size > DENSE_COLUMNS else \
+            np.eye(count, self.size, start)
         return AffineExpression(self, A, np.zeros(count), scalar=not shape)
 
 
@@ -40,7 +56,7 @@ class AffineExpression:
     __array_ufunc__ = None  # `array @ expr`, `2.0 * expr`, `x <= expr` come to the methods below
 
     def __init__(self, space: DecisionSpace, A, b, scalar: bool = False):
-        A = A if isinstance(A, scipy.sparse.csr_matrix) else scipy.sparse.csr_matrix(A)
+        A = A.tocsr() if scipy.sparse.issparse(A) else np.asarray(A, float)
         self.space, self.A, self.b, self.scalar = space, A, np.asarray(b, float), scalar
 
     # ----- facts -----------------------------------------------------------------------------
@@ -68,17 +84,16 @@ class AffineExpression:
         return float(out[0]) if self.scalar else out
 
     def rows(self, size: int):
-        """(A with `size` columns, b): A padded with zero columns for variables made after it."""
-        A = self.A
-        if A.shape[1] != size:
-            A = scipy.sparse.csr_matrix((A.data, A.indices, A.indptr), shape=(A.shape[0], size))
-        return A, self.b
+        """(A with `size` columns, b): A padded with zero columns for variables made after it
+        (dense or CSR by `size`, see `_matrix`)."""
+        return _matrix(self.A, size), self.b
 
     def as_vector(self) -> AffineExpression:
         return AffineExpression(self.space, self.A, self.b)
 
     def __repr__(self):
-        return f"AffineExpression(shape {self.shape}, {self.A.nnz} non-zeros over {self.A.shape[1]} variables)"
+        nonzeros = self.A.nnz if scipy.sparse.issparse(self.A) else np.count_nonzero(self.A)
+        return f"AffineExpression(shape {self.shape}, {nonzeros} non-zeros over {self.A.shape[1]} variables)"
 
     # ----- linear algebra ----------------------------------------------------------------------
 
@@ -87,9 +102,22 @@ class AffineExpression:
         if self.scalar:
             raise TypeError("M @ expr needs a vector expression")
         M = np.asarray(M, float) if not scipy.sparse.issparse(M) else M
-        if M.ndim == 1:
-            return AffineExpression(self.space, scipy.sparse.csr_matrix(M[None]) @ self.A, [M @ self.b], True)
-        return AffineExpression(self.space, M @ self.A, M @ self.b)
+        vector = M.ndim == 1
+        M = M[None] if vector else M
+        if scipy.sparse.issparse(self.A) and not scipy.sparse.issparse(M):
+            M = scipy.sparse.csr_matrix(M)  # keep a sparse expression sparse
+        A = M @ self.A
+        return AffineExpression(self.space, A, M @ self.b, vector)
+
+    def combined(self, dest, src, weights, num: int) -> AffineExpression:
+        """new[k] = sum over r with dest[r] = k of weights[r] * self[src[r]] (num rows): the
+        merges, products and derivatives of polynomial arithmetic."""
+        shape = (num, self.A.shape[0])
+        if scipy.sparse.issparse(self.A):
+            return self.mapped(scipy.sparse.csr_matrix((np.asarray(weights, float), (dest, src)), shape=shape))
+        M = np.zeros(shape)
+        np.add.at(M, (dest, src), weights)
+        return self.mapped(M)
 
     __rmatmul__ = mapped
 
@@ -179,7 +207,9 @@ class AffineExpression:
 
 def _times_column(A, b, column):
     """The one-row (A, b) times the numbers `column`: one row per number."""
-    return scipy.sparse.csr_matrix(column[:, None]) @ A, column * b[0]
+    if scipy.sparse.issparse(A):
+        return scipy.sparse.csr_matrix(column[:, None]) @ A, column * b[0]
+    return column[:, None] * A, column * b[0]
 
 
 class LinearConstraint:

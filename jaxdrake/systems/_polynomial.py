@@ -171,15 +171,15 @@ class Polynomial:
     def variables_of(cls, n: int, names: Sequence[str] | None = None) -> tuple[Polynomial, ...]:
         """The n indeterminates $z_0, \\dots, z_{n-1}$ as polynomials."""
         names = _names(names, n)
-        return tuple(cls._build(np.eye(n, dtype=int)[i:i + 1], [1.0], names) for i in range(n))
+        return tuple(cls._build(np.eye(n, dtype=int)[i:i + 1], [1.0], names, unique=True) for i in range(n))
 
     @classmethod
     def constant(cls, value, n: int, names: Sequence[str] | None = None) -> Polynomial:
         if is_decision(value):
             if value.shape != ():
                 raise ValueError(f"a constant polynomial takes a scalar decision expression, got shape {value.shape}")
-            return cls._build(np.zeros((1, n), int), value.as_vector(), _names(names, n))
-        return cls._build(np.zeros((1, n), int), _numeric(value)[None], _names(names, n))
+            return cls._build(np.zeros((1, n), int), value.as_vector(), _names(names, n), unique=True)
+        return cls._build(np.zeros((1, n), int), _numeric(value)[None], _names(names, n), unique=True)
 
     # ----- facts ----------------------------------------------------------------------------
 
@@ -212,7 +212,7 @@ class Polynomial:
         """Drop monomials whose coefficients are all within `tol` of zero (numeric only)."""
         c = _concrete(self.coefficients, "pruned()")
         keep = np.abs(c.reshape(len(c), -1)).max(1, initial=0.0) > tol
-        return Polynomial._build(self.exponent_array[keep], c[keep], self.variables)
+        return Polynomial._build(self.exponent_array[keep], c[keep], self.variables, unique=True)
 
     # ----- evaluation -----------------------------------------------------------------------
 
@@ -267,7 +267,7 @@ class Polynomial:
     __radd__ = __add__
 
     def __neg__(self):
-        return Polynomial._build(self.exponent_array, -self.coefficients, self.variables)
+        return Polynomial._build(self.exponent_array, -self.coefficients, self.variables, unique=True)
 
     def __sub__(self, other):
         return self + (-self._lift(other))
@@ -316,12 +316,13 @@ class Polynomial:
         if self.is_decision:
             raise TypeError("decision polynomials are scalar")
         index = index if isinstance(index, tuple) else (index,)
-        return Polynomial._build(self.exponent_array, self.coefficients[(slice(None),) + index], self.variables)
+        return Polynomial._build(self.exponent_array, self.coefficients[(slice(None),) + index], self.variables,
+                                 unique=True)
 
     def sum(self) -> Polynomial:
         """The sum of a vector / matrix polynomial's entries."""
         c = self.coefficients
-        return Polynomial._build(self.exponent_array, c.reshape(c.shape[0], -1).sum(1), self.variables)
+        return Polynomial._build(self.exponent_array, c.reshape(c.shape[0], -1).sum(1), self.variables, unique=True)
 
     # ----- calculus and composition ---------------------------------------------------------
 
@@ -331,12 +332,12 @@ class Polynomial:
         keep = np.flatnonzero(E[:, i] > 0)
         if not len(keep):
             return Polynomial._build(np.zeros((1, self.num_variables), int),
-                              _combine(self.coefficients, np.zeros(0, int), np.zeros(0), np.zeros(0, int), 1),
-                              self.variables)
+                                     _combine(self.coefficients, np.zeros(0, int), np.zeros(0), np.zeros(0, int), 1),
+                                     self.variables, unique=True)
         D = E[keep].copy()
-        D[:, i] -= 1
+        D[:, i] -= 1  # distinct rows stay distinct
         return Polynomial._build(D, _combine(self.coefficients, keep, E[keep, i].astype(float),
-                                      np.arange(len(keep)), len(keep)), self.variables)
+                                             np.arange(len(keep)), len(keep)), self.variables, unique=True)
 
     def jacobian(self) -> Polynomial:
         r"""$\partial p / \partial z$: value shape (*shape, n) (numeric polynomials)."""
@@ -345,7 +346,7 @@ class Polynomial:
         for i in range(n):
             d = self.derivative(i)
             unit = np.eye(n)[i]
-            term = Polynomial._build(d.exponent_array, d.coefficients[..., None] * unit, self.variables)
+            term = Polynomial._build(d.exponent_array, d.coefficients[..., None] * unit, self.variables, unique=True)
             total = term if total is None else total + term
         return total
 
@@ -408,8 +409,7 @@ class Polynomial:
 def _combine(c, src, weights, dest, num):
     r"""new[k] = sum over rows r with dest[r] = k of weights[r] * c[src[r]] (weights None = 1)."""
     if is_decision(c):
-        w = np.ones(len(src)) if weights is None else weights
-        return c.mapped(_sparse(dest, src, w, (num, c.shape[0])))
+        return c.combined(dest, src, np.ones(len(src)) if weights is None else weights, num)
     rows = c[src]
     if weights is not None:
         rows = rows * np.asarray(weights).reshape((-1,) + (1,) * (c.ndim - 1))
