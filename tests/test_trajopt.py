@@ -295,22 +295,24 @@ def test_box_qp_matches_scipys_bounded_minimizer():
 
 @pytest.mark.parametrize("model", ["pendulum", pytest.param("acrobot", marks=pytest.mark.slow)])
 def test_hermite_simpson_structured_derivatives_equal_autodiff_of_the_defect(model):
-    """DirectCollocation's defect brings its own Jacobian and Hessian (chain rule around one
-    vmapped evaluation of f's derivatives at a segment's three points); they equal JAX's
-    derivatives of the defect itself, and central differences (check_derivatives). (The
-    acrobot's generic Hessian compiles for ~20 s: -m slow.)"""
-    from jaxdrake.trajopt._nlp import NonlinearProgram, Term
+    """DirectCollocation's defect term is batched over the segments (each knot's f once) and
+    brings its own Jacobian and Hessian (chain rule around one traced copy of f's
+    derivatives); values and derivatives equal those of the per-segment defect under JAX's
+    autodiff, and central differences (check_derivatives). (The acrobot's generic Hessian
+    compiles for ~20 s: -m slow.)"""
+    from jaxdrake.trajopt._nlp import NonlinearProgram
 
     for plant in [jd.models.Pendulum() if model == "pendulum" else jd.models.Acrobot()]:
         prog = trajopt.DirectCollocation(plant, 6, duration=2.0).add_input_bounds(-10, 10)
         prog.set_initial_state(np.zeros(plant.num_states)).add_running_cost(lambda t, x, u: u @ u + x @ x)
         nlp = prog.nlp
         defect = nlp.constraints[0]
-        assert defect.jacobian is not None and defect.hessian is not None
-        plain = Term(defect.name, defect.fn, defect.idx, defect.lower, defect.upper)
+        assert defect.batched and defect.jacobian is not None and defect.hessian is not None
+        plain = prog._segment_term(defect.name, prog._defect, defect.lower, defect.upper)
         generic = NonlinearProgram(nlp.num_variables, nlp.costs, [plain] + nlp.constraints[1:], nlp.lower, nlp.upper)
         rng = np.random.default_rng(1)
         z, lam = rng.normal(size=nlp.num_variables), rng.normal(size=nlp.num_constraints)
+        np.testing.assert_allclose(nlp.constraint_values(z), generic.constraint_values(z), atol=1e-12)
         np.testing.assert_allclose(nlp.jacobian_values(z), generic.jacobian_values(z), atol=1e-12)
         np.testing.assert_allclose(nlp.hessian_values(z, lam, 0.7), generic.hessian_values(z, lam, 0.7), atol=1e-12)
         check = nlp.check_derivatives(z)

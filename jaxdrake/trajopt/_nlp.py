@@ -28,7 +28,9 @@ class Term:
     term's values are summed; a constraint term's are bounded by `lower`/`upper` (each
     (K, r)). A constraint term may bring its own derivatives, exploiting its structure:
     `jacobian(v, k) -> (r, L)` and `hessian(v, k, lam) -> (L, L)` (of lam . fn); by default
-    autodiff of `fn`. `size`: r when known (else found by tracing `fn`)."""
+    autodiff of `fn`. `size`: r when known (else found by tracing `fn`). A `batched`
+    constraint term's functions take all instances at once (V (K, L), ks (K,), lam (K, r))
+    and return (K, ...), so instances can share work; it declares its size and derivatives."""
 
     name: str
     fn: Callable
@@ -38,6 +40,7 @@ class Term:
     jacobian: Callable | None = None
     hessian: Callable | None = None
     size: int | None = None
+    batched: bool = False
 
 
 def _triplets(rows, cols):
@@ -55,6 +58,9 @@ class NonlinearProgram:
                  lower: np.ndarray, upper: np.ndarray):
         self.num_variables = int(num_variables)
         self.costs, self.constraints = list(costs), list(constraints)
+        for term in self.costs + self.constraints:
+            if term.batched and (any(term is cost for cost in self.costs) or None in (term.size, term.jacobian, term.hessian)):
+                raise ValueError(f"batched term {term.name!r} must be a constraint declaring its size and derivatives")
         self.lower, self.upper = np.asarray(lower, float), np.asarray(upper, float)
         with jax.enable_x64(True):
             sizes = [self._output_size(term) for term in self.constraints]
@@ -122,7 +128,7 @@ class NonlinearProgram:
 
         def apply(term, fn, z, *extra):
             ks = jnp.arange(term.idx.shape[0])
-            return jax.vmap(fn)(z[term.idx], ks, *extra)
+            return (fn if term.batched else jax.vmap(fn))(z[term.idx], ks, *extra)
 
         def objective(z):
             return sum(jnp.sum(apply(t, t.fn, z)) for t in costs)

@@ -410,28 +410,34 @@ class _TrajectoryProgram:
         return {}
 
 
-def _knots_then_midpoint(evaluate, w0, w1, t, h, n):
-    r"""`evaluate(times, W) -> (F, ...)` (F: f at the rows of W, then anything else) at a
-    segment's knots $w_j = (x_j, u_j)$, then at its midpoint $w_c = (x_c, u_c)$,
-    $x_c = \tfrac12(x_0 + x_1) + \tfrac h8 (f_0 - f_1)$, $u_c = \tfrac12(u_0 + u_1)$, which
-    needs the knots' f first. A two-step loop, so the traced program holds ONE copy of
-    `evaluate` (the vector field, or its derivatives) instead of two, at half the compile time;
-    the second step evaluates the midpoint twice (a loop step's shapes are fixed). Returns the
-    knots' outputs (leading axis 2), the midpoint's, and w_c."""
-    def step(points, _):
-        times, W = points
-        out = evaluate(times, W)
-        xc = (W[0, :n] + W[1, :n]) / 2 + h / 8 * (out[0][0] - out[0][1])
-        wc = jnp.concatenate([xc, (W[0, n:] + W[1, n:]) / 2])
-        return (jnp.full(2, t + h / 2, W.dtype), jnp.stack([wc, wc])), (out, wc)
+def _knots_then_midpoints(evaluate, V, t0, h, n):
+    r"""`evaluate(times, W) -> (F, ...)` (F: f at the rows of W, then anything else) at the knots
+    of K consecutive segments (rows of V = [w_k; w_{k+1}], $w = (x, u)$, starting at times
+    t0), each knot once (segment k's end is segment k+1's start), then at the midpoints
+    $w_c = (x_c, u_c)$, $x_c = \tfrac12(x_k + x_{k+1}) + \tfrac h8 (f_k - f_{k+1})$,
+    $u_c = \tfrac12(u_k + u_{k+1})$, which need the knots' f first. A two-step loop, so the
+    traced program holds ONE copy of `evaluate` (the vector field or its derivatives), at half
+    the compile time of two; K + 1 evaluations per step (the midpoints' step repeats its last).
+    Returns the knots' outputs (K + 1 rows), the midpoints' (K rows) and W_c."""
+    L = V.shape[1] // 2
 
-    start = (jnp.stack([t, t + h]).astype(w0.dtype), jnp.stack([w0, w1]))
-    _, (out, wc) = jax.lax.scan(step, start, length=2)
-    return jax.tree.map(lambda a: a[0], out), jax.tree.map(lambda a: a[1][0], out), wc[0]
+    def step(points, _):
+        t, W = points
+        out = evaluate(t, W)
+        F = out[0]
+        Wc = jnp.concatenate([(W[:-1, :n] + W[1:, :n]) / 2 + h / 8 * (F[:-1] - F[1:]),
+                              (W[:-1, n:] + W[1:, n:]) / 2], axis=1)
+        tc = t[:-1] + h / 2
+        return (jnp.concatenate([tc, tc[-1:]]), jnp.concatenate([Wc, Wc[-1:]])), (out, Wc)
+
+    t0 = jnp.asarray(t0, V.dtype)
+    start = (jnp.concatenate([t0, t0[-1:] + h]), jnp.concatenate([V[:, :L], V[-1:, L:2 * L]]))
+    _, (out, Wc) = jax.lax.scan(step, start, length=2)
+    return jax.tree.map(lambda a: a[0], out), jax.tree.map(lambda a: a[1][:-1], out), Wc[0]
 
 
 def _dynamics_at(system, n):
-    """(times, W) -> (f at each row of W,): the `evaluate` of `_knots_then_midpoint`."""
+    """(times, W) -> (f at each row of W,): the `evaluate` of `_knots_then_midpoints`."""
     return lambda times, W: (jax.vmap(system.dynamics)(times, W[:, :n], W[:, n:]),)
 
 
@@ -443,20 +449,23 @@ def _reads_state(fn, n, m) -> bool:
     return x in closed.jaxpr.outvars or any(x in eqn.invars for eqn in closed.jaxpr.eqns)
 
 
-def _hermite_simpson_derivatives(system, n, m, h):
-    r"""The Jacobian and the Lagrangian Hessian of the Hermite-Simpson defect
+def _hermite_simpson_batched(system, n, m, h):
+    r"""The Hermite-Simpson defects of all N - 1 segments at once (a batched `Term`: every knot's
+    vector field evaluated once, not once per segment touching it), with their Jacobian and
+    Lagrangian Hessian blocks by the chain rule around ONE traced copy of f's derivatives:
     $c = x_1 - x_0 - \tfrac h6 (f_0 + 4 f_c + f_1)$, $x_c = \tfrac12(x_0 + x_1) + \tfrac h8 (f_0 - f_1)$,
-    $u_c = \tfrac12 (u_0 + u_1)$, over v = [w_0; w_1], $w_j = (x_j, u_j)$, by the chain rule
-    around ONE traced copy of f's derivatives (the Jacobian: at the knots then the midpoint by
-    `_knots_then_midpoint`; the Hessian: f's tensors at the three points in one vmapped call).
-    Autodiff of the defect itself traces f's derivatives twice, the knots' and the midpoint's,
-    and costs twice the compile:
+    $u_c = \tfrac12 (u_0 + u_1)$, over v = [w_0; w_1], $w_j = (x_j, u_j)$:
     $\partial c = [-I\,0\,I\,0] - \tfrac h6 (J_0 P_0 + J_1 P_1 + 4 J_c\, \partial w_c)$,
     $\nabla^2 (\lambda\cdot c) = -\tfrac h6 \big(P_0^T \nabla^2(\mu_0\cdot f)(w_0) P_0
     + P_1^T \nabla^2(\mu_1\cdot f)(w_1) P_1 + 4\, \partial w_c^T \nabla^2(\lambda\cdot f)(w_c)\, \partial w_c\big)$
-    with $g = (\partial f/\partial x)(w_c)^T \lambda$, $\mu_{0,1} = \lambda \pm \tfrac h2 g$."""
+    with $g = (\partial f/\partial x)(w_c)^T \lambda$, $\mu_{0,1} = \lambda \pm \tfrac h2 g$.
+    (Autodiff of a per-segment defect traces f's derivatives for the knots and again for the
+    midpoint, and evaluates every inner knot twice.)"""
     L = n + m
     eye_n, eye_m = np.eye(n), np.eye(m)
+    plain = np.concatenate([-eye_n, np.zeros((n, m)), eye_n, np.zeros((n, m))], axis=1)
+    average = np.concatenate([np.concatenate([eye_n, np.zeros((n, m)), eye_n, np.zeros((n, m))], axis=1),
+                              np.concatenate([np.zeros((m, n)), eye_m, np.zeros((m, n)), eye_m], axis=1)]) / 2
 
     def f(t, w):
         return system.dynamics(t, w[:n], w[n:])
@@ -470,29 +479,30 @@ def _hermite_simpson_derivatives(system, n, m, h):
                                    has_aux=True)(w)
         return value, J, T
 
-    def midpoint_jacobian(J0, J1):  # d w_c / d v, (L, 2L)
-        dx = np.concatenate([eye_n, np.zeros((n, m)), eye_n, np.zeros((n, m))], axis=1) / 2 + \
-            h / 8 * jnp.concatenate([J0, -J1], axis=1)
-        du = np.concatenate([np.zeros((m, n)), eye_m, np.zeros((m, n)), eye_m], axis=1) / 2
-        return jnp.concatenate([dx, du])
+    def midpoint_jacobians(J):  # d w_c / d v per segment, (K, L, 2L), from the knots' (K + 1, n, L)
+        dx = h / 8 * jnp.concatenate([J[:-1], -J[1:]], axis=2)
+        return average + jnp.concatenate([dx, jnp.zeros((dx.shape[0], m, 2 * L), dx.dtype)], axis=1)
 
-    def jacobian(v, k):
-        (_, J), (_, Jc), _ = _knots_then_midpoint(jax.vmap(value_and_jacobian), v[:L], v[L:2 * L], k * h, h, n)
-        plain = np.concatenate([-eye_n, np.zeros((n, m)), eye_n, np.zeros((n, m))], axis=1)
-        return plain - h / 6 * (jnp.concatenate([J[0], J[1]], axis=1) + 4 * Jc @ midpoint_jacobian(J[0], J[1]))
+    def defects(V, ks):
+        (F,), (Fc,), _ = _knots_then_midpoints(_dynamics_at(system, n), V, ks * h, h, n)
+        return V[:, L:L + n] - V[:, :n] - h / 6 * (F[:-1] + 4 * Fc + F[1:])
 
-    def hessian(v, k, lam):  # the tensors dominate: all three points in one vmapped call
-        w0, w1, t0 = v[:L], v[L:2 * L], k * h
-        _, _, wc = _knots_then_midpoint(_dynamics_at(system, n), w0, w1, t0, h, n)
-        _, J, T = jax.vmap(value_jacobian_tensor)(jnp.stack([t0, t0 + h, t0 + h / 2]), jnp.stack([w0, w1, wc]))
-        Dc = midpoint_jacobian(J[0], J[1])
-        g = J[2][:, :n].T @ lam
-        H0 = jnp.einsum("i,ijk->jk", lam + h / 2 * g, T[0])
-        H1 = jnp.einsum("i,ijk->jk", lam - h / 2 * g, T[1])
-        knots = jnp.block([[H0, jnp.zeros((L, L))], [jnp.zeros((L, L)), H1]])
-        return -h / 6 * (knots + 4 * Dc.T @ jnp.einsum("i,ijk->jk", lam, T[2]) @ Dc)
+    def jacobian(V, ks):
+        (_, J), (_, Jc), _ = _knots_then_midpoints(jax.vmap(value_and_jacobian), V, ks * h, h, n)
+        return plain - h / 6 * (jnp.concatenate([J[:-1], J[1:]], axis=2) + 4 * Jc @ midpoint_jacobians(J))
 
-    return {"jacobian": jacobian, "hessian": hessian}
+    def hessian(V, ks, lam):
+        (_, J, T), (_, Jc, Tc), _ = _knots_then_midpoints(jax.vmap(value_jacobian_tensor), V, ks * h, h, n)
+        Dc = midpoint_jacobians(J)
+        g = jnp.einsum("kij,ki->kj", Jc[:, :, :n], lam)
+        H0 = jnp.einsum("ki,kijl->kjl", lam + h / 2 * g, T[:-1])
+        H1 = jnp.einsum("ki,kijl->kjl", lam - h / 2 * g, T[1:])
+        zero = jnp.zeros_like(H0)
+        knots = jnp.concatenate([jnp.concatenate([H0, zero], 2), jnp.concatenate([zero, H1], 2)], 1)
+        middle = jnp.einsum("kai,kab,kbj->kij", Dc, jnp.einsum("ki,kijl->kjl", lam, Tc), Dc)
+        return -h / 6 * (knots + 4 * middle)
+
+    return {"fn": defects, "jacobian": jacobian, "hessian": hessian, "batched": True}
 
 
 class DirectCollocation(_TrajectoryProgram):
@@ -519,15 +529,16 @@ class DirectCollocation(_TrajectoryProgram):
                          parameter_bounds=parameter_bounds)
 
     def _defect(self, t, x0, u0, x1, u1, h, system):
-        (F,), (fc,), _ = _knots_then_midpoint(_dynamics_at(system, self.num_states), jnp.concatenate([x0, u0]),
-                                              jnp.concatenate([x1, u1]), t, h, self.num_states)
-        return x1 - x0 - h / 6 * (F[0] + 4 * fc + F[1])
+        (F,), (fc,), _ = _knots_then_midpoints(_dynamics_at(system, self.num_states),
+                                               jnp.concatenate([x0, u0, x1, u1])[None], jnp.atleast_1d(t), h,
+                                               self.num_states)
+        return x1 - x0 - h / 6 * (F[0] + 4 * fc[0] + F[1])
 
     def _defect_derivatives(self):
         if self.num_globals:  # a free duration or free parameters: autodiff of the defect
             return {}
-        return _hermite_simpson_derivatives(self.system, self.num_states, self.num_inputs,
-                                            self._duration_bounds[0] / (self.num_time_samples - 1))
+        return _hermite_simpson_batched(self.system, self.num_states, self.num_inputs,
+                                        self._duration_bounds[0] / (self.num_time_samples - 1))
 
     def _running_cost_term(self, fn):
         reads_state = _reads_state(fn, self.num_states, self.num_inputs)
@@ -535,9 +546,9 @@ class DirectCollocation(_TrajectoryProgram):
         def simpson(t, x0, u0, x1, u1, h, system):
             n = self.num_states
             if reads_state:
-                _, _, wc = _knots_then_midpoint(_dynamics_at(system, n), jnp.concatenate([x0, u0]),
-                                                jnp.concatenate([x1, u1]), t, h, n)
-                xc, uc = wc[:n], wc[n:]
+                _, _, Wc = _knots_then_midpoints(_dynamics_at(system, n), jnp.concatenate([x0, u0, x1, u1])[None],
+                                                 jnp.atleast_1d(t), h, n)
+                xc, uc = Wc[0, :n], Wc[0, n:]
             else:  # the midpoint state costs dynamics evaluations, and fn ignores it
                 xc, uc = (x0 + x1) / 2, (u0 + u1) / 2
             return h / 6 * (fn(t, x0, u0) + 4 * fn(t + h / 2, xc, uc) + fn(t + h, x1, u1))
