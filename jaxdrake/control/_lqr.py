@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._numbers import array_module, device_array
 from ..systems import LinearSystem, System
 from ..systems._system import require_plain_system
 from ._riccati import solve_continuous_are, solve_discrete_are
@@ -46,9 +47,9 @@ def linearize(system: System, x0, u0=None, *, t=0.0, check_equilibrium: bool = T
     x0 = jnp.asarray(x0, dtype=float).reshape(system.num_states)
     u0 = jnp.zeros(system.num_inputs) if u0 is None else jnp.asarray(u0, dtype=float).reshape(system.num_inputs)
     discrete = system.has_discrete_state
-    residual, A, B, C, D = _linearization(system, jnp.asarray(t, float), x0, u0)
+    residual, A, B, C, D = _linearization(system, device_array(t, float), x0, u0)
     if check_equilibrium and not isinstance(residual, jax.core.Tracer):
-        worst = float(jnp.max(jnp.abs(residual))) if residual.size else 0.0
+        worst = float(np.max(np.abs(np.asarray(residual)))) if residual.size else 0.0
         if worst > tolerance:
             raise ValueError(f"linearize: ({x0}, {u0}) is not an equilibrium of {system.name}: "
                              f"the {'update moves x by' if discrete else 'derivative is'} up to {worst:.3g} "
@@ -110,7 +111,7 @@ def lqr(system: System, Q, R, x0=None, u0=None, *, N=None, check_equilibrium: bo
     n, m = system.num_states, system.num_inputs
     x0 = jnp.zeros(n) if x0 is None else jnp.asarray(x0, float).reshape(n)
     u0 = jnp.zeros(m) if u0 is None else jnp.asarray(u0, float).reshape(m)
-    Q, R = jnp.atleast_2d(jnp.asarray(Q, float)), jnp.atleast_2d(jnp.asarray(R, float))
+    Q, R = (array_module(M).atleast_2d(array_module(M).asarray(M, float)) for M in (Q, R))  # numbers stay numpy
     for label, M, size in (("Q", Q, n), ("R", R, m)):
         if M.shape != (size, size):
             raise ValueError(f"lqr: {label} must be ({size}, {size}) for {system.name}, got {M.shape}")

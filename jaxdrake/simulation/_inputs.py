@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._numbers import device_array
 from ..trajectories import Trajectory
 from ._result import SimulatedTrajectory
 
@@ -114,7 +115,7 @@ def leaves_to_arrays(tree, dtype):
     changing a parameter's value does not recompile."""
     def convert(v):
         if isinstance(v, float) or (isinstance(v, np.ndarray) and np.issubdtype(v.dtype, np.floating)):
-            return jnp.asarray(v, dtype)
+            return device_array(v, dtype)
         if isinstance(v, jax.Array) and jnp.issubdtype(v.dtype, jnp.floating):
             return v.astype(dtype)
         return v

@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._numbers import device_array
 from ..systems import Diagram, HybridSystem, System
 from ..systems._system import check_initialised
 from ._controller import ConstantStepSize, IController
@@ -79,7 +80,7 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     dtype = jnp.result_type(float)
     if x0 is None:
         x0 = system.initial_state()
-    x0 = jnp.asarray(x0)
+    x0 = device_array(x0)
     dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else dtype
     x0 = x0.astype(dtype)
     nx = system.num_states
@@ -96,7 +97,7 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
                          f"{system.state_frame} needs shape ({nx},)")
     if _concrete(t0, tf) and not (np.isfinite(float(t0)) and np.isfinite(float(tf)) and float(tf) > float(t0)):
         raise ValueError(f"tspan must be finite with t0 < tf, got ({float(t0)}, {float(tf)})")
-    t0, tf = jnp.asarray(t0, dtype), jnp.asarray(tf, dtype)
+    t0, tf = device_array(t0, dtype), device_array(tf, dtype)
     if _concrete(x0) and not np.all(np.isfinite(x0)):
         raise ValueError(f"x0 is not finite: {x0}")
     source = make_source(system, inputs, t0, dtype)
