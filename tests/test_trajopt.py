@@ -318,3 +318,19 @@ def test_hermite_simpson_structured_derivatives_equal_autodiff_of_the_defect(mod
         check = nlp.check_derivatives(z)
         assert check["jacobian_error"] < 1e-6 * check["jacobian_scale"] and check["outside_pattern"] == 0
         assert check["hessian_error"] < 1e-5 * check["hessian_scale"]
+
+
+def test_a_float32_session_simulates_the_optimized_inputs():
+    """The programs run in float64 inside a float32 session; the result comes back in the
+    session's precision and the plant keeps working outside them (regression: the rigid-body
+    index arrays, converted as int64 inside the float64 programs, broke the float32 dynamics,
+    and the result's trajectories were float64 arrays that a float32 simulation refused)."""
+    with jax.enable_x64(False):
+        plant = jd.models.CartPole()
+        prog = trajopt.DirectCollocation(plant, 21, duration=3.0).add_input_bounds(-50, 50)
+        prog.set_initial_state([0, 0, 0, 0]).set_final_state([0, np.pi, 0, 0])
+        result = prog.add_running_cost(lambda t, x, u: u @ u).solve(hessian="limited-memory")
+        assert result.success and result.inputs.coefficients.dtype == jnp.float32
+        simulated = jd.simulate(plant, (0.0, 0.3), np.zeros(4), inputs=result.inputs)
+        assert simulated.success and simulated.final_state.dtype == jnp.float32
+        np.testing.assert_allclose(simulated.final_state, result.states(0.3), atol=0.05)

@@ -224,6 +224,13 @@ class TreeLayout:
         flat = np.full(n, -1, int)
         flat[self.slots[self.valid]] = np.nonzero(self.valid.ravel())[0]
         self.unslot = flat[self.levels[self.first_scanned].start:] if scanned else np.zeros(0, int)
+        # int32 index arrays: indexing a JAX array with an int64 numpy array inside
+        # `jax.enable_x64(True)` (trajectory optimization's programs) leaves jax 0.10's index
+        # conversion cached as int64, and the same indexing outside x64 then fails
+        for name, value in vars(self).items():
+            if isinstance(value, np.ndarray) and value.dtype.kind == "i":
+                setattr(self, name, value.astype(np.int32))
+        self.parent_in_level = tuple(None if x is None else x.astype(np.int32) for x in self.parent_in_level)
 
 
 @functools.lru_cache(maxsize=256)

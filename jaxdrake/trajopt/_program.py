@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._numbers import device_array
 from ..simulation import FIXED_STEP_RULES, discrete_step, simulate
 from ..systems import System
 from ..systems._system import require_plain_system
@@ -394,6 +395,9 @@ class _TrajectoryProgram:
         defects = self.nlp.constraint_values(z)[: (N - 1) * n]  # the dynamics term comes first
         with jax.enable_x64(True):
             states, inputs = self._reconstruct(times, X, U, g)
+        # in the session's own precision (float32 unless x64 is on): arrays made under the x64
+        # context would not mix with the user's (a simulation with the inputs as its tape)
+        states, inputs = jax.tree.map(lambda a: device_array(np.asarray(a)), (states, inputs))
         return TrajectoryOptimizationResult(
             states=states, inputs=inputs, times=times, knot_states=X, knot_inputs=U, duration=T,
             parameters=p, max_defect=float(np.max(np.abs(defects))), solver=result)
