@@ -163,7 +163,7 @@ def test_searching_for_the_region_of_attraction_enlarges_it(capsys):
     assert len(inside) > 100 and np.abs(np.asarray(final)).max() < 1e-3
 
 
-@pytest.mark.parametrize("solver, dense_columns", [("CLARABEL", 256), ("SCS", 256), ("CLARABEL", 0), ("SCS", 0)])
+@pytest.mark.parametrize("solver, dense_columns", [("CLARABEL", 1024), ("SCS", 1024), ("CLARABEL", 0), ("SCS", 0)])
 def test_conic_program_solves_an_lmi_and_an_lp_to_their_closed_forms(solver, dense_columns, monkeypatch):
     """min t s.t. [[t, 1], [1, t]] PSD is t = 1; max x + y on x, y >= 0, x + 2y <= 4, 3x + y <= 6
     is the vertex (8/5, 6/5), value 14/5. The PSD block goes through each solver's own

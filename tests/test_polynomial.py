@@ -153,7 +153,7 @@ def test_float32_polynomial_system_and_conversion_run():
         np.testing.assert_allclose(xdot[2], -19.62 * 0.1 - 0.4 * 0.3, rtol=1e-5)
 
 
-@pytest.mark.parametrize("dense_columns", [256, 0, 2])
+@pytest.mark.parametrize("dense_columns", [1024, 0, 2])
 def test_affine_expressions_evaluate_like_the_numbers_they_stand_for(dense_columns, monkeypatch):
     """Arithmetic on decision expressions (scalars broadcast against vectors, numbers on either
     side, indexing, matrix maps) gives, at any value of the decision vector, what the same

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse
 
-DENSE_COLUMNS = 256
+DENSE_COLUMNS = 1024
 
 
 def _matrix(A, size: int):
