@@ -111,7 +111,7 @@ def lqr(system: System, Q, R, x0=None, u0=None, *, N=None, check_equilibrium: bo
     n, m = system.num_states, system.num_inputs
     x0 = jnp.zeros(n) if x0 is None else jnp.asarray(x0, float).reshape(n)
     u0 = jnp.zeros(m) if u0 is None else jnp.asarray(u0, float).reshape(m)
-    Q, R = (array_module(M).atleast_2d(array_module(M).asarray(M, float)) for M in (Q, R))  # numbers stay numpy
+    Q, R = (array_module(M).atleast_2d(M).astype(float) for M in (Q, R))  # numbers stay numpy: nothing compiled
     for label, M, size in (("Q", Q, n), ("R", R, m)):
         if M.shape != (size, size):
             raise ValueError(f"lqr: {label} must be ({size}, {size}) for {system.name}, got {M.shape}")
