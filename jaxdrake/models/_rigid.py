@@ -51,7 +51,7 @@ def CartPole(mc=10.0, mp=1.0, l=0.5, g=9.81) -> RigidBodySystem:
     values = (xp.stack([mc, mp]) * 1.0, xp.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0]]) * l,
               xp.array([0.0, 0.0, -1.0]) * g, _hand_frame(xp, tree, "pole_tip", l))
     tree = eqx.tree_at(lambda t: (t.mass, t.com, t.gravity, t.frame_translation), tree,
-                       tuple(map(jnp.asarray, values)))
+                       tuple(map(device_array, values)))
     return eqx.tree_at(lambda p: p.tree, plant, tree)
 
 

@@ -43,9 +43,11 @@ class DecisionSpace:
             raise ValueError(f"decision variables are scalars or vectors, got shape {shape}")
         count = shape[0] if shape else 1
         start, self.size = self.size, self.size + count
-        A = scipy.sparse.csr_matrix((np.ones(count), (np.arange(count), start + np.arange(count))),
-                                    shape=(count, self.size)) if self.size > DENSE_COLUMNS else \
-            np.eye(count, self.size, start)
+        if self.size <= DENSE_COLUMNS:
+            A = np.eye(count, self.size, start)
+        else:
+            A = scipy.sparse.csr_matrix((np.ones(count), (np.arange(count), start + np.arange(count))),
+                                        shape=(count, self.size))
         return AffineExpression(self, A, np.zeros(count), scalar=not shape)
 
 
