@@ -41,15 +41,3 @@ def quaternion_matrix(quat):
         jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)]),
         jnp.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)]),
         jnp.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)])])
-
-
-def motion_cross(v, m):
-    """v x m for motion vectors (..., 6)."""
-    w, u = v[..., :3], v[..., 3:]
-    return jnp.concatenate([jnp.cross(w, m[..., :3]), jnp.cross(u, m[..., :3]) + jnp.cross(w, m[..., 3:])], -1)
-
-
-def force_cross(v, f):
-    """v x* f for a motion vector v and a force f (..., 6)."""
-    w, u = v[..., :3], v[..., 3:]
-    return jnp.concatenate([jnp.cross(w, f[..., :3]) + jnp.cross(u, f[..., 3:]), jnp.cross(w, f[..., 3:])], -1)
