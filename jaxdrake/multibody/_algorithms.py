@@ -401,7 +401,9 @@ def _lane_batched(algorithm, **static):
     def one(tree, *arrays):
         return _in_one_lane(algorithm, tree, *arrays, **static)
 
-    batched = jax.custom_batching.custom_vmap(one)
+    # jitted, so that its constants stay inside its own program: a custom_vmap with constants
+    # fails under the vmap of a `lax.switch` with a batched index (JAX batches them)
+    batched = jax.custom_batching.custom_vmap(jax.jit(one))
 
     @batched.def_vmap
     def in_lanes(axis_size, in_batched, tree, *arrays):
