@@ -384,6 +384,16 @@ def _aba(tree: KinematicTree, q, v, tau, *, gravity: bool, unroll):
 # ----- the public functions: one evaluation, or a vmapped batch in lanes ------------------------
 
 
+def _into_lanes(a, accelerator: bool):
+    """A batch (B, n) as lanes (n, B). On an accelerator through a product with the identity
+    (exact: "highest" precision; a non-finite entry spreads only within its own member): a
+    plain transpose becomes a layout change there, and every consumer then reads the batch
+    with its stride (the 7-dof ABA: 97M -> 112M evaluations/s at 10^6 on an H100)."""
+    if not accelerator:
+        return jnp.moveaxis(a, 0, -1)
+    return jnp.einsum("bn,nm->mb", a, jnp.eye(a.shape[1], dtype=a.dtype), precision="highest")
+
+
 def _in_one_lane(algorithm, tree, *arrays, **static):
     """`algorithm` (on lanes) evaluated for one evaluation's arrays, as one lane."""
     return algorithm(tree, *(a[..., None] for a in arrays), unroll=_UNROLLED_DEPTHS, **static)[..., 0]
@@ -412,12 +422,10 @@ def _lane_batched(algorithm, **static):
             axes = (jax.tree.map(lambda b: 0 if b else None, tree_batched),) + tuple(
                 0 if b else None for b in arrays_batched)
             return jax.vmap(one, in_axes=axes)(tree, *arrays), True
-        lanes = [jnp.moveaxis(a, 0, -1) if b else jnp.broadcast_to(a[..., None], a.shape + (axis_size,))
+        accelerator = jax.default_backend() != "cpu"
+        lanes = [_into_lanes(a, accelerator) if b else jnp.broadcast_to(a[..., None], a.shape + (axis_size,))
                  for a, b in zip(arrays, arrays_batched)]
-        # transposed once, in a kernel of their own: fused into their consumers, the strided
-        # reads of the (batch, n) inputs cost a GPU 1.2 ms of the 7-dof ABA's 10 at 10^6
-        lanes = jax.lax.optimization_barrier(lanes)
-        unroll = _UNROLLED_DEPTHS if jax.default_backend() == "cpu" else _UNROLLED_DEPTHS_ACCELERATOR
+        unroll = _UNROLLED_DEPTHS_ACCELERATOR if accelerator else _UNROLLED_DEPTHS
         return jnp.moveaxis(algorithm(tree, *lanes, unroll=unroll, **static), -1, 0), True
 
     public = jax.custom_jvp(batched)
