@@ -100,9 +100,9 @@ def _lane(x):
 
 def _rotation_about(axis, angle):
     """Rodrigues' formula: rotations by `angle[k]` (k, B) about the unit `axis[k]` (k, 3)."""
-    K = _lane(skew(axis))
+    K = skew(axis)
     s, c = jnp.sin(angle)[:, None, None, :], jnp.cos(angle)[:, None, None, :]
-    return _lane(jnp.eye(3, dtype=K.dtype)) + s * K + (1 - c) * _lane(skew(axis) @ skew(axis))
+    return _lane(jnp.eye(3, dtype=K.dtype)) + s * _lane(K) + (1 - c) * _lane(K @ K)
 
 
 def _kinematics(tree: KinematicTree, q, unroll):
