@@ -244,7 +244,9 @@ def test_state_viewer_draws_the_newest_state_at_its_rate():
     publisher.join()
     times, walls = (np.array([d[i] for d in drawn]) for i in (0, 2))
     assert stats.received > 300 and 6 <= stats.drawn <= 0.9 * 20 + 1 and stats.drawn == len(drawn)
-    assert np.all(np.diff(walls) >= 0.05)  # at most 20 draws per second
+    # at most 20 draws per second: the viewer spaces its draws' starts by 1/20 s by its own clock;
+    # `show` stamps them a few microseconds later, by an amount that varies from draw to draw
+    assert np.all(np.diff(walls) >= 0.05 - 1e-3)
     stamps, published = np.array(sent).T
     for t, wall in zip(times, walls):  # each draw shows the newest state published 10 ms before it, not a backlog
         assert t >= stamps[published < wall - 0.01].max(initial=0.0)

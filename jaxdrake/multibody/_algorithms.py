@@ -289,10 +289,13 @@ def _velocities(tree, q, v, unroll):
     return R, p, S1, S0, joint, _ancestor_sum(L, joint)
 
 
-def _rnea(tree: KinematicTree, q, v, a, *, gravity: bool, unroll):
+def _rnea(tree: KinematicTree, q, v, a=None, *, gravity: bool, unroll):
+    """Inverse dynamics on lanes; `a` None: zero acceleration (the bias forces)."""
     L = tree.layout
     R, p, S1, S0, joint, V = _velocities(tree, q, v, unroll)
-    joint_acc = _joint_velocity(L, S1, S0, a) + _motion_cross(V, joint)
+    joint_acc = _motion_cross(V, joint)
+    if a is not None:
+        joint_acc = joint_acc + _joint_velocity(L, S1, S0, a)
     A = _ancestor_sum(L, joint_acc) + _base_acceleration(tree, q.dtype, gravity)
     inertia = _world_inertias(tree, R, p)
     F = _subtree_sum(L, _apply_inertia(inertia, A) + _force_cross(V, _apply_inertia(inertia, V)))
@@ -463,13 +466,15 @@ def mass_matrix(tree: KinematicTree, q):
 
 
 def bias_forces(tree: KinematicTree, q, v, *, gravity: bool = True):
-    """C(q, v) v + G(q) (gravity=False: C(q, v) v alone)."""
-    return rnea(tree, q, v, jnp.zeros_like(v), gravity=gravity)
+    """C(q, v) v + G(q) (gravity=False: C(q, v) v alone): inverse dynamics at zero acceleration
+    (none passed: a constant zero, broadcast into a large GPU batch's lanes, had XLA spend a
+    second folding it at compile time)."""
+    return _lane_batched(_rnea, gravity=gravity)(tree, q, v)
 
 
 def gravity_forces(tree: KinematicTree, q):
     """G(q): the generalized gravity term, on the left of H qdd + C qd + G = tau."""
-    return rnea(tree, q, jnp.zeros(tree.nv, q.dtype), jnp.zeros(tree.nv, q.dtype))
+    return bias_forces(tree, q, jnp.zeros(tree.nv, q.dtype))
 
 
 def aba(tree: KinematicTree, q, v, tau, *, gravity: bool = True):
