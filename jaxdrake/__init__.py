@@ -1,6 +1,6 @@
 """jaxdrake: Drake's ideas for modelling, simulating and controlling dynamical systems, in JAX."""
 
-from ._xla import prefer_fast_cpu_compilation
+from ._xla import prefer_fast_cpu_compilation, use_compilation_cache
 
 prefer_fast_cpu_compilation()
 
@@ -20,5 +20,6 @@ __version__ = "0.1.0"
 __all__ = ["Diagram", "DiagramBuilder", "Frame", "HybridSystem", "LinearSystem", "SimulationError",
            "CouplerConstraint", "LoopConstraint", "MujocoSystem", "Polynomial", "PolynomialSystem", "RigidBodySystem", "SimulatedTrajectory", "SimulationStatus", "StochasticSystem", "System", "Trajectory", "TrajectorySource", "Transition",
            "add_frame_conversion", "analysis", "and_guards", "cascade", "control", "feedback", "linearize", "models", "multibody", "not_guard",
-           "parallel", "planning", "run_batch", "simulate", "simulation", "systems", "trajectories", "viz"]
+           "parallel", "planning", "run_batch", "simulate", "simulation", "systems", "trajectories",
+           "use_compilation_cache", "viz"]
 

@@ -147,3 +147,33 @@ def test_lqr_linearize_and_tvlqr_called_outside_jit_trace_the_plant_once():
     after_tvlqr = counter.traces
     jd.control.finite_horizon_lqr(plant, 2 * jnp.eye(2), jnp.eye(1), (0.0, 1.0), Qf=jnp.eye(2))
     assert counter.traces == after_tvlqr
+
+
+CACHED_RUN = """
+import sys, jax, jax.numpy as jnp
+import jaxdrake as jd
+hits = []
+jax.monitoring.register_event_listener(lambda event, **kw: hits.append(event) if event.endswith("cache_hits") else None)
+print(jd.use_compilation_cache(sys.argv[1]))
+final = jd.simulate(jd.models.Pendulum(), (0.0, 1.0), jnp.array([1.0, 0.0]), dense=False).final_state
+print(len(hits), float(final[0]))
+"""
+
+
+def test_a_new_process_loads_the_programs_of_the_last_one_from_the_compilation_cache(tmp_path):
+    """`use_compilation_cache`: the first process compiles and stores its programs, a second one
+    (same program) loads them (JAX's own cache-hit events), with the same result."""
+    import subprocess
+    import sys
+
+    def run():
+        done = subprocess.run([sys.executable, "-c", CACHED_RUN, str(tmp_path / "xla")], capture_output=True,
+                              text=True, timeout=300)
+        assert done.returncode == 0, done.stderr[-2000:]
+        lines = done.stdout.split("\n")
+        return lines[0], int(lines[1].split()[0]), float(lines[1].split()[1])
+
+    directory, hits_first, x_first = run()
+    assert directory == str(tmp_path / "xla") and any((tmp_path / "xla").iterdir())
+    _, hits_second, x_second = run()
+    assert hits_first == 0 and hits_second >= 1 and x_second == x_first
