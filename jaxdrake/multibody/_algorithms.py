@@ -289,17 +289,25 @@ def _velocities(tree, q, v, unroll):
     return R, p, S1, S0, joint, _ancestor_sum(L, joint)
 
 
-def _rnea(tree: KinematicTree, q, v, a=None, *, gravity: bool, unroll):
-    """Inverse dynamics on lanes; `a` None: zero acceleration (the bias forces)."""
+def _rnea(tree: KinematicTree, q, v=None, a=None, *, gravity: bool, unroll):
+    """Inverse dynamics on lanes; v or a None: zero, and its terms skipped (the bias forces pass
+    no a, gravity alone neither: a constant zero, broadcast into a large GPU batch's lanes, had
+    XLA spend a second folding it at compile time)."""
     L = tree.layout
-    R, p, S1, S0, joint, V = _velocities(tree, q, v, unroll)
-    joint_acc = _motion_cross(V, joint)
-    if a is not None:
-        joint_acc = joint_acc + _joint_velocity(L, S1, S0, a)
-    A = _ancestor_sum(L, joint_acc) + _base_acceleration(tree, q.dtype, gravity)
+    R, p, S1, S0 = _kinematics(tree, q, unroll)
     inertia = _world_inertias(tree, R, p)
-    F = _subtree_sum(L, _apply_inertia(inertia, A) + _force_cross(V, _apply_inertia(inertia, V)))
-    return _project_forces(L, S1, S0, F)
+    A = _base_acceleration(tree, q.dtype, gravity)
+    joint_acc = 0.0 if a is None else _joint_velocity(L, S1, S0, a)
+    if v is not None:
+        joint = _joint_velocity(L, S1, S0, v)
+        V = _ancestor_sum(L, joint)
+        joint_acc = joint_acc + _motion_cross(V, joint)
+    if v is not None or a is not None:
+        A = A + _ancestor_sum(L, joint_acc)
+    F = _apply_inertia(inertia, A)
+    if v is not None:
+        F = F + _force_cross(V, _apply_inertia(inertia, V))
+    return _project_forces(L, S1, S0, _subtree_sum(L, F))
 
 
 def _project_forces(L, S1, S0, F):
@@ -466,15 +474,13 @@ def mass_matrix(tree: KinematicTree, q):
 
 
 def bias_forces(tree: KinematicTree, q, v, *, gravity: bool = True):
-    """C(q, v) v + G(q) (gravity=False: C(q, v) v alone): inverse dynamics at zero acceleration
-    (none passed: a constant zero, broadcast into a large GPU batch's lanes, had XLA spend a
-    second folding it at compile time)."""
+    """C(q, v) v + G(q) (gravity=False: C(q, v) v alone): inverse dynamics at zero acceleration."""
     return _lane_batched(_rnea, gravity=gravity)(tree, q, v)
 
 
 def gravity_forces(tree: KinematicTree, q):
     """G(q): the generalized gravity term, on the left of H qdd + C qd + G = tau."""
-    return bias_forces(tree, q, jnp.zeros(tree.nv, q.dtype))
+    return _lane_batched(_rnea, gravity=True)(tree, q)
 
 
 def aba(tree: KinematicTree, q, v, tau, *, gravity: bool = True):
