@@ -105,7 +105,7 @@ def _rotation_about(axis, angle):
     return _lane(jnp.eye(3, dtype=K.dtype)) + s * _lane(K) + (1 - c) * _lane(K @ K)
 
 
-def _kinematics(tree: KinematicTree, q, unroll):
+def _kinematics(tree: KinematicTree, q, *, unroll):
     """World rotations R (n, 3, 3, B) and positions p (n, 3, B) of the body frames relative to
     O, in level order, and the motion subspaces: S1 (m, 6, B), one column per one-dof body, and
     the floating base's 6x6 S0 (None without one), columns [v_lin; omega] in its frame."""
@@ -282,8 +282,8 @@ def _from_level_order(L, x):
 # ----- the algorithms, on lanes ---------------------------------------------------------------
 
 
-def _velocities(tree, q, v, unroll):
-    R, p, S1, S0 = _kinematics(tree, q, unroll)
+def _velocities(tree, q, v, *, unroll):
+    R, p, S1, S0 = _kinematics(tree, q, unroll=unroll)
     L = tree.layout
     joint = _joint_velocity(L, S1, S0, v)
     return R, p, S1, S0, joint, _ancestor_sum(L, joint)
@@ -294,13 +294,14 @@ def _rnea(tree: KinematicTree, q, v=None, a=None, *, gravity: bool, unroll):
     no a, gravity alone neither: a constant zero, broadcast into a large GPU batch's lanes, had
     XLA spend a second folding it at compile time)."""
     L = tree.layout
-    R, p, S1, S0 = _kinematics(tree, q, unroll)
+    if v is None:
+        R, p, S1, S0 = _kinematics(tree, q, unroll=unroll)
+    else:
+        R, p, S1, S0, joint, V = _velocities(tree, q, v, unroll=unroll)
     inertia = _world_inertias(tree, R, p)
     A = _base_acceleration(tree, q.dtype, gravity)
     joint_acc = 0.0 if a is None else _joint_velocity(L, S1, S0, a)
     if v is not None:
-        joint = _joint_velocity(L, S1, S0, v)
-        V = _ancestor_sum(L, joint)
         joint_acc = joint_acc + _motion_cross(V, joint)
     if v is not None or a is not None:
         A = A + _ancestor_sum(L, joint_acc)
@@ -321,7 +322,7 @@ def _project_forces(L, S1, S0, F):
 
 def _mass_matrix(tree: KinematicTree, q, *, unroll):
     L = tree.layout
-    R, p, S1, S0 = _kinematics(tree, q, unroll)
+    R, p, S1, S0 = _kinematics(tree, q, unroll=unroll)
     composite = tuple(_subtree_sum(L, x) for x in _world_inertias(tree, R, p))
     columns = _dof_columns(L, S1, S0)                                   # (nv, 6, B)
     per_dof = tuple(x[L.dof_body] for x in composite)
@@ -335,7 +336,7 @@ def _mass_matrix(tree: KinematicTree, q, *, unroll):
 def _aba(tree: KinematicTree, q, v, tau, *, gravity: bool, unroll):
     L = tree.layout
     f = int(L.floating)
-    R, p, S1, S0, joint, V = _velocities(tree, q, v, unroll)
+    R, p, S1, S0, joint, V = _velocities(tree, q, v, unroll=unroll)
     c = _motion_cross(V, joint)                      # s_dot qdot (zero for the floating base)
     inertia = _world_inertias(tree, R, p)
     I_A = _dense_inertia(inertia)
@@ -406,8 +407,10 @@ def _into_lanes(a, accelerator: bool):
 
 
 def _in_one_lane(algorithm, tree, *arrays, **static):
-    """`algorithm` (on lanes) evaluated for one evaluation's arrays, as one lane."""
-    return algorithm(tree, *(a[..., None] for a in arrays), unroll=_UNROLLED_DEPTHS, **static)[..., 0]
+    """`algorithm` (on lanes) evaluated for one evaluation's arrays, as one lane; its outputs
+    (an array or a tuple of them) without the lane axis."""
+    out = algorithm(tree, *(a[..., None] for a in arrays), unroll=_UNROLLED_DEPTHS, **static)
+    return jax.tree.map(lambda x: x[..., 0], out)
 
 
 @functools.lru_cache(maxsize=None)
@@ -494,11 +497,6 @@ def aba(tree: KinematicTree, q, v, tau, *, gravity: bool = True):
     return _lane_batched(_aba, gravity=gravity)(tree, q, v, tau)
 
 
-def _one_lane(tree, q):
-    """Kinematics of one evaluation, without the lane axis: (R (n, 3, 3), p (n, 3), S1, S0)."""
-    return tuple(None if x is None else x[..., 0] for x in _kinematics(tree, q[..., None], _UNROLLED_DEPTHS))
-
-
 # ----- frames -----------------------------------------------------------------------------------
 
 
@@ -509,7 +507,7 @@ def _offset(tree, q):
 
 def body_poses(tree: KinematicTree, q):
     """World rotation and position of every body frame: arrays (n, 3, 3) and (n, 3)."""
-    R, p, _, _ = _one_lane(tree, q)
+    R, p, _, _ = _in_one_lane(_kinematics, tree, q)
     position = tree.layout.position
     return R[position], p[position] + _offset(tree, q)
 
@@ -536,7 +534,7 @@ def frame_jacobian(tree: KinematicTree, q, frame: str):
     if body < 0:
         return jnp.zeros((6, tree.nv), q.dtype)
     L = tree.layout
-    R, p, S1, S0 = _one_lane(tree, q)
+    R, p, S1, S0 = _in_one_lane(_kinematics, tree, q)
     b = L.position[body]
     point = R[b] @ tree.frame_translation[k] + p[b]
     columns = _dof_columns(L, S1, S0)
@@ -557,7 +555,7 @@ def _frame_index(tree, frame):
 
 def kinetic_energy(tree: KinematicTree, q, v):
     r"""$\tfrac12 \sum_i V_i^T I_i V_i$."""
-    R, p, _, _, _, V = _velocities(tree, q[:, None], v[:, None], _UNROLLED_DEPTHS)
+    R, p, _, _, _, V = _velocities(tree, q[:, None], v[:, None], unroll=_UNROLLED_DEPTHS)
     return 0.5 * jnp.sum(V * _apply_inertia(_world_inertias(tree, R, p), V))
 
 
