@@ -39,7 +39,7 @@ from ._tree import KinematicTree
 # Every quantity inside the algorithms carries the batch as its LAST axis ("lanes", size B): a
 # position vector is (..., 3, B), a spatial vector (..., 6, B), a 6x6 inertia (..., 6, 6, B).
 # One evaluation is a batch of one lane. Vmapped, the public functions put the batch into the
-# lanes (`_lane_batched`), so consecutive batch members sit side by side in memory: a GPU warp
+# lanes (`_in_lanes_when_vmapped`), so consecutive batch members sit side by side in memory: a GPU warp
 # reads them coalesced and a CPU vectorizes over them (vmap's own rules keep the batch as the
 # leading axis, where each thread strides over a member's 36 inertia entries).
 
@@ -413,14 +413,32 @@ def _in_one_lane(algorithm, tree, *arrays, **static):
     return jax.tree.map(lambda x: x[..., 0], out)
 
 
+def _jvp_of_live(fn, primals, tangents):
+    """`jax.jvp(fn, primals, tangents)` over the live tangents only (parameters nobody
+    differentiates cost nothing); None when every tangent is a symbolic zero."""
+    flat, structure = jax.tree.flatten(primals)
+    flat_tangents = structure.flatten_up_to(tangents)
+    live = [i for i, t in enumerate(flat_tangents) if not isinstance(t, jax.custom_derivatives.SymbolicZero)]
+    if not live:
+        return None
+
+    def of_live(*values):
+        full = list(flat)
+        for i, value in zip(live, values):
+            full[i] = value
+        return fn(*jax.tree.unflatten(structure, full))
+
+    return jax.jvp(of_live, [flat[i] for i in live], [flat_tangents[i] for i in live])
+
+
 @functools.lru_cache(maxsize=None)
-def _lane_batched(algorithm, **static):
+def _in_lanes_when_vmapped(algorithm, **static):
     r"""`algorithm(tree, *arrays, unroll=..., **static)` on lanes as a function of one evaluation's
     arrays: evaluated as one lane; under `vmap`, with the batch moved into the lanes (a
-    `custom_vmap`; a batched tree, e.g. vmapped masses, falls back to vmap's own rules);
-    differentiated (forward or reverse, any order) through the one-lane program, by JAX.
-    The depth loops unroll up to `_UNROLLED_DEPTHS`, or `_UNROLLED_DEPTHS_ACCELERATOR` for a
-    batch on a GPU / TPU."""
+    `custom_vmap`; a batched tree, e.g. vmapped masses, falls back to vmap's own rules).
+    Returns (that function, the plain one-lane function). Not differentiable by itself: the
+    public functions add a `custom_jvp`. The depth loops unroll up to `_UNROLLED_DEPTHS`, or
+    `_UNROLLED_DEPTHS_ACCELERATOR` for a batch on a GPU / TPU."""
 
     def one(tree, *arrays):
         return _in_one_lane(algorithm, tree, *arrays, **static)
@@ -442,21 +460,49 @@ def _lane_batched(algorithm, **static):
         unroll = _UNROLLED_DEPTHS_ACCELERATOR if accelerator else _UNROLLED_DEPTHS
         return jnp.moveaxis(algorithm(tree, *lanes, unroll=unroll, **static), -1, 0), True
 
+    return batched, one
+
+
+@functools.lru_cache(maxsize=None)
+def _lane_batched(algorithm, **static):
+    """`_in_lanes_when_vmapped(algorithm)`, differentiated (forward or reverse, any order) by
+    JAX through the one-lane program."""
+    batched, one = _in_lanes_when_vmapped(algorithm, **static)
     public = jax.custom_jvp(batched)
 
     @functools.partial(public.defjvp, symbolic_zeros=True)
-    def derivative(primals, tangents):  # JAX's own, of the one-lane program, for live tangents
-        flat, structure = jax.tree.flatten(primals)
-        flat_tangents = structure.flatten_up_to(tangents)
-        live = [i for i, t in enumerate(flat_tangents) if not isinstance(t, jax.custom_derivatives.SymbolicZero)]
+    def derivative(primals, tangents):
+        out_and_tangent = _jvp_of_live(one, primals, tangents)
+        if out_and_tangent is None:
+            out = one(*primals)
+            return out, jax.tree.map(jnp.zeros_like, out)
+        return out_and_tangent
 
-        def of_live(*values):
-            full = list(flat)
-            for i, value in zip(live, values):
-                full[i] = value
-            return one(*jax.tree.unflatten(structure, full))
+    return public
 
-        return jax.jvp(of_live, [flat[i] for i in live], [flat_tangents[i] for i in live])
+
+@functools.lru_cache(maxsize=None)
+def _forward_dynamics(gravity: bool):
+    r"""ABA in lanes when vmapped, differentiated through inverse dynamics: from
+    $\mathrm{ID}(\theta, q, v, \ddot q) = \tau$ at the solution,
+    $d\ddot q = H(q)^{-1}\big(d\tau - \partial_{\theta, q, v}\mathrm{ID}\cdot(d\theta, dq, dv)\big)$,
+    H by CRBA and a Cholesky factorization (Pinocchio's way: Carpentier & Mansard, RSS 2018).
+    The tangents of RNEA and CRBA cost much less than those of ABA's articulated inertias."""
+    batched, _ = _in_lanes_when_vmapped(_aba, gravity=gravity)
+    public = jax.custom_jvp(batched)
+
+    @functools.partial(public.defjvp, symbolic_zeros=True)
+    def derivative(primals, tangents):
+        tree, q, v, tau = primals
+        qdd = public(tree, q, v, tau)  # itself differentiable by this rule: any order
+        inverse_dynamics = _jvp_of_live(lambda tree, q, v: rnea(tree, q, v, qdd, gravity=gravity),
+                                        (tree, q, v), tangents[:3])
+        dtau = tangents[3]
+        rhs = jnp.zeros_like(qdd) if isinstance(dtau, jax.custom_derivatives.SymbolicZero) else dtau
+        if inverse_dynamics is not None:
+            rhs = rhs - inverse_dynamics[1]
+        factor = jax.scipy.linalg.cho_factor(mass_matrix(tree, q))
+        return qdd, jax.scipy.linalg.cho_solve(factor, rhs)
 
     return public
 
@@ -494,7 +540,7 @@ def aba(tree: KinematicTree, q, v, tau, *, gravity: bool = True):
     $I^A - U U^T / D$ and $p^A + I^a c + U u / D$ (no transforms: world coordinates).
     Forward: $A = A_{\lambda} + c$, $\ddot q = (u - U^T A) / D$, $A \mathrel{+}= s \ddot q$.
     A floating base's acceleration is $(I^A)^{-1}(S_0 \tau_0 - p^A)$."""
-    return _lane_batched(_aba, gravity=gravity)(tree, q, v, tau)
+    return _forward_dynamics(gravity)(tree, q, v, tau)
 
 
 # ----- frames -----------------------------------------------------------------------------------
