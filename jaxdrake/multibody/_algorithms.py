@@ -154,8 +154,8 @@ _UNROLLED_DEPTHS_ACCELERATOR = 8
 
 def _over_depths(step, init, depths, *, unroll, reverse=False):
     """`lax.scan` of `step` over the tree's depths: one traced step whatever the depth, which
-    keeps compile time low. Trees of at most `unroll` depths unroll it (`_lane_batched` picks
-    the limit): on a CPU `_UNROLLED_DEPTHS`, where the loop's overhead outweighs the small steps
+    keeps compile time low. Trees of at most `unroll` depths unroll it (`_in_lanes_when_vmapped`
+    picks the limit): on a CPU `_UNROLLED_DEPTHS`, where the loop's overhead outweighs the small steps
     of an acrobot or a cart-pole (their collocation Hessian 9.6 -> 6.4 ms per call, compile time
     unchanged) but not a 7-dof arm's; a vmapped batch on an accelerator up to
     `_UNROLLED_DEPTHS_ACCELERATOR`, where XLA then fuses across depths (the 7-dof ABA 92M ->
@@ -539,7 +539,8 @@ def aba(tree: KinematicTree, q, v, tau, *, gravity: bool = True):
     $U = I^A s$, $D = s^T U$, $u = \tau - s^T p^A$, and the parent receives
     $I^A - U U^T / D$ and $p^A + I^a c + U u / D$ (no transforms: world coordinates).
     Forward: $A = A_{\lambda} + c$, $\ddot q = (u - U^T A) / D$, $A \mathrel{+}= s \ddot q$.
-    A floating base's acceleration is $(I^A)^{-1}(S_0 \tau_0 - p^A)$."""
+    A floating base's acceleration is $(I^A)^{-1}(S_0 \tau_0 - p^A)$. Derivatives come through
+    inverse dynamics (`_forward_dynamics`)."""
     return _forward_dynamics(gravity)(tree, q, v, tau)
 
 
