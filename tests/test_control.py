@@ -29,6 +29,25 @@ def test_riccati_solutions_match_scipy(n, m):
     assert relative(solve_discrete_are(Ad, B, Q, R, N), sl.solve_discrete_are(Ad, B, Q, R, s=N)) < 1e-8
 
 
+def test_small_riccati_linear_algebra_pivots_and_matches_numpy():
+    """The elementwise Gauss-Jordan solve of small matrices (the DARE's doubling steps) pivots:
+    a matrix whose leading entries are zero, a permutation, and a vmapped batch of random ones
+    agree with LAPACK's through numpy."""
+    from jaxdrake.control._riccati import _ELEMENTWISE_UP_TO, _mm, _solve
+
+    rng = np.random.default_rng(3)
+    n = _ELEMENTWISE_UP_TO
+    rhs = rng.normal(size=(n, 2 * n))
+    permutation = np.eye(n)[rng.permutation(n)]
+    zero_lead = rng.normal(size=(n, n))
+    zero_lead[0, 0] = zero_lead[1, 1] = 0.0
+    for A in (permutation, zero_lead):
+        np.testing.assert_allclose(_solve(jnp.asarray(A), jnp.asarray(rhs)), np.linalg.solve(A, rhs), rtol=1e-10, atol=1e-12)
+    As, Bs = rng.normal(size=(2, 50, 4, 4))
+    np.testing.assert_allclose(jax.vmap(_solve)(As, Bs), np.linalg.solve(As, Bs), rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(jax.vmap(_mm)(As, Bs), As @ Bs, rtol=1e-14, atol=1e-14)
+
+
 def test_double_integrator_lqr_closed_form():
     """Q = I, R = 1: K = [1, sqrt(3)], S = [[sqrt(3), 1], [1, sqrt(3)]]."""
     result = lqr(jd.models.DoubleIntegrator(), np.eye(2), np.eye(1))

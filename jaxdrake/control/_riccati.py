@@ -44,6 +44,38 @@ def _norm1(M):
     return jnp.sum(jnp.abs(M))
 
 
+# Matrices of at most this order are multiplied and solved by elementwise operations (XLA fuses
+# them into one loop over a vmapped batch); larger ones by XLA's dot and LAPACK. Measured on a
+# 2-core CPU, batches of 10^4: 4x4 products 1.8 -> 0.4 ms, 4x4 solves with 8 right-hand sides
+# 6.6 -> 2.8 ms; at order 6 the two ways are level, at 8 elementwise is 2-4x slower.
+_ELEMENTWISE_UP_TO = 6
+
+
+def _mm(A, B):
+    """A @ B."""
+    if max(A.shape + B.shape) > _ELEMENTWISE_UP_TO:
+        return A @ B
+    return jnp.sum(A[:, :, None] * B[None, :, :], axis=1)
+
+
+def _solve(A, B):
+    """A^-1 B (A square): Gauss-Jordan elimination with partial pivoting for a small A,
+    LAPACK's LU otherwise. For the doubling steps only: unrolled, it costs compile time
+    wherever it is traced (four 4x4 solves in the quadrotor's polish: 0.3 -> 0.9 s)."""
+    n = A.shape[0]
+    if n > _ELEMENTWISE_UP_TO:
+        return jnp.linalg.solve(A, B)
+    M = jnp.concatenate([A, B], axis=1)
+    rows = jnp.arange(n)[:, None]
+    for j in range(n):  # unrolled: a loop costs more per step than a small column's work
+        pivot = jnp.argmax(jnp.where(rows[:, 0] >= j, jnp.abs(M[:, j]), -1.0))
+        pivot_row = jnp.sum(jnp.where(rows == pivot, M, 0.0), axis=0)
+        M = jnp.where(rows == pivot, M[j], jnp.where(rows == j, pivot_row, M))   # swap rows j, pivot
+        scaled = pivot_row / pivot_row[j]
+        M = jnp.where(rows == j, scaled, M - M[:, j:j + 1] * scaled)
+    return M[:, n:]
+
+
 def _inverse_and_log_det(M):
     """(M^-1, log |det M|) from one LU factorization."""
     lu, _, permutation = jax.lax.linalg.lu(M)
@@ -85,9 +117,9 @@ def _stein_by_doubling(Ac, C):
 
     def step(state):
         X, M, _, k = state
-        increment = M.T @ X @ M
+        increment = _mm(_mm(M.T, X), M)
         moving = _norm1(increment) > tolerance * _norm1(X)
-        return X + increment, M @ M, moving & (k + 1 < _MAX_ITERATIONS), k + 1
+        return X + increment, _mm(M, M), moving & (k + 1 < _MAX_ITERATIONS), k + 1
 
     return jax.lax.while_loop(lambda state: state[2], step, (C, Ac, True, 0))[0]
 
@@ -166,13 +198,14 @@ def _care_jvp(primals, tangents):
 
 
 def _dare_gain(S, A, B, R):
-    return jnp.linalg.solve(R + B.T @ S @ B, B.T @ S @ A)
+    BtS = _mm(B.T, S)
+    return jnp.linalg.solve(R + _mm(BtS, B), _mm(BtS, A))
 
 
 def _dare_terms(S, A, B, Q, R):
     """(F(S), the 1-norm scale of its terms) for the DARE."""
-    AtSA = A.T @ S @ A
-    return AtSA - S - (B.T @ S @ A).T @ _dare_gain(S, A, B, R) + Q, _norm1(AtSA) + _norm1(S) + _norm1(Q)
+    AtSA = _mm(_mm(A.T, S), A)
+    return AtSA - S - _mm(_mm(_mm(B.T, S), A).T, _dare_gain(S, A, B, R)) + Q, _norm1(AtSA) + _norm1(S) + _norm1(Q)
 
 
 def _dare_residual(S, A, B, Q, R):
@@ -187,10 +220,10 @@ def _dare(A, B, Q, R):
 
     def doubling(state):
         Ak, Gk, Hk, _, k = state
-        MA, MG = jnp.split(jnp.linalg.solve(eye + Gk @ Hk, jnp.concatenate([Ak, Gk], axis=1)), 2, axis=1)
-        increment = Ak.T @ (Hk @ MA)
+        MA, MG = jnp.split(_solve(eye + _mm(Gk, Hk), jnp.concatenate([Ak, Gk], axis=1)), 2, axis=1)
+        increment = _mm(Ak.T, _mm(Hk, MA))
         moving = _norm1(increment) > tolerance * _norm1(Hk)
-        return (Ak @ MA, Gk + Ak @ MG @ Ak.T, Hk + increment, moving & (k + 1 < _MAX_ITERATIONS), k + 1)
+        return (_mm(Ak, MA), Gk + _mm(_mm(Ak, MG), Ak.T), Hk + increment, moving & (k + 1 < _MAX_ITERATIONS), k + 1)
 
     S = _symmetric(jax.lax.while_loop(lambda state: state[3], doubling, (A, G, Q, True, 0))[2])
     return _polish(S, lambda S: _dare_terms(S, A, B, Q, R),
