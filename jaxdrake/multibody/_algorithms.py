@@ -488,23 +488,31 @@ def _forward_dynamics(gravity: bool):
     $d\ddot q = H(q)^{-1}\big(d\tau - \partial_{\theta, q, v}\mathrm{ID}\cdot(d\theta, dq, dv)\big)$,
     H by CRBA and a Cholesky factorization (Pinocchio's way: Carpentier & Mansard, RSS 2018).
     The tangents of RNEA and CRBA cost much less than those of ABA's articulated inertias."""
-    batched, _ = _in_lanes_when_vmapped(_aba, gravity=gravity)
-    public = jax.custom_jvp(batched)
+    batched, one = _in_lanes_when_vmapped(_aba, gravity=gravity)
 
-    @functools.partial(public.defjvp, symbolic_zeros=True)
-    def derivative(primals, tangents):
-        tree, q, v, tau = primals
-        qdd = public(tree, q, v, tau)  # itself differentiable by this rule: any order
-        inverse_dynamics = _jvp_of_live(lambda tree, q, v: rnea(tree, q, v, qdd, gravity=gravity),
-                                        (tree, q, v), tangents[:3])
-        dtau = tangents[3]
-        rhs = jnp.zeros_like(qdd) if isinstance(dtau, jax.custom_derivatives.SymbolicZero) else dtau
-        if inverse_dynamics is not None:
-            rhs = rhs - inverse_dynamics[1]
-        factor = jax.scipy.linalg.cho_factor(mass_matrix(tree, q))
-        return qdd, jax.scipy.linalg.cho_solve(factor, rhs)
+    def with_derivative(primal):
+        public = jax.custom_jvp(primal)
 
-    return public
+        @functools.partial(public.defjvp, symbolic_zeros=True)
+        def derivative(primals, tangents):
+            tree, q, v, tau = primals
+            qdd = linearization_point(tree, q, v, tau)
+            inverse_dynamics = _jvp_of_live(lambda tree, q, v: rnea(tree, q, v, qdd, gravity=gravity),
+                                            (tree, q, v), tangents[:3])
+            dtau = tangents[3]
+            rhs = jnp.zeros_like(qdd) if isinstance(dtau, jax.custom_derivatives.SymbolicZero) else dtau
+            if inverse_dynamics is not None:
+                rhs = rhs - inverse_dynamics[1]
+            factor = jax.scipy.linalg.cho_factor(mass_matrix(tree, q))
+            return qdd, jax.scipy.linalg.cho_solve(factor, rhs)
+
+        return public
+
+    # the point the derivative is taken at: the one-lane ABA, differentiable by the same rule (any
+    # order), vmapped by vmap's own rules (in lanes, a GPU's unrolled depths doubled the compile
+    # time of a vmapped Jacobian)
+    linearization_point = with_derivative(one)
+    return with_derivative(batched)
 
 
 def rnea(tree: KinematicTree, q, v, a, *, gravity: bool = True):
