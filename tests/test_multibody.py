@@ -378,6 +378,28 @@ def test_forward_dynamics_derivatives_agree_with_pinocchio_and_finite_difference
                                rtol=1e-6, atol=1e-8)
 
 
+def test_a_floating_base_dynamics_jacobian_matches_central_differences_off_the_unit_quaternion():
+    """The quaternion's rotation is that of q / |q|, so forward and inverse dynamics stay each
+    other's inverse off the unit sphere (a drifted state, a finite-difference probe) and the
+    Jacobian through inverse dynamics is the function's own, radial direction included."""
+    path = example_robot("solo_description/robots/solo12.urdf")
+    plant = jd.multibody.RigidBodySystem.from_urdf(path, floating_base=True)
+    rng = np.random.default_rng(4)
+    x = np.asarray(plant.initial_state()) + rng.uniform(-0.3, 0.3, plant.initial_state().shape)
+    x[3:7] *= 1.05 / np.linalg.norm(x[3:7])
+    u = rng.uniform(-1, 1, plant.B.shape[1])
+    f = jax.jit(lambda x: plant.dynamics(0.0, x, jnp.asarray(u)))
+    central = np.stack([(f(x + 1e-6 * e) - f(x - 1e-6 * e)) / 2e-6 for e in np.eye(x.size)], axis=1)
+    scale = np.abs(central).max()
+    for jacobian in (jax.jacfwd, jax.jacrev):
+        np.testing.assert_allclose(jax.jit(jacobian(f))(x), central, atol=1e-6 * scale)
+    radial = np.zeros(x.size)
+    radial[3:7] = x[3:7]
+    scaled, plain = f(x + 0.1 * radial), f(x)           # the quaternion's rate scales with it
+    np.testing.assert_allclose(scaled[3:7], 1.1 * plain[3:7], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.delete(scaled, np.s_[3:7]), np.delete(plain, np.s_[3:7]), rtol=1e-12, atol=1e-12)
+
+
 MALFORMED = {
     "missing parent": ('<robot name="r"><link name="a"/><joint name="j" type="revolute">'
                        '<parent link="nope"/><child link="a"/><axis xyz="0 0 1"/></joint></robot>',

@@ -35,9 +35,14 @@ def rpy(r, p, y):
 
 
 def quaternion_matrix(quat):
-    """Rotation matrix of a unit quaternion given as (x, y, z, w) (Pinocchio's order)."""
+    r"""Rotation matrix of the quaternion (x, y, z, w) (Pinocchio's order) scaled to unit norm:
+    $R = I + s\,(w [v]_\times + [v]_\times^2)$, $s = 2 / |q|^2$. A proper rotation for any
+    non-zero quaternion (a state drifted off the unit sphere, a finite-difference probe), so
+    the forward and inverse dynamics stay each other's inverse there and their derivatives
+    agree (the radial direction is a symmetry)."""
     x, y, z, w = quat[0], quat[1], quat[2], quat[3]
+    s = 2 / (x * x + y * y + z * z + w * w)
     return jnp.stack([
-        jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)]),
-        jnp.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)]),
-        jnp.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)])])
+        jnp.stack([1 - s * (y * y + z * z), s * (x * y - z * w), s * (x * z + y * w)]),
+        jnp.stack([s * (x * y + z * w), 1 - s * (x * x + z * z), s * (y * z - x * w)]),
+        jnp.stack([s * (x * z - y * w), s * (y * z + x * w), 1 - s * (x * x + y * y)])])
