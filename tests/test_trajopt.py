@@ -179,8 +179,19 @@ def test_discrete_system_transcription():
 def test_ilqr_matches_discrete_optimum_and_batches():
     N, T = 40, 2.0
     plant = jd.models.DoubleIntegrator()
-    result = trajopt.ilqr(plant, jnp.array([1.0, 0.0]), jnp.zeros((N, 1)), T / N,
-                          lambda t, x, u: u @ u, final_state=jnp.zeros(2), constraint_tol=1e-11)
+    traces = []
+
+    def effort(t, x, u):
+        traces.append(1)  # counts the traces of the cost
+        return u @ u
+
+    def solve(x0):
+        return trajopt.ilqr(plant, jnp.array(x0), jnp.zeros((N, 1)), T / N, effort,
+                            final_state=jnp.zeros(2), constraint_tol=1e-11)
+
+    result = solve([1.0, 0.0])
+    traced = len(traces)
+    assert bool(solve([1.0, 0.5]).converged) and len(traces) == traced  # the compiled program, reused
     assert bool(result.converged)
     assert abs(float(result.cost) - zoh_min_effort_cost(N, T)) < 1e-8
 

@@ -115,11 +115,20 @@ def ilqr(system: System, x0, inputs, time_step, running_cost, final_cost=None, *
       (at least 100 eps of the float width: 1.2e-5 in float32);
       `constraint_tol`: the violation accepted at the end.
 
-    Returns an `ILQRResult` (pure arrays: `jax.vmap` gives batches)."""
+    Returns an `ILQRResult` (pure arrays: `jax.vmap` gives batches). Compiled once per system
+    structure, cost functions (by identity) and option values: a second call costs its run time."""
     x0 = jnp.asarray(x0)
     inputs = jnp.asarray(inputs, x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else float)
     x0 = x0.astype(inputs.dtype)
     _check(system, x0, inputs)
+    return _ilqr(system, x0, inputs, time_step, running_cost, final_cost, final_state, input_bounds,
+                 max_iterations, max_outer, tol, constraint_tol, penalty, penalty_growth)
+
+
+@eqx.filter_jit
+def _ilqr(system, x0, inputs, time_step, running_cost, final_cost, final_state, input_bounds,
+          max_iterations, max_outer, tol, constraint_tol, penalty, penalty_growth):
+    """`ilqr`'s program, for checked arrays (see `ilqr`)."""
     N, m = inputs.shape
     n = system.num_states
     dtype = inputs.dtype
