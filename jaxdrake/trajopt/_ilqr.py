@@ -10,8 +10,9 @@ $u_{min} - u \le \delta u \le u_{max} - u$, by projected Newton, and the feedbac
 free inputs only; the forward pass clamps. The goal enters an augmented Lagrangian (as ALTRO,
 Howell, Jackson & Manchester 2019), whose unconstrained problems are solved by differential
 dynamic programming: iLQR's backward pass (Li & Todorov 2004) plus the dynamics' curvature
-$V_x' \cdot \nabla^2 \Phi$ (the full DDP expansion, one Hessian of $V_x' \cdot \Phi$ per step
-inside the backward scan), with Levenberg-Marquardt regularization of the value Hessian and
+$V_x' \cdot \nabla^2 \Phi$ (the full DDP expansion: the step's second-derivative tensors
+evaluated for all steps at once, off the sequential path, and contracted with $V_x$ inside the
+backward scan), with Levenberg-Marquardt regularization of the value Hessian and
 a backtracking line search (Tassa, Erez & Todorov 2012); the multiplier and the penalty are
 updated between inner solves. The curvature term matters once the goal's multiplier is large:
 without it, the Gauss-Newton model crawls (pendulum swing-ups: 553 iterations for the slowest
@@ -147,6 +148,16 @@ def _ilqr(system, x0, inputs, time_step, running_cost, final_cost, final_state, 
     def step(t, x, u):
         return discrete_step(system, t, x, u, h, "rk4")
 
+    def step_derivatives(t, x, u):
+        """((Phi_xx, Phi_xu, Phi_uu), (Phi_x, Phi_u)): the step's second-derivative tensors
+        (output index first) with its Jacobians, for every step at once, off the backward
+        pass's sequential path (which then only contracts them with V_x)."""
+        def jacobians(x, u):
+            A, B = jax.jacfwd(step, (1, 2))(t, x, u)
+            return (A, B), (A, B)
+        ((fxx, fxu), (_, fuu)), first = jax.jacfwd(jacobians, (0, 1), has_aux=True)(x, u)
+        return (fxx, fxu, fuu), first
+
     def goal_constraint(x):
         return jnp.where(goal_mask, x - goal, 0.0) if has_goal else jnp.zeros(n, dtype)
 
@@ -168,7 +179,7 @@ def _ilqr(system, x0, inputs, time_step, running_cost, final_cost, final_state, 
         return jnp.sum(jax.vmap(stage)(times, X[:-1], U)) + terminal(X[-1], lam_f, mu)
 
     def backward(X, U, lam_f, mu, reg):
-        fx, fu = jax.vmap(jax.jacfwd(step, (1, 2)))(times, X[:-1], U)
+        (fxx, fxu, fuu), (fx, fu) = jax.vmap(step_derivatives)(times, X[:-1], U)
         grads = jax.vmap(jax.grad(stage, (1, 2)))(times, X[:-1], U)
         hess = jax.vmap(jax.hessian(stage, (1, 2)))(times, X[:-1], U)
         Vx = jax.grad(terminal)(X[-1], lam_f, mu)
@@ -176,9 +187,9 @@ def _ilqr(system, x0, inputs, time_step, running_cost, final_cost, final_state, 
 
         def body(carry, per_step):
             Vx, Vxx, ok, dv, warm = carry
-            A, B, lx, lu, lxx, lux, luu, t, x, u = per_step
-            (fxx, fxu), (_, fuu) = jax.hessian(lambda x, u: Vx @ step(t, x, u), (0, 1))(x, u)
-            lxx, lux, luu = lxx + fxx, lux + fxu.T, luu + fuu  # DDP: the dynamics' curvature
+            A, B, lx, lu, lxx, lux, luu, fxx, fxu, fuu, u = per_step
+            curvature = lambda T: jnp.tensordot(Vx, T, axes=1)  # noqa: E731  (V_x' . d^2 Phi)
+            lxx, lux, luu = lxx + curvature(fxx), lux + curvature(fxu).T, luu + curvature(fuu)  # DDP
             Vreg = Vxx + reg * jnp.eye(n, dtype=dtype)
             Qx, Qu = lx + A.T @ Vx, lu + B.T @ Vx
             Qxx = lxx + A.T @ Vxx @ A
@@ -194,7 +205,7 @@ def _ilqr(system, x0, inputs, time_step, running_cost, final_cost, final_state, 
 
         (lxx, _), (lux, luu) = hess
         start = (Vx, Vxx, jnp.asarray(True), jnp.zeros(2, dtype), jnp.zeros(m, dtype))
-        (_, _, ok, dv, _), (kff, K) = jax.lax.scan(body, start, (fx, fu, *grads, lxx, lux, luu, times, X[:-1], U), reverse=True)
+        (_, _, ok, dv, _), (kff, K) = jax.lax.scan(body, start, (fx, fu, *grads, lxx, lux, luu, fxx, fxu, fuu, U), reverse=True)
         return kff, K, ok, dv
 
     def forward(X, U, kff, K, alpha):
