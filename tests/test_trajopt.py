@@ -308,8 +308,9 @@ def test_box_qp_matches_scipys_bounded_minimizer():
 def test_hermite_simpson_structured_derivatives_equal_autodiff_of_the_defect(model):
     """DirectCollocation's defect term is batched over the segments (each knot's f once) and
     brings its own Jacobian and Hessian (chain rule around one traced copy of f's
-    derivatives); values and derivatives equal those of the per-segment defect under JAX's
-    autodiff, and central differences (check_derivatives). (The acrobot's generic Hessian
+    derivatives, the Hessian's point-only part kept from the Jacobian's evaluation); values and
+    derivatives equal those of the per-segment defect under JAX's autodiff, and central
+    differences (check_derivatives). (The acrobot's generic Hessian
     compiles for ~20 s: -m slow.)"""
     from jaxdrake.trajopt._nlp import NonlinearProgram
 
@@ -318,14 +319,19 @@ def test_hermite_simpson_structured_derivatives_equal_autodiff_of_the_defect(mod
         prog.set_initial_state(np.zeros(plant.num_states)).add_running_cost(lambda t, x, u: u @ u + x @ x)
         nlp = prog.nlp
         defect = nlp.constraints[0]
-        assert defect.batched and defect.jacobian is not None and defect.hessian is not None
+        assert defect.batched and defect.jacobian is not None and defect.curvature is not None
         plain = prog._segment_term(defect.name, prog._defect, defect.lower, defect.upper)
         generic = NonlinearProgram(nlp.num_variables, nlp.costs, [plain] + nlp.constraints[1:], nlp.lower, nlp.upper)
         rng = np.random.default_rng(1)
         z, lam = rng.normal(size=nlp.num_variables), rng.normal(size=nlp.num_constraints)
         np.testing.assert_allclose(nlp.constraint_values(z), generic.constraint_values(z), atol=1e-12)
         np.testing.assert_allclose(nlp.jacobian_values(z), generic.jacobian_values(z), atol=1e-12)
+        # the Hessian from the curvatures kept by the Jacobian at z (IPOPT's order) and, at
+        # another point, from curvatures it evaluates itself
+        np.testing.assert_allclose(nlp.jacobian_values(z, for_hessian=True), generic.jacobian_values(z), atol=1e-12)
         np.testing.assert_allclose(nlp.hessian_values(z, lam, 0.7), generic.hessian_values(z, lam, 0.7), atol=1e-12)
+        z2 = z + 0.1
+        np.testing.assert_allclose(nlp.hessian_values(z2, lam, 0.7), generic.hessian_values(z2, lam, 0.7), atol=1e-12)
         check = nlp.check_derivatives(z)
         assert check["jacobian_error"] < 1e-6 * check["jacobian_scale"] and check["outside_pattern"] == 0
         assert check["hessian_error"] < 1e-5 * check["hessian_scale"]

@@ -30,7 +30,11 @@ class Term:
     `jacobian(v, k) -> (r, L)` and `hessian(v, k, lam) -> (L, L)` (of lam . fn); by default
     autodiff of `fn`. `size`: r when known (else found by tracing `fn`). A `batched`
     constraint term's functions take all instances at once (V (K, L), ks (K,), lam (K, r))
-    and return (K, ...), so instances can share work; it declares its size and derivatives."""
+    and return (K, ...), so instances can share work; it declares its size and derivatives.
+    A batched term may also split its Hessian into the part that needs only the point and the
+    part that needs the multipliers: `curvature(V, ks) -> (jacobian blocks, C)` and
+    `hessian_from(C, lam)`, so that a solver asking for the Jacobian and then the Hessian at
+    one point evaluates the term's second derivatives once, in one compiled program."""
 
     name: str
     fn: Callable
@@ -41,6 +45,12 @@ class Term:
     hessian: Callable | None = None
     size: int | None = None
     batched: bool = False
+    curvature: Callable | None = None
+    hessian_from: Callable | None = None
+
+
+def _float64(*args):
+    return tuple(np.asarray(a, np.float64) for a in args)
 
 
 def _triplets(rows, cols):
@@ -59,7 +69,9 @@ class NonlinearProgram:
         self.num_variables = int(num_variables)
         self.costs, self.constraints = list(costs), list(constraints)
         for term in self.costs + self.constraints:
-            if term.batched and (any(term is cost for cost in self.costs) or None in (term.size, term.jacobian, term.hessian)):
+            split = term.curvature is not None and term.hessian_from is not None
+            if term.batched and (any(term is cost for cost in self.costs) or None in (term.size, term.jacobian)
+                                 or (term.hessian is None and not split)):
                 raise ValueError(f"batched term {term.name!r} must be a constraint declaring its size and derivatives")
         self.lower, self.upper = np.asarray(lower, float), np.asarray(upper, float)
         with jax.enable_x64(True):
@@ -146,19 +158,39 @@ class NonlinearProgram:
         def constraint_values(z):
             return jnp.concatenate([apply(t, t.fn, z).ravel() for t in constraints] or [jnp.zeros(0)])
 
-        def jacobian_values(z):
-            raw = jnp.concatenate([apply(t, t.jacobian or jax.jacfwd(t.fn), z).ravel() for t in constraints]
-                                  or [jnp.zeros(0)])
-            return jax.ops.segment_sum(raw, jac_slot, jac_nnz)
+        def assembled_jacobian(blocks):
+            return jax.ops.segment_sum(jnp.concatenate([b.ravel() for b in blocks] or [jnp.zeros(0)]),
+                                       jac_slot, jac_nnz)
 
-        def hessian_values(z, multipliers, sigma):
+        def jacobian_blocks(t, z):
+            return apply(t, t.jacobian or jax.jacfwd(t.fn), z)
+
+        def jacobian_values(z):
+            return assembled_jacobian([jacobian_blocks(t, z) for t in constraints])
+
+        def jacobian_and_curvatures(z):  # the curvatures: of the terms that split their Hessian
+            blocks, curvatures = [], []
+            for t in constraints:
+                if t.curvature is None:
+                    blocks.append(jacobian_blocks(t, z))
+                    curvatures.append(None)
+                else:
+                    block, curvature = apply(t, t.curvature, z)
+                    blocks.append(block)
+                    curvatures.append(curvature)
+            return assembled_jacobian(blocks), curvatures
+
+        def hessian_values(curvatures, z, multipliers, sigma):
             blocks, offset = [], 0
             for t in costs:
                 blocks.append(sigma * apply(t, jax.hessian(summed(t.fn)), z).ravel())
-            for t, r in zip(constraints, sizes):
+            for t, r, curvature in zip(constraints, sizes, curvatures):
                 K = t.idx.shape[0]
                 lam = multipliers[offset: offset + K * r].reshape(K, r)
                 offset += K * r
+                if curvature is not None:
+                    blocks.append(t.hessian_from(curvature, lam).ravel())
+                    continue
                 hessian = t.hessian or jax.hessian(lambda v, k, l, fn=t.fn: l @ fn(v, k))
                 blocks.append(apply(t, hessian, z, lam).ravel())
             return jax.ops.segment_sum(jnp.concatenate(blocks)[hess_lower], hess_slot, hess_nnz)
@@ -168,11 +200,13 @@ class NonlinearProgram:
             self._gradient = jax.jit(gradient)
             self._constraints = jax.jit(constraint_values)
             self._jacobian = jax.jit(jacobian_values)
+            self._jacobian_and_curvatures = jax.jit(jacobian_and_curvatures)
             self._hessian = jax.jit(hessian_values)
+        self._curvatures_at = (None, None)  # (z, the curvatures there): see jacobian_values
 
     def _call(self, fn, *args):
         with jax.enable_x64(True):
-            return np.asarray(fn(*(np.asarray(a, np.float64) for a in args)), float)
+            return np.asarray(fn(*_float64(*args)), float)
 
     def objective(self, z) -> float:
         return float(self._call(self._objective, z))
@@ -183,19 +217,36 @@ class NonlinearProgram:
     def constraint_values(self, z) -> np.ndarray:
         return self._call(self._constraints, z)
 
-    def jacobian_values(self, z) -> np.ndarray:
-        """The Jacobian's non-zeros, in the order of (`jacobian_rows`, `jacobian_cols`)."""
-        return self._call(self._jacobian, z)
+    def jacobian_values(self, z, *, for_hessian: bool = False) -> np.ndarray:
+        """The Jacobian's non-zeros, in the order of (`jacobian_rows`, `jacobian_cols`). With
+        `for_hessian` (a solver that asks for the Hessian at the same point next, as IPOPT with
+        exact Hessians does), one program evaluates the Jacobian with the terms' curvatures
+        and keeps them for `hessian_values` at this z: one compiled program less and the
+        second derivatives evaluated once."""
+        if not for_hessian:
+            return self._call(self._jacobian, z)
+        z, = _float64(z)
+        with jax.enable_x64(True):
+            values, curvatures = self._jacobian_and_curvatures(z)
+        self._curvatures_at = (z, curvatures)
+        return np.asarray(values, float)
 
     def hessian_values(self, z, multipliers, sigma=1.0) -> np.ndarray:
         """Non-zeros of sigma ∇²f + Σ λ_i ∇²g_i (lower triangle, (`hessian_rows`, `hessian_cols`))."""
-        return self._call(self._hessian, z, multipliers, sigma)
+        z, multipliers, sigma = _float64(z, multipliers, sigma)
+        kept_z, curvatures = self._curvatures_at
+        if kept_z is None or not np.array_equal(kept_z, z):
+            self.jacobian_values(z, for_hessian=True)
+            curvatures = self._curvatures_at[1]
+        with jax.enable_x64(True):
+            return np.asarray(self._hessian(curvatures, z, multipliers, sigma), float)
 
-    def jacobian(self, z):
-        """The constraint Jacobian as a `scipy.sparse` CSR matrix."""
+    def jacobian(self, z, *, for_hessian: bool = False):
+        """The constraint Jacobian as a `scipy.sparse` CSR matrix (`for_hessian`: see
+        `jacobian_values`)."""
         import scipy.sparse as sp
 
-        return sp.csr_matrix((self.jacobian_values(z), (self.jacobian_rows, self.jacobian_cols)),
+        return sp.csr_matrix((self.jacobian_values(z, for_hessian=for_hessian), (self.jacobian_rows, self.jacobian_cols)),
                              shape=(self.num_constraints, self.num_variables))
 
     def hessian(self, z, multipliers, sigma=1.0):
@@ -308,7 +359,7 @@ def solve_ipopt(nlp: NonlinearProgram, z0, *, tol=1e-8, max_iterations=3000, hes
             return nlp.constraint_values(z)
 
         def jacobian(self, z):
-            return nlp.jacobian_values(z)
+            return nlp.jacobian_values(z, for_hessian=hessian == "exact")
 
         def jacobianstructure(self):
             return nlp.jacobian_rows, nlp.jacobian_cols
@@ -352,7 +403,8 @@ def solve_scipy(nlp: NonlinearProgram, z0, *, tol=1e-8, max_iterations=3000, opt
     constraints = []
     if nlp.num_constraints:
         constraints.append(so.NonlinearConstraint(
-            nlp.constraint_values, nlp.constraint_lower, nlp.constraint_upper, jac=nlp.jacobian,
+            nlp.constraint_values, nlp.constraint_lower, nlp.constraint_upper,
+            jac=lambda z: nlp.jacobian(z, for_hessian=True),
             hess=lambda z, v: nlp.hessian(z, v, 0.0)))
     zero = np.zeros(nlp.num_constraints)
 

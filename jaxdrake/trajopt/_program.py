@@ -491,13 +491,20 @@ def _hermite_simpson_batched(system, n, m, h):
         (F,), (Fc,), _ = _knots_then_midpoints(_dynamics_at(system, n), V, ks * h, h, n)
         return V[:, L:L + n] - V[:, :n] - h / 6 * (F[:-1] + 4 * Fc + F[1:])
 
-    def jacobian(V, ks):
-        (_, J), (_, Jc), _ = _knots_then_midpoints(jax.vmap(value_and_jacobian), V, ks * h, h, n)
-        return plain - h / 6 * (jnp.concatenate([J[:-1], J[1:]], axis=2) + 4 * Jc @ midpoint_jacobians(J))
-
-    def hessian(V, ks, lam):
+    def curvature(V, ks):  # the Jacobian blocks, and what the Hessian needs besides lam
         (_, J, T), (_, Jc, Tc), _ = _knots_then_midpoints(jax.vmap(value_jacobian_tensor), V, ks * h, h, n)
         Dc = midpoint_jacobians(J)
+        return jacobian_from(J, Jc, Dc), (T, Jc, Tc, Dc)
+
+    def jacobian_from(J, Jc, Dc):
+        return plain - h / 6 * (jnp.concatenate([J[:-1], J[1:]], axis=2) + 4 * Jc @ Dc)
+
+    def jacobian(V, ks):
+        (_, J), (_, Jc), _ = _knots_then_midpoints(jax.vmap(value_and_jacobian), V, ks * h, h, n)
+        return jacobian_from(J, Jc, midpoint_jacobians(J))
+
+    def hessian_from(curvature, lam):
+        T, Jc, Tc, Dc = curvature
         g = jnp.einsum("kij,ki->kj", Jc[:, :, :n], lam)
         H0 = jnp.einsum("ki,kijl->kjl", lam + h / 2 * g, T[:-1])
         H1 = jnp.einsum("ki,kijl->kjl", lam - h / 2 * g, T[1:])
@@ -506,7 +513,8 @@ def _hermite_simpson_batched(system, n, m, h):
         middle = jnp.einsum("kai,kab,kbj->kij", Dc, jnp.einsum("ki,kijl->kjl", lam, Tc), Dc)
         return -h / 6 * (knots + 4 * middle)
 
-    return {"fn": defects, "jacobian": jacobian, "hessian": hessian, "batched": True}
+    return {"fn": defects, "jacobian": jacobian, "curvature": curvature, "hessian_from": hessian_from,
+            "batched": True}
 
 
 class DirectCollocation(_TrajectoryProgram):
