@@ -13,6 +13,7 @@ evaluation. This is the "structure per knot" of Betts (2010, ch. 4) that Drake's
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import time
 from typing import Callable
@@ -216,6 +217,25 @@ class NonlinearProgram:
 
     def constraint_values(self, z) -> np.ndarray:
         return self._call(self._constraints, z)
+
+    def compile_for_solver(self, z, *, exact_hessian: bool, also: tuple[Callable, ...] = ()) -> None:
+        """Compile every program a solver calls, by first calls at z, and the first calls
+        `also` (e.g. what builds the result). The derivative program (the Jacobian, with the
+        curvatures for exact Hessians) takes longest: it is traced first, then XLA compiles it
+        in a thread (releasing the GIL) while the others are traced and compiled."""
+        z, = _float64(z)
+        derivative = self._jacobian_and_curvatures if exact_hessian else self._jacobian
+        with jax.enable_x64(True):
+            lowered = derivative.trace(z).lower()
+        with concurrent.futures.ThreadPoolExecutor(1) as pool:
+            compiling = pool.submit(lowered.compile)
+            for first_call in (self.objective, self.gradient, self.constraint_values):
+                first_call(z)
+            for first_call in also:
+                first_call()
+            compiling.result()
+        if exact_hessian:
+            self.hessian_values(z, np.zeros(self.num_constraints))
 
     def jacobian_values(self, z, *, for_hessian: bool = False) -> np.ndarray:
         """The Jacobian's non-zeros, in the order of (`jacobian_rows`, `jacobian_cols`). With

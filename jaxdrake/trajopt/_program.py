@@ -379,14 +379,17 @@ class _TrajectoryProgram:
             if solver == "scipy":
                 raise ValueError("the SciPy solver needs hessian='exact'")
             kwargs["hessian"] = hessian
-        result = solve(self.nlp, z0, solver, **kwargs)
-        return self._result(result)
+        self.nlp.compile_for_solver(z0, exact_hessian=hessian == "exact", also=(lambda: self._solution(z0),))
+        return self._result(solve(self.nlp, z0, solver, **kwargs))
 
     _hessian_approximation = "exact"
 
     def _result(self, result: SolverResult) -> TrajectoryOptimizationResult:
+        return TrajectoryOptimizationResult(**self._solution(result.z), solver=result)
+
+    def _solution(self, z) -> dict:
+        """The trajectories and knot values of the decision vector z (all but the solver's report)."""
         N, n, m = self.num_time_samples, self.num_states, self.num_inputs
-        z = result.z
         X, U = z[: N * n].reshape(N, n), z[N * n: N * (n + m)].reshape(N, m)
         g = z[N * (n + m):]
         T = float(g[0]) if self.free_duration else self._duration_bounds[0]
@@ -398,9 +401,8 @@ class _TrajectoryProgram:
         # in the session's own precision (float32 unless x64 is on): arrays made under the x64
         # context would not mix with the user's (a simulation with the inputs as its tape)
         states, inputs = jax.tree.map(lambda a: device_array(np.asarray(a)), (states, inputs))
-        return TrajectoryOptimizationResult(
-            states=states, inputs=inputs, times=times, knot_states=X, knot_inputs=U, duration=T,
-            parameters=p, max_defect=float(np.max(np.abs(defects))), solver=result)
+        return dict(states=states, inputs=inputs, times=times, knot_states=X, knot_inputs=U, duration=T,
+                    parameters=p, max_defect=float(np.max(np.abs(defects))))
 
     def _add_dynamics(self):
         term = self._segment_term(f"{self.method} defects", self._defect,
