@@ -220,22 +220,26 @@ class NonlinearProgram:
 
     def compile_for_solver(self, z, *, exact_hessian: bool, also: tuple[Callable, ...] = ()) -> None:
         """Compile every program a solver calls, by first calls at z, and the first calls
-        `also` (e.g. what builds the result). The derivative program (the Jacobian, with the
-        curvatures for exact Hessians) takes longest: it is traced first, then XLA compiles it
-        in a thread (releasing the GIL) while the others are traced and compiled."""
+        `also` (e.g. what builds the result). The derivative programs (the Jacobian, with the
+        curvatures for exact Hessians, and the Hessian) take longest: they are traced first,
+        then XLA compiles them in threads (releasing the GIL) while the others are traced and
+        compiled."""
         z, = _float64(z)
-        derivative = self._jacobian_and_curvatures if exact_hessian else self._jacobian
         with jax.enable_x64(True):
-            lowered = derivative.trace(z).lower()
-        with concurrent.futures.ThreadPoolExecutor(1) as pool:
-            compiling = pool.submit(lowered.compile)
+            if exact_hessian:
+                curvatures = jax.eval_shape(self._jacobian_and_curvatures, z)[1]
+                derivatives = [self._jacobian_and_curvatures.trace(z).lower(),
+                               self._hessian.trace(curvatures, z, *_float64(np.zeros(self.num_constraints), 1.0)).lower()]
+            else:
+                derivatives = [self._jacobian.trace(z).lower()]
+        with concurrent.futures.ThreadPoolExecutor(len(derivatives)) as pool:
+            compiling = [pool.submit(lowered.compile) for lowered in derivatives]
             for first_call in (self.objective, self.gradient, self.constraint_values):
                 first_call(z)
             for first_call in also:
                 first_call()
-            compiling.result()
-        if exact_hessian:
-            self.hessian_values(z, np.zeros(self.num_constraints))
+            for future in compiling:
+                future.result()
 
     def jacobian_values(self, z, *, for_hessian: bool = False) -> np.ndarray:
         """The Jacobian's non-zeros, in the order of (`jacobian_rows`, `jacobian_cols`). With
