@@ -27,15 +27,15 @@ import numpy as np
 class Term:
     """`fn(v, k) -> (r,)` on `idx.shape[0]` instances; instance k reads `z[idx[k]]`. A cost
     term's values are summed; a constraint term's are bounded by `lower`/`upper` (each
-    (K, r)). A constraint term may bring its own derivatives, exploiting its structure:
-    `jacobian(v, k) -> (r, L)` and `hessian(v, k, lam) -> (L, L)` (of lam . fn); by default
-    autodiff of `fn`. `size`: r when known (else found by tracing `fn`). A `batched`
-    constraint term's functions take all instances at once (V (K, L), ks (K,), lam (K, r))
-    and return (K, ...), so instances can share work; it declares its size and derivatives.
-    A batched term may also split its Hessian into the part that needs only the point and the
-    part that needs the multipliers: `curvature(V, ks) -> (jacobian blocks, C)` and
-    `hessian_from(C, lam)`, so that a solver asking for the Jacobian and then the Hessian at
-    one point evaluates the term's second derivatives once, in one compiled program."""
+    (K, r)). Derivatives are autodiff of `fn` unless a constraint term brings its own,
+    exploiting its structure: `jacobian(v, k) -> (r, L)`, and its Lagrangian Hessian split
+    into the part that needs only the point and the part that needs the multipliers,
+    `curvature(v, k) -> (the Jacobian block, C)` and `hessian_from(C, lam) -> (L, L)` (of
+    lam . fn), so that a solver asking for the Jacobian and then the Hessian at one point
+    evaluates the term's second derivatives once, in one compiled program. `size`: r when
+    known (else found by tracing `fn`). A `batched` constraint term's functions take all
+    instances at once (V (K, L), ks (K,), lam (K, r)) and return (K, ...), so instances can
+    share work; it declares its size and all three derivatives."""
 
     name: str
     fn: Callable
@@ -43,11 +43,10 @@ class Term:
     lower: np.ndarray | None = None
     upper: np.ndarray | None = None
     jacobian: Callable | None = None
-    hessian: Callable | None = None
-    size: int | None = None
-    batched: bool = False
     curvature: Callable | None = None
     hessian_from: Callable | None = None
+    size: int | None = None
+    batched: bool = False
 
 
 def _float64(*args):
@@ -70,9 +69,10 @@ class NonlinearProgram:
         self.num_variables = int(num_variables)
         self.costs, self.constraints = list(costs), list(constraints)
         for term in self.costs + self.constraints:
-            split = term.curvature is not None and term.hessian_from is not None
-            if term.batched and (any(term is cost for cost in self.costs) or None in (term.size, term.jacobian)
-                                 or (term.hessian is None and not split)):
+            if (term.curvature is None) != (term.hessian_from is None):
+                raise ValueError(f"term {term.name!r} must declare both curvature and hessian_from, or neither")
+            if term.batched and (any(term is cost for cost in self.costs)
+                                 or None in (term.size, term.jacobian, term.curvature)):
                 raise ValueError(f"batched term {term.name!r} must be a constraint declaring its size and derivatives")
         self.lower, self.upper = np.asarray(lower, float), np.asarray(upper, float)
         with jax.enable_x64(True):
@@ -190,10 +190,9 @@ class NonlinearProgram:
                 lam = multipliers[offset: offset + K * r].reshape(K, r)
                 offset += K * r
                 if curvature is not None:
-                    blocks.append(t.hessian_from(curvature, lam).ravel())
+                    blocks.append((t.hessian_from if t.batched else jax.vmap(t.hessian_from))(curvature, lam).ravel())
                     continue
-                hessian = t.hessian or jax.hessian(lambda v, k, l, fn=t.fn: l @ fn(v, k))
-                blocks.append(apply(t, hessian, z, lam).ravel())
+                blocks.append(apply(t, jax.hessian(lambda v, k, l, fn=t.fn: l @ fn(v, k)), z, lam).ravel())
             return jax.ops.segment_sum(jnp.concatenate(blocks)[hess_lower], hess_slot, hess_nnz)
 
         with jax.enable_x64(True):
