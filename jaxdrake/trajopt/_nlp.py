@@ -248,18 +248,21 @@ class NonlinearProgram:
         second derivatives evaluated once."""
         if not for_hessian:
             return self._call(self._jacobian, z)
-        z, = _float64(z)
+        return np.asarray(self._jacobian_keeping_curvatures(*_float64(z)), float)
+
+    def _jacobian_keeping_curvatures(self, z):
+        """The Jacobian's non-zeros (on the device), the curvatures at z kept."""
         with jax.enable_x64(True):
             values, curvatures = self._jacobian_and_curvatures(z)
         self._curvatures_at = (z, curvatures)
-        return np.asarray(values, float)
+        return values
 
     def hessian_values(self, z, multipliers, sigma=1.0) -> np.ndarray:
         """Non-zeros of sigma ∇²f + Σ λ_i ∇²g_i (lower triangle, (`hessian_rows`, `hessian_cols`))."""
         z, multipliers, sigma = _float64(z, multipliers, sigma)
         kept_z, curvatures = self._curvatures_at
         if kept_z is None or not np.array_equal(kept_z, z):
-            self.jacobian_values(z, for_hessian=True)
+            self._jacobian_keeping_curvatures(z)
             curvatures = self._curvatures_at[1]
         with jax.enable_x64(True):
             return np.asarray(self._hessian(curvatures, z, multipliers, sigma), float)
