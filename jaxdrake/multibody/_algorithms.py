@@ -311,6 +311,24 @@ def _rnea(tree: KinematicTree, q, v=None, a=None, *, gravity: bool, unroll):
     return _project_forces(L, S1, S0, _subtree_sum(L, F))
 
 
+def _body_velocities(tree: KinematicTree, q, v, *, unroll):
+    """Every body's [omega; v_Bo] (n, 6, B), world axes, tree order: its angular velocity and
+    the velocity of its frame's origin."""
+    R, p, _, _, _, V = _velocities(tree, q, v, unroll=unroll)
+    w, v_O = V[:, :3], V[:, 3:]
+    return jnp.concatenate([w, v_O + _cross(w, p)], 1)[tree.layout.position]
+
+
+def _external_forces(tree: KinematicTree, q, F, *, unroll):
+    """tau = J^T F for spatial forces F (n * 6, B) on the bodies (tree order, [torque about the
+    body frame's origin; force], world axes): each moved to O and summed over subtrees."""
+    L = tree.layout
+    R, p, S1, S0 = _kinematics(tree, q, unroll=unroll)
+    F = F.reshape((tree.num_bodies, 6) + F.shape[1:])[L.order]
+    torque, force = F[:, :3], F[:, 3:]
+    return _project_forces(L, S1, S0, _subtree_sum(L, jnp.concatenate([torque + _cross(p, force), force], 1)))
+
+
 def _project_forces(L, S1, S0, F):
     """tau = S^T F per joint, in the tree's coordinate order."""
     f = int(L.floating)
@@ -367,6 +385,9 @@ def _aba(tree: KinematicTree, q, v, tau, *, gravity: bool, unroll):
         up = (_to_parents(L, parent, Ia * valid[:, None, None]), _to_parents(L, parent, pa * valid[:, None]))
         return up, (U, D_inv, u)
 
+    if not L.width:  # a single free body: nothing but the base
+        A_root = _solve_spd6(I_A[0], _mv(S0, tau_level[:6]) - p_A[0])
+        return _from_level_order(L, _mv(_t(S0), A_root - _base_acceleration(tree, dtype, gravity)))
     depths = (jnp.asarray(_slot_rows(L)), L.parent_of_slot, L.valid)
     init = (jnp.zeros((L.width, 6, 6, lanes), dtype), jnp.zeros((L.width, 6, lanes), dtype))
     (Ia_root, pa_root), (U, D_inv, u) = _over_depths(backward, init, depths, reverse=True, unroll=unroll)
@@ -550,6 +571,19 @@ def aba(tree: KinematicTree, q, v, tau, *, gravity: bool = True):
     A floating base's acceleration is $(I^A)^{-1}(S_0 \tau_0 - p^A)$. Derivatives come through
     inverse dynamics (`_forward_dynamics`)."""
     return _forward_dynamics(gravity)(tree, q, v, tau)
+
+
+def body_velocities(tree: KinematicTree, q, v):
+    r"""Every body's spatial velocity, world axes, tree order: (n, 6) rows $[\omega_B; v_{B_o}]$,
+    the angular velocity and the velocity of the body frame's origin."""
+    return _lane_batched(_body_velocities)(tree, q, v)
+
+
+def external_forces(tree: KinematicTree, q, F):
+    r"""The generalized force $\tau = \sum_B J_B^T F_B$ of spatial forces applied to the bodies:
+    F (n, 6) rows $[\tau_{B_o}; f_B]$ (the torque about the body frame's origin and the force,
+    world axes), tree order (Drake's `F_BBo_W`)."""
+    return _lane_batched(_external_forces)(tree, q, F.reshape(-1))
 
 
 # ----- frames -----------------------------------------------------------------------------------

@@ -20,10 +20,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._numbers import device_array
+from ..geometry import HalfSpace
 from ..systems import Frame, System
 from ..systems._system import _static
 from . import _algorithms as alg
+from ._contact import DEFAULT_STICTION_TOLERANCE, CollisionGeometry, ContactMaterial, ContactModel, build_contact_model
 from ._tree import KinematicTree, URDFError, tree_from_pinocchio, tree_from_urdf, urdf_mimic_joints
+from ._urdf_collision import URDFCollisions, read_urdf_collisions
 
 _AXES = {"x": 0, "y": 1, "z": 2}
 
@@ -77,6 +80,13 @@ class RigidBodySystem(System):
       with `from_urdf(..., mimic=True)` (by default, as Pinocchio's `buildModelFromUrdf`, a
       mimic joint is an independent joint).
     - Damping acts in the dynamics; the URDF's Coulomb friction is recorded on `tree`, not applied.
+    - Contact (`from_urdf(..., contact=True)`, `with_collision_geometry`, `with_ground`): the
+      `<collision>` shapes touch each other and the world by Drake's compliant point contact
+      (Hunt-Crossley normal force, regularised Stribeck friction; `jaxdrake.multibody._contact`),
+      their generalized force $\sum J^T f$ added to the dynamics. `contact` holds the
+      geometry's leaves (stiffness, dissipation, friction, sizes, poses) that you may
+      replace; `contact_results(x)` gives the points and forces. Stiff contact: simulate with
+      `solver="rosenbrock23"` (error-controlled, L-stable).
 
     The tree's masses, inertias, lengths and axes are pytree leaves: `jax.grad` with respect
     to a link mass works (system identification); build the system outside `jit`.
@@ -91,10 +101,13 @@ class RigidBodySystem(System):
     limited: tuple = _static(default=())   # (q index, v index) of the joints with limits
     constraint_stiffness: float = 20.0
     source: str | None = _static(default=None)  # the URDF file, when loaded from one
+    contact: ContactModel | None = None
+    collision: URDFCollisions | None = _static(default=None)  # what `contact` was built from
 
     def __init__(self, tree: KinematicTree, actuated_joints=None, *, loops=(), couplers=(),
                  constraint_stiffness: float = 20.0, effort_limits: bool = True,
-                 joint_limits: bool = True, limit_period: float = 0.02, source=None):
+                 joint_limits: bool = True, limit_period: float = 0.02, source=None, collision=None,
+                 stiction_tolerance: float = DEFAULT_STICTION_TOLERANCE):
         names = tree.joint_names
         if actuated_joints is None:
             actuated_joints = [n for n, k in zip(names, tree.joint_types) if k != "floating"]
@@ -127,6 +140,10 @@ class RigidBodySystem(System):
         self.limit_stiffness, self.limit_damping = _limit_gains(tree, self.limited, limit_period)
         self.constraint_stiffness = constraint_stiffness
         self.source = None if source is None else str(source)
+        self.collision = collision
+        self.contact = None if collision is None else build_contact_model(
+            tree, collision.geometries, excluded_pairs=collision.excluded_link_pairs,
+            stiction_tolerance=stiction_tolerance, source=tree.robot_name)
         state = Frame(f"{tree.robot_name}State", tree.position_names() + tree.velocity_names())
         num_loop = sum(len(loop.axes) for loop in self.loops) + len(self.couplers)
         super().__init__(num_continuous_states=tree.nq + tree.nv, num_inputs=len(actuated_joints),
@@ -139,10 +156,16 @@ class RigidBodySystem(System):
     def from_urdf(cls, path, *, floating_base: bool = False, actuated=None, gravity: bool = True,
                   welded=(), loops=(), mimic: bool = False, constraint_stiffness: float = 20.0,
                   effort_limits: bool = True, joint_limits: bool = True,
-                  limit_period: float = 0.02) -> "RigidBodySystem":
-        """Load a URDF (local files only: `package://` mesh paths are never resolved); joints
-        named in `welded` are fixed at zero; `mimic=True` couples each `<mimic>` joint to its
-        leader (a `CouplerConstraint`)."""
+                  limit_period: float = 0.02, contact: bool = False, package_map=None,
+                  stiction_tolerance: float = DEFAULT_STICTION_TOLERANCE) -> "RigidBodySystem":
+        """Load a URDF; joints named in `welded` are fixed at zero; `mimic=True` couples each
+        `<mimic>` joint to its leader (a `CouplerConstraint`).
+
+        `contact=True` reads the `<collision>` elements (and Drake's proximity properties and
+        collision filter groups) and makes them touch: Drake's continuous point contact with
+        `stiction_tolerance` (m/s) and Drake's default properties where the file gives none
+        (stiffness 1e6 N/m, dissipation 50 s/m, friction 1.0). Mesh files are read only from the
+        URDF's folder, or for `package://NAME/...` from `package_map[NAME]`."""
         with jax.ensure_compile_time_eval():  # parsing is host work, also inside jit / vmap
             path = pathlib.Path(path)
             tree, transmitted = tree_from_urdf(path, floating_base=floating_base,
@@ -155,9 +178,11 @@ class RigidBodySystem(System):
                                     "is fixed or welded; weld both, or neither")
             if actuated is None and transmitted:
                 actuated = list(transmitted)
+            collision = read_urdf_collisions(path, package_map=package_map) if contact else None
             return cls(tree, actuated, loops=loops, couplers=couplers,
                        constraint_stiffness=constraint_stiffness, effort_limits=effort_limits,
-                       joint_limits=joint_limits, limit_period=limit_period, source=path.resolve())
+                       joint_limits=joint_limits, limit_period=limit_period, source=path.resolve(),
+                       collision=collision, stiction_tolerance=stiction_tolerance)
 
     @classmethod
     def from_pinocchio(cls, model, *, actuated=None, loops=(),
@@ -187,9 +212,52 @@ class RigidBodySystem(System):
                 alg.gravity_forces(t, q), self.B)
 
     def inverse_dynamics(self, q, v, qdd):
-        """The generalized force H qdd + C v + G + b o v - tau_lim that produces qdd (damping
-        and joint-limit forces included; constraint forces not)."""
-        return alg.rnea(self.tree, q, v, qdd) + self.tree.damping * v - self.joint_limit_torque(q, v)
+        """The generalized force H qdd + C v + G + b o v - tau_lim - tau_contact that produces
+        qdd (damping, joint-limit and contact forces included; constraint forces not)."""
+        return (alg.rnea(self.tree, q, v, qdd) + self.tree.damping * v - self.joint_limit_torque(q, v)
+                - self.contact_force(q, v))
+
+    # ----- contact ---------------------------------------------------------------------------
+
+    def contact_force(self, q, v):
+        """The generalized force of all contacts, $\sum_c J_c^T f_c$ (zero without contact)."""
+        if self.contact is None:
+            return jnp.zeros(self.tree.nv, v.dtype)
+        return self.contact.generalized_forces(self.tree, q, v)[0]
+
+    def contact_results(self, x):
+        """The `ContactResults` at state x = [q; v]: every candidate contact's `active` flag,
+        depth, point, normal and the force on its second geometry (Drake's `f_Bc_W`)."""
+        if self.contact is None:
+            raise ValueError(f"{self.name} has no collision geometry: load it with from_urdf(..., contact=True) "
+                             "or add some with with_collision_geometry / with_ground")
+        x = jnp.asarray(x)
+        return self.contact.results(self.tree, x[: self.tree.nq], x[self.tree.nq:])
+
+    def with_collision_geometry(self, link: str, shape, *, rotation=np.eye(3), translation=(0.0, 0.0, 0.0),
+                                name: str | None = None, material: ContactMaterial | None = None,
+                                ) -> "RigidBodySystem":
+        """A copy with one more collision shape on `link` ('world' for the environment), at
+        (`rotation`, `translation`) in the link's frame (Drake's `RegisterCollisionGeometry`)."""
+        collision = self.collision or URDFCollisions((), _joint_link_pairs(self.tree))
+        name = name or f"{link}_{type(shape).__name__.lower()}_{len(collision.geometries)}"
+        geometry = CollisionGeometry(name, link, shape, rotation, translation, material or ContactMaterial())
+        collision = dataclasses.replace(collision, geometries=collision.geometries + (geometry,))
+        stiction = DEFAULT_STICTION_TOLERANCE if self.contact is None else self.contact.stiction_tolerance
+        model = build_contact_model(self.tree, collision.geometries, excluded_pairs=collision.excluded_link_pairs,
+                                    stiction_tolerance=stiction, source=self.name)
+        return _replace_fields(self, contact=model, collision=collision)
+
+    def with_ground(self, height: float = 0.0, *, normal=(0.0, 0.0, 1.0), material: ContactMaterial | None = None,
+                    name: str = "ground") -> "RigidBodySystem":
+        """A copy with a half-space fixed to the world: the points p with $\hat n \cdot p \le$
+        `height` (`normal` need not be unit: a slope)."""
+        n = np.asarray(normal, float)
+        if n.shape != (3,) or not np.linalg.norm(n) > 0:
+            raise ValueError(f"with_ground: normal must be a non-zero 3-vector, got {normal!r}")
+        n = n / np.linalg.norm(n)
+        return self.with_collision_geometry("world", HalfSpace(), rotation=_rotation_to(n),
+                                            translation=height * n, name=name, material=material)
 
     def joint_limit_torque(self, q, v):
         r"""The compliant limits' generalized force: $\max(0, k p + d\dot p)$ towards the
@@ -205,8 +273,9 @@ class RigidBodySystem(System):
         return jnp.zeros(self.tree.nv, v.dtype).at[iv].add(up - down)
 
     def forward_dynamics(self, q, v, u):
-        """qdd (the time derivative of v) under input u, damping, joint limits and constraint forces."""
-        tau = self.B @ u - self.tree.damping * v + self.joint_limit_torque(q, v)
+        """qdd (the time derivative of v) under input u, damping, joint limits, contact and
+        constraint forces."""
+        tau = self.B @ u - self.tree.damping * v + self.joint_limit_torque(q, v) + self.contact_force(q, v)
         if not (self.loops or self.couplers):
             return alg.aba(self.tree, q, v, tau)
         H = alg.mass_matrix(self.tree, q)
@@ -310,6 +379,32 @@ class RigidBodySystem(System):
     def frame_pose(self, q, frame: str):
         """World (R, p) of a named frame (a URDF link)."""
         return alg.frame_pose(self.tree, q, frame)
+
+
+def _rotation_to(n):
+    """A rotation whose z axis is the unit vector n."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, n)
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(n, x), n])
+
+
+def _joint_link_pairs(tree) -> tuple:
+    """(parent link, child link) of every one-dof joint whose parent is not the world (Drake
+    filters their collisions)."""
+    pairs = []
+    for i, (kind, parent) in enumerate(zip(tree.joint_types, tree.parents)):
+        if kind != "floating" and parent >= 0:
+            pairs.append((tree.body_names[parent], tree.body_names[i]))
+    return tuple(pairs)
+
+
+def _replace_fields(module, **fields):
+    """A copy of an equinox module with some fields (static ones too) replaced."""
+    copy = object.__new__(type(module))
+    for field in dataclasses.fields(module):
+        object.__setattr__(copy, field.name, fields.get(field.name, getattr(module, field.name)))
+    return copy
 
 
 def _limited_joints(tree) -> tuple:

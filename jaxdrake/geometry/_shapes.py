@@ -1,0 +1,161 @@
+r"""Collision shapes (Drake's `geometry::Shape` family), each in its own frame G.
+
+- `Sphere(radius)`: centred at G's origin.
+- `Box(x, y, z)`: full side lengths along G's axes, centred at the origin.
+- `Capsule(radius, length)`: a segment of `length` along G's z axis, centred, swept by a
+  sphere of `radius` (URDF's `<capsule>` / Drake's `<drake:capsule>`).
+- `Cylinder(radius, length)`: along G's z axis, centred (URDF's `<cylinder>`).
+- `HalfSpace()`: the set $z \le 0$ of G (its boundary plane through the origin, outward
+  normal $+z$), Drake's `HalfSpace`.
+- `Convex(vertices)`: the convex hull of points (a `.obj` / `.stl` mesh reduced to its hull,
+  as Drake's `Convex`), kept as its vertices and its faces' planes
+  $n_f \cdot p \le d_f$.
+
+Shapes are frozen host values (static structure); their sizes become pytree leaves of the
+plant's contact model, so `jax.grad` with respect to a radius works.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+
+import numpy as np
+
+
+class GeometryError(ValueError):
+    """A collision shape that cannot be used (named shape, element and remedy)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Sphere:
+    radius: float
+
+    def __post_init__(self):
+        _positive(self, "radius")
+
+
+@dataclasses.dataclass(frozen=True)
+class Box:
+    x: float
+    y: float
+    z: float
+
+    def __post_init__(self):
+        for name in ("x", "y", "z"):
+            _positive(self, name)
+
+    @property
+    def half_sizes(self):
+        return np.array([self.x, self.y, self.z]) / 2
+
+    def vertices(self):
+        """The 8 corners, (8, 3)."""
+        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
+        return signs * self.half_sizes
+
+
+@dataclasses.dataclass(frozen=True)
+class Capsule:
+    radius: float
+    length: float
+
+    def __post_init__(self):
+        _positive(self, "radius")
+        _positive(self, "length", allow_zero=True)
+
+
+@dataclasses.dataclass(frozen=True)
+class Cylinder:
+    radius: float
+    length: float
+
+    def __post_init__(self):
+        _positive(self, "radius")
+        _positive(self, "length")
+
+
+@dataclasses.dataclass(frozen=True)
+class HalfSpace:
+    """z <= 0 in its frame (outward normal +z)."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Convex:
+    """The convex hull of `points` (m, 3): `vertices` (the hull's, (v, 3)) and `planes`
+    (f, 4) rows $[n_f, d_f]$ with unit outward $n_f$, the hull being $n_f \cdot p \le d_f$.
+    `name` says where it came from (for messages)."""
+
+    vertices: np.ndarray
+    planes: np.ndarray
+    name: str = "convex"
+
+    @classmethod
+    def from_points(cls, points, name: str = "convex") -> "Convex":
+        from scipy.spatial import ConvexHull, QhullError
+
+        points = np.asarray(points, float)
+        if points.ndim != 2 or points.shape[1] != 3 or len(points) < 4 or not np.all(np.isfinite(points)):
+            raise GeometryError(f"{name}: a convex shape needs at least 4 finite 3-D points, got "
+                                f"an array of shape {points.shape}")
+        try:
+            hull = ConvexHull(points)
+        except QhullError:
+            raise GeometryError(f"{name}: the points are flat (they span no volume), so they have no "
+                                "convex hull to collide with; use a Box of small thickness instead") from None
+        planes = _merge_coplanar(np.column_stack([hull.equations[:, :3], -hull.equations[:, 3]]))
+        return cls(points[hull.vertices], planes, name)
+
+    @classmethod
+    def from_mesh_file(cls, path, scale=(1.0, 1.0, 1.0), *, require_convex: bool = True) -> "Convex":
+        """A `.obj` / `.stl` (or any format trimesh reads) scaled by `scale`, reduced to its hull.
+        `require_convex`: refuse a mesh that is far from its hull (its volume below 90% of the
+        hull's), since contact would then act where the surface is not."""
+        try:
+            import trimesh
+        except ImportError:
+            raise ImportError("mesh collision shapes are read by trimesh: pip install trimesh "
+                              "(or jaxdrake[viz])") from None
+        path = pathlib.Path(path)
+        try:
+            mesh = trimesh.load(path, force="mesh", process=True)
+        except Exception as error:  # trimesh raises many kinds for unreadable files
+            raise GeometryError(f"cannot read the collision mesh {path}: {error}") from None
+        if not hasattr(mesh, "vertices") or len(mesh.vertices) < 4:
+            raise GeometryError(f"{path}: the collision mesh has no volume (fewer than 4 vertices)")
+        points = np.asarray(mesh.vertices, float) * np.asarray(scale, float)
+        shape = cls.from_points(points, name=path.name)
+        if require_convex and mesh.is_watertight:
+            hull_volume = _hull_volume(shape)
+            if abs(mesh.volume) * np.prod(np.sign(scale)) < 0.9 * hull_volume:
+                raise GeometryError(
+                    f"{path}: the collision mesh is not convex (its volume is "
+                    f"{abs(mesh.volume) / hull_volume:.0%} of its convex hull's); point contact would "
+                    "act on the hull, not the surface. Split it into convex pieces (one <collision> "
+                    "each), or pass require_convex=False to collide with its hull")
+        return shape
+
+
+def _hull_volume(shape: Convex) -> float:
+    from scipy.spatial import ConvexHull
+    return float(ConvexHull(shape.vertices).volume)
+
+
+def _merge_coplanar(planes, tol=1e-9):
+    """Qhull triangulates faces: keep one row per distinct plane."""
+    kept = []
+    for row in planes:
+        if not any(np.allclose(row, other, atol=tol * max(1.0, abs(row[3]))) for other in kept):
+            kept.append(row)
+    return np.array(kept)
+
+
+def _positive(shape, name, allow_zero=False):
+    value = getattr(shape, name)
+    ok = np.isfinite(value) and (value >= 0 if allow_zero else value > 0)
+    if not ok:
+        raise GeometryError(f"{type(shape).__name__}: {name} must be a {'non-negative' if allow_zero else 'positive'} "
+                            f"finite length in metres, got {value}")
+
+
+SHAPES = (Sphere, Box, Capsule, Cylinder, HalfSpace, Convex)

@@ -1,0 +1,354 @@
+r"""Compliant point contact, exactly Drake's continuous `MultibodyPlant` (`ContactModel.kPoint`).
+
+For every candidate contact of a geometry pair (A, B) (`jaxdrake.geometry.penetration`), with
+depth x > 0, witness points $C_a, C_b$, normal $\hat n_{BA}$ and contact point
+$C = (C_a + C_b)/2$:
+
+- normal force on A (Hunt & Crossley): $f_n = k x (1 + d\, v_n)$, $v_n = v_{A_cB_c} \cdot
+  \hat n_{BA}$ (> 0 approaching), applied where $f_n > 0$;
+- friction on A (Drake's regularised Stribeck law): $f_t = \mu(s)\, f_n\, \hat t$ along the
+  slip $v_t = v_{A_cB_c} - v_n \hat n_{BA}$, $s = |v_t|$, $\hat t = v_t / s$, with
+  $\mu(s) = \mu_s\,\mathrm{step5}(s/v_s)$ for $s < v_s$, $\mu_s - (\mu_s - \mu_d)
+  \mathrm{step5}((s/v_s - 1)/2)$ for $v_s \le s < 3 v_s$, $\mu_d$ beyond
+  ($\mathrm{step5}(x) = 10x^3 - 15x^4 + 6x^5$, $v_s$ the stiction tolerance, Drake's default
+  $10^{-4}$ m/s); B receives the opposite force at C;
+- two geometries' properties combine as Drake's do: $k = k_A k_B / (k_A + k_B)$,
+  $d = (k_B d_A + k_A d_B)/(k_A + k_B)$, $\mu = 2\mu_A\mu_B/(\mu_A + \mu_B)$ (static and
+  dynamic each);
+- defaults (Drake's `SceneGraphConfig.default_proximity_properties`, filled in where a
+  geometry lacks a value): stiffness $10^6$ N/m, dissipation 50 s/m, friction 0.5 / 0.5
+  (a URDF `<collision>` without `drake:mu_*` gets 1.0 / 1.0, as from Drake's URDF parser).
+
+The candidate pairs are fixed at construction (every pair of geometries on different bodies
+that collision filtering lets through); at run time a candidate acts only where it touches.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._numbers import device_array
+from ..geometry import Box, Capsule, Convex, Cylinder, GeometryError, HalfSpace, Sphere
+from ..geometry import penetration as _penetration
+from ..geometry._queries import _safe_norm, canonical_order, num_candidates, supported, SUPPORTED_PAIRS
+from . import _algorithms as alg
+
+DEFAULT_STICTION_TOLERANCE = 1e-4
+DEFAULT_STIFFNESS = 1e6
+DEFAULT_DISSIPATION = 50.0
+DEFAULT_FRICTION = (0.5, 0.5)
+URDF_DEFAULT_FRICTION = (1.0, 1.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class ContactMaterial:
+    """A geometry's contact properties (Drake's `drake:proximity_properties`); None: Drake's
+    default (module docstring)."""
+
+    point_contact_stiffness: float | None = None
+    hunt_crossley_dissipation: float | None = None
+    mu_static: float | None = None
+    mu_dynamic: float | None = None
+
+    def check(self, where: str):
+        for name in ("point_contact_stiffness", "hunt_crossley_dissipation", "mu_static", "mu_dynamic"):
+            value = getattr(self, name)
+            if value is not None and not (np.isfinite(value) and value >= 0):
+                raise GeometryError(f"{where}: {name} must be a non-negative finite number, got {value}")
+        mu_s, mu_d = self.friction()
+        if mu_d > mu_s:
+            raise GeometryError(f"{where}: mu_dynamic ({mu_d}) exceeds mu_static ({mu_s}); "
+                                "as in Drake, the static coefficient must be at least the dynamic one")
+
+    def friction(self):
+        """(mu_static, mu_dynamic), one filling in for the other as Drake's parser does."""
+        s, d = self.mu_static, self.mu_dynamic
+        if s is None and d is None:
+            return DEFAULT_FRICTION
+        return (d if s is None else s), (s if d is None else d)
+
+
+@dataclasses.dataclass(frozen=True)
+class CollisionGeometry:
+    """One collision shape on a link: `shape` placed at (R, p) in the link's frame."""
+
+    name: str
+    link: str
+    shape: object
+    rotation: tuple = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    translation: tuple = (0.0, 0.0, 0.0)
+    material: ContactMaterial = ContactMaterial()
+
+    def __post_init__(self):  # tuples: hashable, so a plant holding them stays a static structure
+        R, p = np.asarray(self.rotation, float), np.asarray(self.translation, float)
+        if R.shape != (3, 3) or p.shape != (3,) or not np.allclose(R @ R.T, np.eye(3), atol=1e-9):
+            raise GeometryError(f"collision {self.name!r}: rotation must be a 3x3 rotation matrix and "
+                                f"translation a 3-vector, got shapes {R.shape}, {p.shape}")
+        object.__setattr__(self, "rotation", tuple(map(tuple, R.tolist())))
+        object.__setattr__(self, "translation", tuple(p.tolist()))
+
+
+_KINDS = {Sphere: "sphere", Box: "box", Capsule: "capsule", Cylinder: "cylinder", HalfSpace: "halfspace",
+          Convex: "convex"}
+
+
+def shape_kind(shape) -> str:
+    try:
+        return _KINDS[type(shape)]
+    except KeyError:
+        raise GeometryError(f"unsupported collision shape {shape!r}; use one of "
+                            f"{', '.join(t.__name__ for t in _KINDS)}") from None
+
+
+def _size(shape):
+    if isinstance(shape, Sphere):
+        return [shape.radius, 0.0, 0.0]
+    if isinstance(shape, Box):
+        return list(shape.half_sizes)
+    if isinstance(shape, (Capsule, Cylinder)):
+        return [shape.radius, shape.length / 2, 0.0]
+    return [0.0, 0.0, 0.0]
+
+
+class ContactResults(eqx.Module):
+    """Every candidate contact at one state (Drake's `ContactResults` for point pairs), arrays
+    over candidates: `active` (touching with a positive normal force), `depth`, `point` (C,
+    world), `normal` ($\\hat n_{BA}$), `force` (on B at C, world: Drake's `f_Bc_W`),
+    `slip_speed`, `separation_speed` ($v_n$), and the geometry indices `geometry_a`,
+    `geometry_b` (static, into `ContactModel.names`)."""
+
+    active: jax.Array
+    depth: jax.Array
+    point: jax.Array
+    normal: jax.Array
+    force: jax.Array
+    slip_speed: jax.Array
+    separation_speed: jax.Array
+    geometry_a: tuple = eqx.field(static=True)
+    geometry_b: tuple = eqx.field(static=True)
+
+
+class ContactModel(eqx.Module):
+    """The plant's collision geometry and its point-contact parameters.
+
+    Static: geometry `names`, `links`, `kinds`, `bodies` (the tree body each is fixed to, -1
+    the world) and `groups`: (kind_a, kind_b, geometry indices a, b) of the candidate pairs,
+    grouped by shape kinds. Leaves: each geometry's pose in its body's frame (`rotation`,
+    `translation`), `size`, convex `vertices` / `planes` (padded), and `stiffness`,
+    `dissipation`, `mu_static`, `mu_dynamic`; the plant's `stiction_tolerance`.
+    """
+
+    names: tuple = eqx.field(static=True)
+    links: tuple = eqx.field(static=True)
+    kinds: tuple = eqx.field(static=True)
+    bodies: tuple = eqx.field(static=True)
+    groups: tuple = eqx.field(static=True)
+    rotation: jax.Array
+    translation: jax.Array
+    size: jax.Array
+    vertices: jax.Array
+    vertex_valid: jax.Array
+    planes: jax.Array
+    stiffness: jax.Array
+    dissipation: jax.Array
+    mu_static: jax.Array
+    mu_dynamic: jax.Array
+    stiction_tolerance: jax.Array
+
+    @property
+    def num_candidates(self) -> int:
+        v = self.vertices.shape[1]
+        return sum(len(a) * num_candidates(ka, kb, v, v) for ka, kb, a, _ in self.groups)
+
+    # ----- queries ------------------------------------------------------------------------
+
+    def geometry_poses(self, tree, q):
+        """World (R (g, 3, 3), p (g, 3)) of every geometry."""
+        Rs, ps = alg.body_poses(tree, q)
+        Rs = jnp.concatenate([jnp.eye(3, dtype=Rs.dtype)[None], Rs])
+        ps = jnp.concatenate([jnp.zeros((1, 3), ps.dtype), ps])
+        b = np.asarray(self.bodies) + 1
+        R_B, p_B = Rs[b], ps[b]
+        return R_B @ self.rotation, jnp.einsum("gij,gj->gi", R_B, self.translation) + p_B
+
+    def point_pairs(self, tree, q):
+        """Candidate contacts of every pair: depth, C_a, C_b, n_BA (arrays over candidates) and
+        the static geometry indices a, b of each."""
+        R, p = self.geometry_poses(tree, q)
+        params = {"size": self.size, "vertices": self.vertices, "vertex_valid": self.vertex_valid,
+                  "planes": self.planes}
+        parts, ia, ib = [], [], []
+        for kind_a, kind_b, a, b in self.groups:
+            a_idx, b_idx = np.asarray(a), np.asarray(b)
+            pick = lambda idx: jax.tree.map(lambda x: x[idx], params)  # noqa: E731
+            query = lambda pa, Ra, ta, pb, Rb, tb: _penetration(kind_a, pa, (Ra, ta), kind_b, pb, (Rb, tb))  # noqa: E731
+            out = jax.vmap(query)(pick(a_idx), R[a_idx], p[a_idx], pick(b_idx), R[b_idx], p[b_idx])
+            k = out[0].shape[1]
+            parts.append(tuple(x.reshape((-1,) + x.shape[2:]) for x in out))
+            ia += np.repeat(a_idx, k).tolist()
+            ib += np.repeat(b_idx, k).tolist()
+        if not parts:
+            z = jnp.zeros((0, 3), q.dtype)
+            return (jnp.zeros(0, q.dtype), z, z, z), (), ()
+        return tuple(jnp.concatenate(x) for x in zip(*parts)), tuple(ia), tuple(ib)
+
+    def results(self, tree, q, v) -> ContactResults:
+        """The contact forces at (q, v) (module docstring)."""
+        (depth, pa, pb, n), ia, ib = self.point_pairs(tree, q)
+        ia_, ib_ = np.asarray(ia, int), np.asarray(ib, int)
+        C = 0.5 * (pa + pb)
+        V = alg.body_velocities(tree, q, v)
+        Rs, ps = alg.body_poses(tree, q)
+        V = jnp.concatenate([jnp.zeros((1, 6), V.dtype), V])
+        ps = jnp.concatenate([jnp.zeros((1, 3), ps.dtype), ps])
+        body_a, body_b = np.asarray(self.bodies)[ia_] + 1, np.asarray(self.bodies)[ib_] + 1
+        point_velocity = lambda b: V[b, 3:] + jnp.cross(V[b, :3], C - ps[b])  # noqa: E731
+        v_AcBc = point_velocity(body_b) - point_velocity(body_a)
+        vn = jnp.sum(v_AcBc * n, -1)
+        k, d = _combined_stiffness_dissipation(self.stiffness[ia_], self.stiffness[ib_],
+                                               self.dissipation[ia_], self.dissipation[ib_])
+        touching = depth > 0
+        x = jnp.where(touching, depth, 0.0)
+        fn = k * x * (1.0 + d * vn)
+        active = touching & (fn > 0)
+        fn = jnp.where(active, fn, 0.0)
+        vt = v_AcBc - vn[:, None] * n
+        slip, t_hat = _safe_norm(vt, jnp.zeros_like(vt).at[:, 0].set(1.0))  # mu(0) = 0: no force
+        mu = stribeck(slip, _harmonic(self.mu_static[ia_], self.mu_static[ib_]),
+                      _harmonic(self.mu_dynamic[ia_], self.mu_dynamic[ib_]), self.stiction_tolerance)
+        f_A = fn[:, None] * n + (mu * fn)[:, None] * t_hat
+        return ContactResults(active=active, depth=depth, point=C, normal=n, force=-f_A, slip_speed=slip,
+                              separation_speed=vn, geometry_a=ia, geometry_b=ib)
+
+    def generalized_forces(self, tree, q, v):
+        """$\\tau_c = \\sum J^T f$ of all contact forces at (q, v), and the `ContactResults`."""
+        res = self.results(tree, q, v)
+        Rs, ps = alg.body_poses(tree, q)
+        ps = jnp.concatenate([jnp.zeros((1, 3), ps.dtype), ps])
+        ia_, ib_ = np.asarray(res.geometry_a, int), np.asarray(res.geometry_b, int)
+        F = jnp.zeros((tree.num_bodies + 1, 6), res.force.dtype)
+        for bodies, f in ((np.asarray(self.bodies)[ia_] + 1, -res.force), (np.asarray(self.bodies)[ib_] + 1, res.force)):
+            wrench = jnp.concatenate([jnp.cross(res.point - ps[bodies], f), f], 1)
+            F = F.at[bodies].add(wrench)
+        return alg.external_forces(tree, q, F[1:]), res
+
+
+def stribeck(slip, mu_static, mu_dynamic, stiction_tolerance):
+    """Drake's regularised Stribeck friction coefficient of a slip speed (module docstring)."""
+    s = slip / stiction_tolerance
+    step5 = lambda x: x ** 3 * (10 + x * (6 * x - 15))  # noqa: E731
+    low = mu_static * step5(jnp.clip(s, 0.0, 1.0))
+    mid = mu_static - (mu_static - mu_dynamic) * step5(jnp.clip((s - 1) / 2, 0.0, 1.0))
+    return jnp.where(s >= 3, mu_dynamic, jnp.where(s >= 1, mid, low))
+
+
+def _safe_divide(num, den):
+    return jnp.where(den == 0, 0.0, num / jnp.where(den == 0, 1.0, den))
+
+
+def _harmonic(a, b):
+    return _safe_divide(2 * a * b, a + b)
+
+
+def _combined_stiffness_dissipation(k1, k2, d1, d2):
+    return _safe_divide(k1 * k2, k1 + k2), _safe_divide(k2, k1 + k2) * d1 + _safe_divide(k1, k1 + k2) * d2
+
+
+# ----- construction ---------------------------------------------------------------------------
+
+
+def build_contact_model(tree, geometries, *, excluded_pairs=(), stiction_tolerance=DEFAULT_STICTION_TOLERANCE,
+                        source="") -> ContactModel:
+    """A `ContactModel` for `geometries` (`CollisionGeometry`, on links of `tree` or 'world').
+
+    Collision filtering as Drake's: no pair on one body (links welded together, the world's
+    geometries among themselves), none whose link pair is in `excluded_pairs` (links joined by
+    a joint whose parent is not the world; collision filter groups)."""
+    if not (np.isfinite(stiction_tolerance) and stiction_tolerance > 0):
+        raise ValueError(f"stiction_tolerance must be a positive speed in m/s, got {stiction_tolerance}")
+    link_body = {name: body for name, body in zip(tree.frame_names, tree.frame_bodies)}
+    link_body.setdefault("world", -1)
+    bodies, kinds = [], []
+    for g in geometries:
+        where = f"{source}: link {g.link!r}, collision {g.name!r}" if source else f"link {g.link!r}, collision {g.name!r}"
+        if g.link not in link_body:
+            raise GeometryError(f"{where}: no link {g.link!r} in the tree; the links are {list(tree.frame_names)}")
+        g.material.check(where)
+        kinds.append(shape_kind(g.shape))
+        body = link_body[g.link]
+        if body >= 0 and not _body_has_mass(tree, body):
+            raise GeometryError(f"{where}: the link carries no mass or inertia (nor does anything welded to "
+                                "it), so a contact force on it has nothing to accelerate. Give the link an "
+                                "<inertial>, or put the collision on the massive link it belongs to")
+        if isinstance(g.shape, HalfSpace) and body >= 0:
+            raise GeometryError(f"{where}: a half-space must be fixed to the world (it is infinite); "
+                                "use a Box on a moving link")
+        bodies.append(body)
+    names = tuple(g.name for g in geometries)
+    if len(set(names)) != len(names):
+        raise GeometryError(f"{source}: collision geometry names must be unique; repeated: "
+                            f"{sorted({n for n in names if names.count(n) > 1})}")
+    excluded = {frozenset(p) for p in excluded_pairs}
+    groups = {}
+    for i in range(len(geometries)):
+        for j in range(i + 1, len(geometries)):
+            gi, gj = geometries[i], geometries[j]
+            if bodies[i] == bodies[j] or frozenset((gi.link, gj.link)) in excluded:
+                continue
+            if not supported(kinds[i], kinds[j]):
+                raise GeometryError(
+                    f"{source}: no contact between {kinds[i]} {gi.name!r} (link {gi.link!r}) and {kinds[j]} "
+                    f"{gj.name!r} (link {gj.link!r}): that shape pair is not supported. Supported pairs: "
+                    f"{', '.join(f'{a}-{b}' for a, b in SUPPORTED_PAIRS)}; approximate one of the shapes (by "
+                    "spheres, a capsule or a box), or exclude the pair with a <drake:collision_filter_group>")
+            a, b = (i, j) if canonical_order(kinds[i], kinds[j]) else (j, i)
+            key = (kinds[a], kinds[b])
+            groups.setdefault(key, ([], []))
+            groups[key][0].append(a)
+            groups[key][1].append(b)
+    floats = lambda x: device_array(np.asarray(x, float))  # noqa: E731
+    convex = [g.shape for g in geometries if isinstance(g.shape, Convex)]
+    nv = max((len(c.vertices) for c in convex), default=0)
+    nf = max((len(c.planes) for c in convex), default=1)
+    vertices = np.zeros((len(geometries), nv, 3))
+    valid = np.zeros((len(geometries), nv), bool)
+    planes = np.tile(np.array([0.0, 0.0, 1.0, 0.0]), (len(geometries), nf, 1))
+    for i, g in enumerate(geometries):
+        if isinstance(g.shape, Convex):
+            m, f = len(g.shape.vertices), len(g.shape.planes)
+            vertices[i, :m], valid[i, :m] = g.shape.vertices, True
+            vertices[i, m:] = g.shape.vertices[0]
+            planes[i, :f], planes[i, f:] = g.shape.planes, g.shape.planes[0]
+    value = lambda x, default: default if x is None else x  # noqa: E731
+    return ContactModel(
+        names=names, links=tuple(g.link for g in geometries), kinds=tuple(kinds), bodies=tuple(bodies),
+        groups=tuple((ka, kb, tuple(a), tuple(b)) for (ka, kb), (a, b) in sorted(groups.items())),
+        rotation=floats([g.rotation for g in geometries]).reshape(-1, 3, 3),
+        translation=floats([g.translation for g in geometries]).reshape(-1, 3),
+        size=floats([_size(g.shape) for g in geometries]).reshape(-1, 3),
+        vertices=floats(vertices), vertex_valid=jax.device_put(valid), planes=floats(planes),
+        stiffness=floats([value(g.material.point_contact_stiffness, DEFAULT_STIFFNESS) for g in geometries]),
+        dissipation=floats([value(g.material.hunt_crossley_dissipation, DEFAULT_DISSIPATION) for g in geometries]),
+        mu_static=floats([g.material.friction()[0] for g in geometries]),
+        mu_dynamic=floats([g.material.friction()[1] for g in geometries]),
+        stiction_tolerance=floats(stiction_tolerance))
+
+
+def _body_has_mass(tree, body) -> bool:
+    """Whether the body, or anything beyond it, moves mass or inertia (else H is singular there)."""
+    mass, inertia = np.asarray(tree.mass), np.asarray(tree.inertia)
+    subtree = [b for b in range(tree.num_bodies) if _descends(tree.parents, b, body)]
+    return any(mass[b] > 0 or np.trace(inertia[b]) > 0 for b in subtree)
+
+
+def _descends(parents, b, ancestor):
+    while b >= 0:
+        if b == ancestor:
+            return True
+        b = parents[b]
+    return False

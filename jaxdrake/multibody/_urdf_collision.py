@@ -1,0 +1,170 @@
+r"""A URDF's collision geometry, read as Drake's parser reads it.
+
+- `<collision>` elements of every link: `<origin>`, and a `<geometry>` of `<sphere radius>`,
+  `<box size>`, `<cylinder radius length>`, `<capsule radius length>` /
+  `<drake:capsule radius length>`, or `<mesh filename [scale]>` (a `.obj` / `.stl` reduced
+  to its convex hull, as Drake's point contact uses a mesh);
+- `<drake:proximity_properties>` inside a `<collision>`: `drake:point_contact_stiffness`,
+  `drake:hunt_crossley_dissipation`, `drake:mu_static`, `drake:mu_dynamic` (their `value`);
+- `<drake:collision_filter_group name>` with `<drake:member link>` and
+  `<drake:ignored_collision_filter_group name>` (no contact between the members of the two
+  groups, or within a group that ignores itself);
+- joints (not fixed, not floating, parent not the world): their two links do not collide.
+
+Mesh files are read only from inside the URDF's folder, or from the folders given as
+`package_map` for `package://NAME/...` names: nothing outside a model's folder is opened.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+import xml.etree.ElementTree as ET
+
+import numpy as np
+
+from ..geometry import Box, Capsule, Convex, Cylinder, GeometryError, Sphere
+from ._contact import URDF_DEFAULT_FRICTION, CollisionGeometry, ContactMaterial
+from ._tree import URDFError, _numbers, _origin, read_urdf_text
+
+
+@dataclasses.dataclass(frozen=True)
+class URDFCollisions:
+    """What a URDF says about contact: the geometries and the link pairs that never collide
+    (joints and filter groups)."""
+
+    geometries: tuple
+    excluded_link_pairs: tuple
+
+
+def _local(tag: str) -> str:
+    """A tag's name without its namespace ('{http://drake.mit.edu}capsule' -> 'drake:capsule')."""
+    if tag.startswith("{"):
+        uri, _, name = tag[1:].partition("}")
+        return f"drake:{name}" if "drake" in uri else name
+    return tag
+
+
+def _children(element, name):
+    return [c for c in element if _local(c.tag) == name]
+
+
+def read_urdf_collisions(path, *, package_map=None) -> URDFCollisions:
+    path = pathlib.Path(path)
+    root = ET.fromstring(read_urdf_text(path))
+    geometries = []
+    for link in root.findall("link"):
+        name = link.get("name")
+        for k, element in enumerate(link.findall("collision")):
+            geometries.append(_collision(element, name, k, path, package_map or {}))
+    names = [g.name for g in geometries]
+    seen = set()
+    for i, n in enumerate(names):  # Drake makes repeated names unique per link the same way
+        if n in seen:
+            geometries[i] = dataclasses.replace(geometries[i], name=f"{n}_{i}")
+        seen.add(geometries[i].name)
+    excluded = []
+    for joint in root.findall("joint"):
+        parent, child = joint.find("parent"), joint.find("child")
+        if joint.get("type") in ("fixed", "floating") or parent is None or child is None:
+            continue
+        if parent.get("link") != "world":
+            excluded.append((parent.get("link"), child.get("link")))
+    excluded += _filter_group_exclusions(root, path)
+    return URDFCollisions(tuple(geometries), tuple(excluded))
+
+
+def _collision(element, link, index, path, package_map) -> CollisionGeometry:
+    name = element.get("name") or f"{link}_collision_{index}"
+    where = f"link {link!r}, <collision name={name!r}>"
+    R, p = _origin(element.find("origin"), path, where)
+    geometry = element.find("geometry")
+    shapes = [] if geometry is None else list(geometry)
+    if len(shapes) != 1:
+        raise URDFError(f"{path}: {where}: a <geometry> needs exactly one shape element, found "
+                        f"{[_local(s.tag) for s in shapes] or 'none'}")
+    shape = _shape(shapes[0], path, where, package_map)
+    material = ContactMaterial()
+    for properties in _children(element, "drake:proximity_properties"):
+        values = {}
+        for item in properties:
+            key = _local(item.tag).removeprefix("drake:")
+            if key in ("point_contact_stiffness", "hunt_crossley_dissipation", "mu_static", "mu_dynamic"):
+                values[key] = float(_numbers(item, "value", 1, np.nan, path, where))
+        material = ContactMaterial(**values)
+    if material.mu_static is None and material.mu_dynamic is None:  # Drake's URDF parser's default
+        material = dataclasses.replace(material, mu_static=URDF_DEFAULT_FRICTION[0], mu_dynamic=URDF_DEFAULT_FRICTION[1])
+    try:
+        material.check(f"{path}: {where}")
+    except GeometryError as error:
+        raise URDFError(str(error)) from None
+    return CollisionGeometry(name=name, link=link, shape=shape, rotation=np.asarray(R), translation=np.asarray(p),
+                             material=material)
+
+
+def _shape(element, path, where, package_map):
+    kind = _local(element.tag)
+    number = lambda attribute: float(_numbers(element, attribute, 1, np.nan, path, where))  # noqa: E731
+    try:
+        if kind == "sphere":
+            return Sphere(number("radius"))
+        if kind == "box":
+            return Box(*_numbers(element, "size", 3, [np.nan] * 3, path, where))
+        if kind == "cylinder":
+            return Cylinder(number("radius"), number("length"))
+        if kind in ("capsule", "drake:capsule"):
+            return Capsule(number("radius"), number("length"))
+        if kind == "mesh":
+            scale = element.get("scale")
+            scale = (1.0, 1.0, 1.0) if scale is None else tuple(
+                np.broadcast_to(_numbers(element, "scale", len(scale.split()), None, path, where), 3))
+            return Convex.from_mesh_file(_mesh_path(element.get("filename"), path, where, package_map), scale)
+    except GeometryError as error:
+        raise URDFError(f"{path}: {where}: {error}") from None
+    raise URDFError(f"{path}: {where}: unsupported collision shape <{kind}>; use a sphere, box, cylinder, "
+                    "capsule (<drake:capsule>) or a convex mesh")
+
+
+def _mesh_path(filename, path, where, package_map) -> pathlib.Path:
+    """The mesh file, resolved inside the URDF's folder or a `package_map` folder, never outside."""
+    if not filename:
+        raise URDFError(f"{path}: {where}: <mesh> has no filename")
+    if filename.startswith("package://"):
+        package, _, rest = filename[len("package://"):].partition("/")
+        if package not in package_map:
+            raise URDFError(f"{path}: {where}: mesh {filename!r} names package {package!r}; pass "
+                            f"package_map={{{package!r}: '/path/to/{package}'}} to say where it is "
+                            "(package paths are never searched for)")
+        base, relative = pathlib.Path(package_map[package]).resolve(), rest
+    elif "://" in filename or pathlib.PurePath(filename).is_absolute():
+        raise URDFError(f"{path}: {where}: mesh {filename!r} is not a path relative to the URDF's folder; "
+                        "only files inside the model's folder are read")
+    else:
+        base, relative = path.resolve().parent, filename
+    target = (base / relative).resolve()
+    if base not in target.parents:
+        raise URDFError(f"{path}: {where}: mesh {filename!r} lies outside the model's folder {base}; "
+                        "only files inside it are read")
+    if not target.is_file():
+        raise URDFError(f"{path}: {where}: mesh file {target} does not exist")
+    return target
+
+
+def _filter_group_exclusions(root, path):
+    groups, ignores = {}, {}
+    for group in _children(root, "drake:collision_filter_group"):
+        name = group.get("name")
+        if not name:
+            raise URDFError(f"{path}: a <drake:collision_filter_group> has no name")
+        if group.get("ignore", "false").lower() in ("true", "1"):
+            continue
+        groups[name] = [m.get("link") for m in _children(group, "drake:member")]
+        ignores[name] = [g.get("name") for g in _children(group, "drake:ignored_collision_filter_group")]
+    pairs = []
+    for name, ignored in ignores.items():
+        for other in ignored:
+            if other not in groups:
+                raise URDFError(f"{path}: collision filter group {name!r} ignores group {other!r}, which "
+                                "is not defined")
+            pairs += [(a, b) for a in groups[name] for b in groups[other] if a != b]
+    return pairs
