@@ -82,7 +82,7 @@ class HalfSpace:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Convex:
-    """The convex hull of `points` (m, 3): `vertices` (the hull's, (v, 3)) and `planes`
+    r"""The convex hull of `points` (m, 3): `vertices` (the hull's, (v, 3)) and `planes`
     (f, 4) rows $[n_f, d_f]$ with unit outward $n_f$, the hull being $n_f \cdot p \le d_f$.
     `name` says where it came from (for messages)."""
 
@@ -127,10 +127,10 @@ class Convex:
         shape = cls.from_points(points, name=path.name)
         if require_convex and mesh.is_watertight:
             hull_volume = _hull_volume(shape)
-            if abs(mesh.volume) * np.prod(np.sign(scale)) < 0.9 * hull_volume:
+            if abs(mesh.volume * np.prod(scale)) < 0.9 * hull_volume:
                 raise GeometryError(
                     f"{path}: the collision mesh is not convex (its volume is "
-                    f"{abs(mesh.volume) / hull_volume:.0%} of its convex hull's); point contact would "
+                    f"{abs(mesh.volume * np.prod(scale)) / hull_volume:.0%} of its convex hull's); point contact would "
                     "act on the hull, not the surface. Split it into convex pieces (one <collision> "
                     "each), or pass require_convex=False to collide with its hull")
         return shape

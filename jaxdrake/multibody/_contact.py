@@ -226,7 +226,7 @@ class ContactModel(eqx.Module):
                               separation_speed=vn, geometry_a=ia, geometry_b=ib)
 
     def generalized_forces(self, tree, q, v):
-        """$\\tau_c = \\sum J^T f$ of all contact forces at (q, v), and the `ContactResults`."""
+        r"""$\tau_c = \sum J^T f$ of all contact forces at (q, v), and the `ContactResults`."""
         res = self.results(tree, q, v)
         Rs, ps = alg.body_poses(tree, q)
         ps = jnp.concatenate([jnp.zeros((1, 3), ps.dtype), ps])

@@ -220,7 +220,7 @@ class RigidBodySystem(System):
     # ----- contact ---------------------------------------------------------------------------
 
     def contact_force(self, q, v):
-        """The generalized force of all contacts, $\sum_c J_c^T f_c$ (zero without contact)."""
+        r"""The generalized force of all contacts, $\sum_c J_c^T f_c$ (zero without contact)."""
         if self.contact is None:
             return jnp.zeros(self.tree.nv, v.dtype)
         return self.contact.generalized_forces(self.tree, q, v)[0]
@@ -239,6 +239,10 @@ class RigidBodySystem(System):
                                 ) -> "RigidBodySystem":
         """A copy with one more collision shape on `link` ('world' for the environment), at
         (`rotation`, `translation`) in the link's frame (Drake's `RegisterCollisionGeometry`)."""
+        with jax.ensure_compile_time_eval():  # host work, also inside jit / vmap
+            return self._with_collision_geometry(link, shape, rotation, translation, name, material)
+
+    def _with_collision_geometry(self, link, shape, rotation, translation, name, material):
         collision = self.collision or URDFCollisions((), _joint_link_pairs(self.tree))
         name = name or f"{link}_{type(shape).__name__.lower()}_{len(collision.geometries)}"
         geometry = CollisionGeometry(name, link, shape, rotation, translation, material or ContactMaterial())
@@ -250,7 +254,7 @@ class RigidBodySystem(System):
 
     def with_ground(self, height: float = 0.0, *, normal=(0.0, 0.0, 1.0), material: ContactMaterial | None = None,
                     name: str = "ground") -> "RigidBodySystem":
-        """A copy with a half-space fixed to the world: the points p with $\hat n \cdot p \le$
+        r"""A copy with a half-space fixed to the world: the points p with $\hat n \cdot p \le$
         `height` (`normal` need not be unit: a slope)."""
         n = np.asarray(normal, float)
         if n.shape != (3,) or not np.linalg.norm(n) > 0:

@@ -1,0 +1,309 @@
+"""Contact in the rigid-body plant: against pydrake's continuous MultibodyPlant (point contact),
+closed forms, finite differences, and named errors for bad robot files."""
+
+import functools
+import pathlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxdrake as jd
+from jaxdrake.geometry import Box, Capsule, Convex, Cylinder, GeometryError, HalfSpace, Sphere, penetration
+from jaxdrake.multibody import ContactMaterial, URDFError
+
+DATA = pathlib.Path(__file__).parent / "data"
+
+
+def _rotation_y(angle):
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+
+
+def _material(k, d, mu_s, mu_d):
+    return ContactMaterial(point_contact_stiffness=k, hunt_crossley_dissipation=d, mu_static=mu_s, mu_dynamic=mu_d)
+
+
+# scenes of our own: (URDF, floating base, shapes on the world (name, shape, R, p, material), stiction tolerance)
+SCENES = {
+    "ball_between_walls": ("contact_ball.urdf", True, [
+        ("floor", Box(3.0, 3.0, 0.2), np.eye(3), (0.0, 0.0, -0.1), _material(1e5, 5.0, 0.6, 0.6)),
+        ("left_wall", Box(0.2, 3.0, 2.0), np.eye(3), (-0.6, 0.0, 0.9), _material(2e4, 2.0, 0.3, 0.3)),
+        ("right_wall", Box(0.2, 3.0, 2.0), np.eye(3), (0.6, 0.0, 0.9), _material(4e4, 1.0, 0.5, 0.4))], 1e-2),
+    "dumbbell_on_a_slope": ("contact_dumbbell.urdf", True, [
+        ("slope", Box(4.0, 2.0, 0.4), _rotation_y(0.3), (0.0, 0.0, -0.2), _material(8e4, 4.0, 0.7, 0.5)),
+        ("floor", HalfSpace(), np.eye(3), (0.0, 0.0, -0.6), _material(1e5, 1.0, 0.9, 0.9))], 1e-2),
+    "hopper_landing": ("contact_hopper.urdf", True, [
+        ("floor", Box(4.0, 4.0, 0.5), np.eye(3), (0.0, 0.0, -0.25), _material(1e5, 10.0, 1.0, 0.8))], 1e-2),
+}
+
+
+def _ours(scene):
+    urdf, floating, world, stiction = SCENES[scene]
+    plant = jd.RigidBodySystem.from_urdf(DATA / urdf, floating_base=floating, contact=True, stiction_tolerance=stiction)
+    for name, shape, R, p, material in world:
+        plant = plant.with_collision_geometry("world", shape, rotation=R, translation=p, name=name, material=material)
+    return plant
+
+
+def _drake(scene, plant):
+    from _drake_contact import StateMap, drake_scene
+    urdf, _, world, stiction = SCENES[scene]
+    drake_plant, diagram = drake_scene(DATA / urdf, world, stiction)
+    return drake_plant, diagram, StateMap(drake_plant, plant)
+
+
+def _random_state(scene, plant, rng):
+    quat = rng.normal(size=4)
+    quat /= np.linalg.norm(quat)
+    if scene == "ball_between_walls":  # near the floor and the right wall, at times inside it
+        q = np.concatenate([[0.38 + 0.06 * rng.random(), 0.2, 0.085 + 0.03 * rng.random()], quat])
+    elif scene == "dumbbell_on_a_slope":
+        q = np.concatenate([[0.1 * rng.normal(), 0.0, 0.02 + 0.04 * rng.random()], quat])
+    else:  # hopper: torso upright-ish, feet into the floor
+        tilt = np.array([0.1 * rng.normal(), 0.1 * rng.normal(), 0.0])
+        quat = np.concatenate([np.sin(np.linalg.norm(tilt) / 2) * tilt / max(np.linalg.norm(tilt), 1e-12),
+                               [np.cos(np.linalg.norm(tilt) / 2)]])
+        q = np.concatenate([[0.0, 0.0, 0.43 + 0.04 * rng.random()], quat, 0.2 * rng.normal(size=4)])
+    return np.concatenate([q, rng.normal(size=plant.tree.nv)])
+
+
+@pytest.mark.parametrize("scene", SCENES)
+def test_time_derivatives_equal_drakes_continuous_plant(scene):
+    pytest.importorskip("pydrake")
+    from _drake_contact import drake_velocity_derivative
+    plant = _ours(scene)
+    drake_plant, diagram, state_map = _drake(scene, plant)
+    dynamics = jax.jit(plant.dynamics)
+    rng = np.random.default_rng(7)
+    touching = 0
+    for _ in range(12):
+        x = _random_state(scene, plant, rng)
+        ours = np.asarray(dynamics(0.0, jnp.asarray(x), jnp.zeros(plant.num_inputs)))[plant.tree.nq:]
+        theirs = drake_velocity_derivative(drake_plant, diagram, state_map, x)
+        np.testing.assert_allclose(ours, theirs, rtol=1e-10, atol=1e-9 * np.max(np.abs(theirs)))
+        touching += int(np.sum(np.asarray(plant.contact_results(jnp.asarray(x)).active)))
+    assert touching >= 6  # the states probe contact, not free flight
+
+
+@pytest.mark.parametrize("scene", [pytest.param("ball_between_walls"),
+                                   pytest.param("dumbbell_on_a_slope", marks=pytest.mark.slow),
+                                   pytest.param("hopper_landing", marks=pytest.mark.slow)])
+def test_simulations_equal_drakes_continuous_plant(scene):
+    pytest.importorskip("pydrake")
+    from _drake_contact import drake_simulate
+    plant = _ours(scene)
+    drake_plant, diagram, state_map = _drake(scene, plant)
+    x0 = {"ball_between_walls": [0.0, 0.0, 0.4, 0, 0, 0, 1, 3.0, 0.5, 0.0, 0.0, 0.0, 8.0],
+          "dumbbell_on_a_slope": [0.0, 0.0, 0.3, 0.1, 0.2, 0.0, 0.97467943, 0.5, 0.0, 0.0, 1.0, -2.0, 0.5],
+          "hopper_landing": [0.05, 0.0, 0.6, 0.05, 0.0, 0.0, 0.99875, 0.3, -0.6, -0.2, 0.5,
+                             0.3, 0.0, -1.0, 0.2, 0.0, 0.5, 0.0, 1.0, 0.0, -1.0]}[scene]
+    x0 = np.asarray(x0, float)
+    x0[3:7] /= np.linalg.norm(x0[3:7])
+    times = np.linspace(0.1, 0.6, 6)
+    expected = drake_simulate(drake_plant, diagram, state_map, x0, times)
+    traj = jd.simulate(plant, (0.0, 0.6), jnp.asarray(x0), rtol=1e-11, atol=1e-12, max_steps=40000)
+    states = np.asarray(traj.state(jnp.asarray(times)))
+    assert int(np.sum(np.asarray(jax.vmap(plant.contact_results)(jnp.asarray(states)).active))) > 0
+    scale = np.maximum(np.abs(expected), 1.0)
+    np.testing.assert_array_less(np.abs(states - expected) / scale, 1e-6)
+
+
+def test_a_sliding_box_stops_after_v0_squared_over_2_mu_g():
+    mu, v0, g = 0.4, 2.0, 9.81
+    box = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True)  # the ball's link ...
+    box = box.with_collision_geometry("ball", Box(0.2, 0.2, 0.2), material=_material(1e6, 50.0, mu, mu))  # ... as a box
+    box = box.with_ground(material=_material(1e6, 50.0, mu, mu))
+    x0 = jnp.array([0.0, 0.0, 0.1 - 2 * 9.81 / 4e6, 0, 0, 0, 1, v0, 0, 0, 0, 0, 0])  # resting on its 4 corners
+    t_stop = v0 / (mu * g)
+    traj = jd.simulate(box, (0.0, t_stop + 0.3), x0, solver="rosenbrock23", rtol=1e-8, atol=1e-10, max_steps=20000)
+    x = np.asarray(traj.final_state)
+    np.testing.assert_allclose(x[0], v0 ** 2 / (2 * mu * g), rtol=2e-3)
+    assert abs(x[7]) < 1e-3 and abs(x[2] - 0.1) < 1e-4   # stopped, upright on the floor
+
+
+def test_a_ball_sliding_then_rolling_ends_at_five_sevenths_of_its_speed():
+    ball = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True, contact=True).with_ground(
+        material=_material(1e6, 50.0, 0.8, 0.6))
+    v0, m, r, inertia = 2.0, 2.0, 0.1, 0.008
+    x0 = jnp.array([0.0, 0.0, 0.1, 0, 0, 0, 1, v0, 0, 0, 0, 0, 0])
+    traj = jd.simulate(ball, (0.0, 1.0), x0, solver="rosenbrock23", rtol=1e-8, atol=1e-10, max_steps=20000)
+    x = np.asarray(traj.final_state)
+    R = np.asarray(jd.multibody._spatial.quaternion_matrix(jnp.asarray(x[3:7])))
+    v_world, w_world = R @ x[7:10], R @ x[10:13]
+    # angular momentum about the contact point C is conserved; C lies x/2 below the undeformed
+    # surface (the midpoint of the witness points), x = m g / k the static penetration:
+    # v = v0 / (1 + I / (m r'^2)), r' = r - x/2 (5/7 v0 as k -> infinity)
+    k = 3e4 * 1e6 / (3e4 + 1e6)
+    lever = r - m * 9.81 / k / 2
+    np.testing.assert_allclose(v_world[0], v0 / (1 + inertia / (m * lever ** 2)), rtol=2e-4)  # creep: ~1e-4 m/s
+    np.testing.assert_allclose(v0 / (1 + inertia / (m * r ** 2)), 5 / 7 * v0)
+    np.testing.assert_allclose(w_world[1] * lever, v_world[0], rtol=2e-4)  # rolling without slip
+
+
+THROWN_BALL = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True, contact=True,
+                                          stiction_tolerance=0.05).with_ground(material=_material(5e4, 2.0, 0.9, 0.9))
+
+
+def _thrown_ball(mu, mass, x0, solver):
+    import equinox as eqx
+    ball = eqx.tree_at(lambda p: (p.contact.mu_static, p.contact.mu_dynamic, p.tree.mass),
+                       THROWN_BALL, (jnp.full(2, mu), jnp.full(2, mu), jnp.full(1, mass)))
+    accuracy = dict(dt=2.5e-4) if solver == "rk4" else dict(rtol=1e-10, atol=1e-12)
+    return jd.simulate(ball, (0.0, 0.5), x0, solver=solver, max_steps=20000, autodiff="forward",
+                       **accuracy).final_state
+
+
+@pytest.mark.parametrize("solver, h, rtol", [
+    ("rk4", 1e-6, 1e-5),   # fixed steps: the derivative of the discrete scheme itself
+    pytest.param("dopri5", 1e-4, 2e-5, marks=pytest.mark.slow)])  # adaptive: differences see step-size noise ~ tol / h
+def test_gradients_through_bounces_equal_central_differences(solver, h, rtol):
+    # dropped with spin and a sideways throw: two impacts (onsets and releases) and sliding friction
+    x0 = jnp.array([0.0, 0.0, 0.3, 0, 0, 0, 1, 1.0, 0.3, -1.0, 5.0, -3.0, 2.0])
+    f = jax.jit(functools.partial(_thrown_ball, solver=solver))
+    J = jax.jit(jax.jacfwd(f, argnums=(0, 1, 2)))(0.5, 2.0, x0)
+    for argnum, derivative in enumerate(J[:2]):   # friction coefficient, mass
+        plus, minus = [0.5, 2.0], [0.5, 2.0]
+        plus[argnum] += h
+        minus[argnum] -= h
+        fd = (np.asarray(f(*plus, x0)) - np.asarray(f(*minus, x0))) / (2 * h)
+        np.testing.assert_allclose(np.asarray(derivative), fd, rtol=rtol, atol=rtol * np.max(np.abs(fd)))
+    for i, step in ((2, h / 10), (7, h), (10, h)):  # height (which moves the impacts: more curvature), speed, spin
+        e = jnp.zeros(13).at[i].set(step)
+        fd = (np.asarray(f(0.5, 2.0, x0 + e)) - np.asarray(f(0.5, 2.0, x0 - e))) / (2 * step)
+        np.testing.assert_allclose(np.asarray(J[2][:, i]), fd, rtol=rtol, atol=rtol * np.max(np.abs(fd)))
+
+
+def test_the_gradient_at_the_instant_of_touch_is_finite():
+    ball = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True, contact=True).with_ground()
+    x = jnp.array([0.0, 0.0, 0.1, 0, 0, 0, 1, 0.0, 0.0, 0.0, 0, 0, 0])   # touching, at rest: slip 0
+    J = jax.jit(jax.jacfwd(lambda x: ball.dynamics(0.0, x, jnp.zeros(0))))(x)
+    assert np.all(np.isfinite(np.asarray(J)))
+    g = jax.jit(jax.grad(lambda x: jnp.sum(ball.dynamics(0.0, x, jnp.zeros(0)) ** 2)))(x)
+    assert np.all(np.isfinite(np.asarray(g)))
+
+
+def test_vmap_over_friction_equals_a_loop():
+    ball = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True, contact=True).with_ground()
+    import equinox as eqx
+    x0 = jnp.array([0.0, 0.0, 0.1, 0, 0, 0, 1, 2.0, 0, 0, 0, 0, 0])
+
+    def final(mu):
+        p = eqx.tree_at(lambda p: (p.contact.mu_static, p.contact.mu_dynamic), ball, (jnp.full(2, mu), jnp.full(2, mu)))
+        return jd.simulate(p, (0.0, 0.1), x0, dense=False, max_steps=4000).final_state
+
+    mus = jnp.array([0.2, 0.5, 1.0])
+    batched = jax.vmap(final)(mus)
+    looped = jnp.stack([jax.jit(final)(m) for m in mus])
+    np.testing.assert_allclose(np.asarray(batched), np.asarray(looped), rtol=1e-9, atol=1e-12)
+    assert batched[0, 0] > batched[2, 0]   # less friction, further
+
+
+# ----- geometry ---------------------------------------------------------------------------------
+
+
+def test_box_on_a_half_space_touches_at_its_lowest_corners():
+    tilt = _rotation_y(0.2)
+    params = {"size": jnp.array([0.5, 0.3, 0.2])}
+    ground = {"size": jnp.zeros(3)}
+    depth, pa, pb, n = penetration("box", params, (jnp.asarray(tilt), jnp.array([0.0, 0.0, 0.5])),
+                                   "halfspace", ground, (jnp.eye(3), jnp.zeros(3)))
+    corners = np.asarray(Box(1.0, 0.6, 0.4).vertices()) @ tilt.T + [0, 0, 0.5]
+    np.testing.assert_allclose(np.asarray(depth), -corners[:, 2], atol=1e-14)
+    np.testing.assert_allclose(np.asarray(pa), corners, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(n), np.tile([0, 0, 1.0], (8, 1)))
+
+
+def test_capsules_touch_at_the_closest_points_of_their_segments():
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        Ra, Rb = (np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(2))
+        Ra, Rb = Ra * np.sign(np.linalg.det(Ra)), Rb * np.sign(np.linalg.det(Rb))
+        pa, pb = rng.normal(size=3) * 0.3, rng.normal(size=3) * 0.3
+        a, b = {"size": jnp.array([0.1, 0.3, 0.0])}, {"size": jnp.array([0.15, 0.2, 0.0])}
+        depth = penetration("capsule", a, (jnp.asarray(Ra), jnp.asarray(pa)), "capsule", b,
+                            (jnp.asarray(Rb), jnp.asarray(pb)))[0]
+        s = np.linspace(-0.3, 0.3, 601)[:, None] * Ra[:, 2] + pa
+        t = np.linspace(-0.2, 0.2, 401)[:, None] * Rb[:, 2] + pb
+        distance = np.min(np.linalg.norm(s[:, None] - t[None], axis=-1))   # brute force
+        np.testing.assert_allclose(float(depth[0]), 0.25 - distance, atol=2e-6)
+
+
+def test_convex_hull_of_a_mesh_file(tmp_path):
+    trimesh = pytest.importorskip("trimesh")
+    trimesh.creation.box(extents=(0.2, 0.4, 0.6)).export(tmp_path / "block.obj")
+    hull = Convex.from_mesh_file(tmp_path / "block.obj", scale=(2.0, 1.0, 1.0))
+    assert len(hull.vertices) == 8 and len(hull.planes) == 6
+    np.testing.assert_allclose(np.sort(np.abs(hull.vertices), axis=0)[0], [0.2, 0.2, 0.3])
+
+
+# ----- bad input: named errors at construction ------------------------------------------------------
+
+
+def _urdf(tmp_path, collision, inertial=True, name="bad.urdf"):
+    mass = ('<inertial><mass value="1"/><inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/>'
+            '</inertial>' if inertial else "")
+    text = f"""<robot name="bad" xmlns:drake="http://drake.mit.edu">
+      <link name="base"/>
+      <link name="arm"><inertial><mass value="1"/><inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/>
+        </inertial></link>
+      <link name="tip">{mass}{collision}</link>
+      <joint name="j" type="continuous"><parent link="base"/><child link="arm"/><axis xyz="0 1 0"/></joint>
+      <joint name="k" type="continuous"><parent link="arm"/><child link="tip"/><axis xyz="0 1 0"/></joint>
+    </robot>"""
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def test_bad_collision_elements_are_named_errors(tmp_path):
+    trimesh = pytest.importorskip("trimesh")
+    sphere = '<collision name="c"><geometry><sphere radius="0.1"/></geometry>{}</collision>'
+    with pytest.raises(URDFError, match="link 'tip'.*point_contact_stiffness must be a non-negative"):
+        jd.RigidBodySystem.from_urdf(_urdf(tmp_path, sphere.format(
+            '<drake:proximity_properties><drake:point_contact_stiffness value="-5"/></drake:proximity_properties>')),
+            contact=True)
+    with pytest.raises(URDFError, match="mu_dynamic must be a non-negative"):
+        jd.RigidBodySystem.from_urdf(_urdf(tmp_path, sphere.format(
+            '<drake:proximity_properties><drake:mu_dynamic value="-0.1"/></drake:proximity_properties>')), contact=True)
+    with pytest.raises(URDFError, match="unsupported collision shape <cone>"):
+        jd.RigidBodySystem.from_urdf(_urdf(tmp_path, '<collision><geometry><cone radius="1" length="1"/></geometry></collision>'),
+                                     contact=True)
+    with pytest.raises(URDFError, match="link 'tip', which has no mass or inertia.*Give the link an <inertial>"):
+        jd.RigidBodySystem.from_urdf(_urdf(tmp_path, sphere.format(""), inertial=False), contact=True)
+    torus = trimesh.creation.torus(major_radius=0.3, minor_radius=0.05)
+    torus.export(tmp_path / "ring.stl")
+    with pytest.raises(URDFError, match="ring.stl: the collision mesh is not convex.*Split it into convex pieces"):
+        jd.RigidBodySystem.from_urdf(_urdf(tmp_path, '<collision><geometry><mesh filename="ring.stl"/></geometry>'
+                                     '</collision>'), contact=True)
+    outside = '<collision><geometry><mesh filename="{}"/></geometry></collision>'
+    for filename, message in (("../secret.stl", "outside the model's folder"), ("/etc/passwd", "not a path relative"),
+                              ("package://robot/x.stl", "pass package_map")):
+        with pytest.raises(URDFError, match=message):
+            jd.RigidBodySystem.from_urdf(_urdf(tmp_path, outside.format(filename)), contact=True)
+
+
+def test_unsupported_shape_pairs_and_shapes_are_named_at_construction():
+    ball = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True, contact=True)
+    block = Convex.from_points(Box(0.2, 0.2, 0.2).vertices())
+    with pytest.raises(GeometryError, match="no contact between sphere 'ball_surface'.*and convex 'rock'.*Supported pairs"):
+        ball.with_collision_geometry("world", block, name="rock")
+    with pytest.raises(GeometryError, match="Sphere: radius must be a positive"):
+        Sphere(-1.0)
+    with pytest.raises(GeometryError, match="flat"):
+        Convex.from_points(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.0]]))
+    with pytest.raises(GeometryError, match="half-space must be fixed to the world"):
+        ball.with_collision_geometry("ball", HalfSpace())
+    with pytest.raises(GeometryError, match="mu_dynamic .* exceeds mu_static"):
+        ball.with_ground(material=ContactMaterial(mu_static=0.2, mu_dynamic=0.5))
+
+
+def test_without_contact_nothing_changes():
+    plain = jd.RigidBodySystem.from_urdf(DATA / "contact_hopper.urdf", floating_base=True)
+    assert plain.contact is None
+    x = jnp.asarray(_random_state("hopper_landing", plain, np.random.default_rng(0)))
+    touching = _ours("hopper_landing")
+    far = x.at[2].add(5.0)   # well above the floor: the contact plant's dynamics are the plain one's
+    np.testing.assert_allclose(np.asarray(touching.dynamics(0.0, far, jnp.zeros(4))),
+                               np.asarray(plain.dynamics(0.0, far, jnp.zeros(4))), rtol=1e-14, atol=1e-12)
