@@ -122,6 +122,25 @@ def test_gradient_without_the_saltation_term_would_be_wrong():
     assert abs(naive - fd) > 0.1 * abs(fd)  # the naive gradient is far off
 
 
+def test_second_derivatives_through_an_impact_equal_the_closed_form():
+    """One bounce, forward over forward mode: d^2/dh0^2 of the impact time t1 = v / g and of
+    q(T) = r + e v (T - t1) - g (T - t1)^2 / 2 (v = sqrt(2 g (h0 - r))). The event time's
+    Newton steps on the guard are differentiated whole (a step with its slope held gives the
+    first derivative only)."""
+    T = 1.2
+
+    def simulated(h0):
+        traj = jd.simulate(BouncingBall(), (0.0, T), jnp.stack([h0, 0.0]), autodiff="forward", **TIGHT)
+        return jnp.stack([traj.event_times[0], traj.final_state[0]])
+
+    def closed(h0):
+        v = jnp.sqrt(2 * G * (h0 - R))
+        t1 = v / G
+        return jnp.stack([t1, R + COR * v * (T - t1) - G * (T - t1) ** 2 / 2])
+
+    np.testing.assert_allclose(jax.jacfwd(jax.jacfwd(simulated))(H0), jax.hessian(closed)(H0), rtol=1e-7)
+
+
 def test_gradient_of_the_wheel_speed_after_five_steps_wrt_slope():
     def speed(slope):
         traj = jd.simulate(RimlessWheel(slope=slope), (0.0, T), jnp.array([0.0, 1.5]), **TIGHT)

@@ -17,10 +17,16 @@ the `events_per_period`-th next one (through the events' resets, differentiated 
 event times); Newton on $P(x) = x$ with $DP - I$. Its eigenvalues are the return map's
 (one is 0 when the event surface is a section: the flow direction is factored out).
 
-Both solves run in one jitted `lax.while_loop` (Newton steps with backtracking on |F|). The result
-is differentiable in forward mode (`jax.jacfwd`, `jax.jvp`) with respect to the system's
-parameters by the implicit function theorem: one last Newton step is taken from the converged
-point held constant, whose derivative is $-(DF)^{-1}\partial F/\partial p$.
+Both solves run in one jitted `lax.while_loop` (Newton steps with backtracking on |F|), on the
+system's parameters held constant. The result is differentiable with respect to them by the
+implicit function theorem: one last Newton step is taken from the converged point $z$ (held
+constant, as is $DF$), $z^* = z - (DF)^{-1} F(z, p)$, whose derivative is
+$dz^*/dp = -(DF)^{-1}\partial F/\partial p$; everything else (the period of a hybrid orbit, the
+monodromy matrix, the trajectory) is then evaluated at $z^*$, so that its derivative is the total
+one, $\partial g/\partial p + (\partial g/\partial z)\,dz^*/dp$: the period of the rimless
+wheel's orbit moves with the slope mostly through the speed on the orbit. Forward mode
+(`jax.jacfwd`, `jax.jvp`) by default; `autodiff="reverse"` for `jax.grad` (every output but the
+monodromy matrix and the multipliers, whose derivatives are forward-mode only).
 """
 
 from __future__ import annotations
@@ -30,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..simulation import SimulatedTrajectory, simulate
+from ..simulation import SimulatedTrajectory, SimulationStatus, simulate
 from ..simulation._inputs import leaves_to_arrays
 from ..systems import HybridSystem, System
 
@@ -58,14 +64,17 @@ class LimitCycleError(RuntimeError):
 
 def limit_cycle(system: System, x_guess, period_guess, *, events_per_period: int = 1,
                 tol: float | None = None, max_iterations: int = 30, rtol: float | None = None,
-                atol: float | None = None, max_steps: int = 16384) -> LimitCycle:
+                atol: float | None = None, max_steps: int = 16384, autodiff: str = "forward") -> LimitCycle:
     """A periodic orbit of `system` (inputs held at 0) near `x_guess`, with period near
     `period_guess` (for a hybrid system, the guess bounds the time searched for the events:
     3 x `period_guess`). `tol`: the Newton residual at which to stop (max norm); `rtol`,
     `atol`, `max_steps`: of the simulations. Defaults follow the float width: 1e-10 and 1e-12
-    in float64, 1e-4 and 1e-6 in float32 (JAX's default; it cannot resolve more). Raises
-    `LimitCycleError` when Newton does not converge (outside `jit`; inside, check
-    `result.residual`)."""
+    in float64, 1e-4 and 1e-6 in float32 (JAX's default; it cannot resolve more).
+    `autodiff`: how the result is differentiated in the system's parameters (see the module
+    doc): `"forward"` (`jax.jacfwd`, `jax.jvp`) or `"reverse"` (`jax.grad`; the monodromy
+    matrix and the multipliers stay forward-mode only). Raises `LimitCycleError` when Newton
+    does not converge (outside `jit`; inside, check `result.residual`), naming the missing
+    event when a hybrid system's return map found none."""
     if not isinstance(system, System):
         raise TypeError(f"limit_cycle needs a jaxdrake.System, got {type(system).__name__}")
     hybrid = isinstance(system, HybridSystem)
@@ -76,6 +85,8 @@ def limit_cycle(system: System, x_guess, period_guess, *, events_per_period: int
                          "hybrid systems")
     if not (isinstance(events_per_period, int) and events_per_period >= 1):
         raise ValueError(f"events_per_period must be a positive int, got {events_per_period!r}")
+    if autodiff not in ("forward", "reverse"):
+        raise ValueError(f"autodiff must be 'forward' or 'reverse', got {autodiff!r}")
     x_guess = jnp.asarray(x_guess, jnp.result_type(float))
     if hybrid and x_guess.shape == (system.modes[system.initial_mode].num_states,):
         x_guess = system.pad_state(system.initial_mode, x_guess)
@@ -88,9 +99,11 @@ def limit_cycle(system: System, x_guess, period_guess, *, events_per_period: int
     options = dict(rtol=rtol, atol=atol, max_steps=max_steps)
     system = leaves_to_arrays(system, x_guess.dtype)  # new parameter values: no new compilation
     result = _solve(system, x_guess, jnp.asarray(period_guess, x_guess.dtype), jnp.asarray(tol, x_guess.dtype),
-                    max_iterations, events_per_period if hybrid else 0, options)
+                    max_iterations, events_per_period if hybrid else 0, options, autodiff)
     if isinstance(result.residual, jax.core.Tracer):
         return result
+    if hybrid and not np.isfinite(float(result.residual)):
+        _raise_without_events(system, x_guess, float(period_guess), events_per_period, options)
     if not float(result.residual) <= tol:
         raise LimitCycleError(
             f"limit_cycle of {system.name}: Newton's method stopped at residual {float(result.residual):.3g} "
@@ -104,30 +117,35 @@ def limit_cycle(system: System, x_guess, period_guess, *, events_per_period: int
 
 
 @eqx.filter_jit
-def _solve(system, x_guess, period_guess, tol, max_iterations, events, options):
-    """The Newton loop, then the implicit-function step and the orbit (see the module doc)."""
+def _solve(system, x_guess, period_guess, tol, max_iterations, events, options, autodiff):
+    """The Newton loop on the parameters held constant, then the implicit-function step and
+    what is evaluated at its result (see the module doc). `residual(z, system, autodiff)` is
+    (F, T), simulated in that autodiff mode; `linearize(z, system)` is (F, DF, monodromy,
+    dT/dz), differentiated in z by `jacfwd` (forward mode)."""
     n = x_guess.shape[0]
 
     if events:
-        def residual(z, system):
-            return _return_map(system, z, 3 * period_guess, events, options)[0] - z
+        def residual(z, system, autodiff="forward"):
+            x_next, t_next = _return_map(system, z, 3 * period_guess, events, options, autodiff)
+            return x_next - z, t_next
 
-        def residual_and_jacobian(z, system=system):
+        def linearize(z, system):
             def P(x):
-                x_next, period = _return_map(system, x, 3 * period_guess, events, options)
-                return x_next, (x_next, period)
-            DP, (x_next, period) = jax.jacfwd(P, has_aux=True)(z)
-            return x_next - z, DP - jnp.eye(n, dtype=z.dtype), period, DP
+                out = _return_map(system, x, 3 * period_guess, events, options)
+                return out, out
+            (DP, dT), (x_next, _) = jax.jacfwd(P, has_aux=True)(z)
+            return x_next - z, DP - jnp.eye(n, dtype=z.dtype), DP, dT
         z0 = x_guess
     else:
         section = _field(system, x_guess)
 
-        def residual(z, system):
+        def residual(z, system, autodiff="forward"):
             x, T = z[:n], z[n]
-            F = jnp.concatenate([_flow(system, x, T, options) - x, jnp.atleast_1d(section @ (x - x_guess))])
-            return jnp.where(T > 0, F, jnp.nan)
+            F = jnp.concatenate([_flow(system, x, T, options, autodiff) - x,
+                                 jnp.atleast_1d(section @ (x - x_guess))])
+            return jnp.where(T > 0, F, jnp.nan), T
 
-        def residual_and_jacobian(z, system=system):
+        def linearize(z, system):
             x, T = z[:n], z[n]
             def flow(x_):
                 x_end = _flow(system, x_, T, options)
@@ -136,61 +154,94 @@ def _solve(system, x_guess, period_guess, tol, max_iterations, events, options):
             F = jnp.concatenate([x_end - x, jnp.atleast_1d(section @ (x - x_guess))])
             top = jnp.concatenate([Phi - jnp.eye(n, dtype=x.dtype), _field(system, x_end)[:, None]], 1)
             DF = jnp.concatenate([top, jnp.concatenate([section, jnp.zeros(1, x.dtype)])[None]], 0)
-            return F, DF, T, Phi
+            return jnp.where(T > 0, F, jnp.nan), DF, Phi, jnp.zeros(n + 1, x.dtype).at[n].set(1)
         z0 = jnp.concatenate([x_guess, period_guess[None]])
 
     held = jax.tree_util.tree_map(lambda a: jax.lax.stop_gradient(a) if eqx.is_array(a) else a, system)
+    m = z0.shape[0]
 
-    def newton(carry):  # on the parameters held constant: derivatives come from the last step
-        z, _, k = carry
-        F, DF, _, _ = residual_and_jacobian(z, held)
+    def newton(carry):
+        """One Newton step from z, backtracking on |F| (the first of 1, 1/2, 1/4, ... that
+        decreases it); the point is linearized once, where it is tried. The first call only
+        linearizes at z0 (k = 0: no step yet)."""
+        z, F, DF, dT, k = carry
         size = jnp.max(jnp.abs(F))
-        step = jnp.linalg.solve(DF, -F)
+        step = jnp.where(k == 0, 0.0, jnp.linalg.solve(DF, -jnp.where(k == 0, 0.0, F)))
 
-        def halve(trial):  # backtracking: the first of 1, 1/2, 1/4, ... that decreases |F|
-            alpha, _, _, j = trial
-            z_try = z + alpha * step
-            return alpha / 2, z_try, jnp.max(jnp.abs(residual(z_try, held))), j + 1
+        def try_next(trial):
+            _, j, _ = trial
+            z_try = z + 0.5 ** j * step
+            return z_try, j + 1, (z_try,) + tuple(linearize(z_try, held)[i] for i in (0, 1, 3))
 
         def worse(trial):
-            alpha, _, size_try, j = trial
-            return ~(size_try < (1 - 1e-4 * 2 * alpha) * size) & (j < 12)
+            _, j, (_, F_try, _, _) = trial
+            decreased = jnp.max(jnp.abs(F_try)) < (1 - 1e-4 * 2 * 0.5 ** (j - 1)) * size
+            return (j == 0) | ((k > 0) & ~decreased & (j < 13))
 
-        _, z_new, _, _ = jax.lax.while_loop(worse, halve, (jnp.asarray(1.0, z.dtype), z, jnp.inf, 0))
-        z_new = jnp.where(jnp.all(jnp.isfinite(z_new)), z_new, z)
-        return z_new, size, k + 1
+        start = (z, jnp.asarray(0), (z, F, DF, dT))
+        _, _, (z_new, F_new, DF_new, dT_new) = jax.lax.while_loop(worse, try_next, start)
+        return z_new, F_new, DF_new, dT_new, k + 1
 
     def keep_going(carry):
-        _, residual, k = carry
-        return (residual > tol) & (k < max_iterations)
+        _, F, _, _, k = carry
+        return (jnp.max(jnp.abs(F)) > tol) & (k <= max_iterations)
 
-    z, _, iterations = jax.lax.while_loop(keep_going, newton, (jax.lax.stop_gradient(z0), jnp.inf, 0))
-    z = jax.lax.stop_gradient(z)
-    F, DF, period, monodromy = residual_and_jacobian(z)
-    z = z - jnp.linalg.solve(jax.lax.stop_gradient(DF), F)  # the implicit-function step
-    state = z[:n]
-    period = period if events else z[n]
+    z0 = jax.lax.stop_gradient(z0)
+    start = (z0, jnp.full(m, jnp.inf, z0.dtype), jnp.eye(m, dtype=z0.dtype), jnp.zeros(m, z0.dtype), 0)
+    z, _, DF, dT, evaluations = jax.lax.while_loop(keep_going, newton, start)
+    z, DF, dT = jax.lax.stop_gradient((z, DF, dT))
+    # The implicit-function step: its value is z (to the residual), its derivative in the
+    # parameters -(DF)^-1 dF/dp. What follows is evaluated at (or linearized to) the stepped
+    # point, so that its derivative is the total one, through z* as well as directly through p.
+    F, T = residual(z, system, autodiff)
+    z_star = z - jnp.linalg.solve(DF, F)
+    state, period = z_star[:n], T + dT @ (z_star - z)  # continuous: T = z[n], dT = e_n
+    _, _, monodromy, _ = linearize(z_star, system)  # forward mode (jacfwd in z)
     multipliers = jnp.linalg.eigvals(monodromy)
     multipliers = multipliers[jnp.argsort(-jnp.abs(multipliers))]
-    trajectory = simulate(system, (0.0, period), state, throw=False, autodiff="forward", **options)
+    trajectory = simulate(system, (0.0, period), state, throw=False, autodiff=autodiff, **options)
     return LimitCycle(period=period, state=state, monodromy=monodromy, floquet_multipliers=multipliers,
-                      trajectory=trajectory, residual=jnp.max(jnp.abs(F)), iterations=iterations)
+                      trajectory=trajectory, residual=jnp.max(jnp.abs(F)), iterations=evaluations - 1)
 
 
 def _field(system, x):
     return system.dynamics(0.0, x, jnp.zeros(system.num_inputs, x.dtype))
 
 
-def _flow(system, x0, T, options):
+def _flow(system, x0, T, options, autodiff="forward"):
     """phi_T(x0); NaN when the simulation failed (Newton then stops with a large residual)."""
-    traj = simulate(system, (0.0, T), x0, dense=False, autodiff="forward", throw=False, **options)
+    traj = simulate(system, (0.0, T), x0, dense=False, autodiff=autodiff, throw=False, **options)
     return jnp.where(traj.success, traj.final_state, jnp.nan)
 
 
-def _return_map(system, x0, horizon, events, options):
+def _return_map(system, x0, horizon, events, options, autodiff="forward"):
     """(state just after the `events`-th event from x0, its time); NaN without that many."""
-    traj = simulate(system, (0.0, horizon), x0, dense=False, autodiff="forward", throw=False,
+    traj = simulate(system, (0.0, horizon), x0, dense=False, autodiff=autodiff, throw=False,
                     max_events=max(events, 8), **options)
     ok = traj.num_events >= events
     return (jnp.where(ok, traj.event_states[events - 1], jnp.nan),
             jnp.where(ok, traj.event_times[events - 1], jnp.nan))
+
+
+def _raise_without_events(system, x_guess, period_guess, events, options):
+    """If the return map found fewer than `events` events from x_guess within 3 x
+    period_guess, say so, with the time at which they do come (if they do within 30 x
+    period_guess); otherwise return (the residual failed for another reason)."""
+    horizon = 3 * period_guess
+    traj = simulate(system, (0.0, 10 * horizon), x_guess, dense=False, throw=False,
+                    max_events=max(events, 8), **options)
+    times = np.asarray(traj.event_times)[: int(traj.num_events)]
+    found = int(np.sum(times <= horizon))
+    if found >= events:
+        return
+    names = ", ".join(repr(tr.name) if tr.name else f"transition {k}" for k, tr in enumerate(system.transitions))
+    if len(times) >= events:
+        remedy = (f"event {events} comes at t = {times[events - 1]:.6g}: give a period_guess near the "
+                  "time between events")
+    else:
+        remedy = (f"none came within {10 * horizon:.6g} s either (simulation status "
+                  f"{SimulationStatus(int(traj.status)).name}): start from a state whose flow reaches a guard")
+    raise LimitCycleError(
+        f"limit_cycle of {system.name}: the return map needs {events} event{'s' * (events > 1)} (of "
+        f"{names}) within 3 x period_guess = {horizon:.6g} s of x_guess, but simulating from x_guess "
+        f"found {found}; {remedy}")

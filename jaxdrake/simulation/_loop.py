@@ -295,9 +295,12 @@ class Loop(eqx.Module):
 
     def locate_event(self, s: LoopState, a: Attempt) -> tuple[LoopState, Attempt]:
         """(5) The earliest guard crossing inside an accepted step, located on the dense output
-        (not differentiated), then one differentiable Newton step on the guard that fired,
-        theta* = theta - g / g', so that the event time carries its implicit-function-theorem
-        sensitivity (with the reset's Jacobian: the saltation matrix). The step is cut there."""
+        (not differentiated), then two differentiable Newton steps on the guard that fired,
+        theta <- theta - g / g', so that the event time carries its implicit-function-theorem
+        sensitivity (with the reset's Jacobian: the saltation matrix). One step gives the first
+        derivative; the second, with g' differentiated too, the second derivative (forward over
+        forward mode: the monodromy of a hybrid limit cycle differentiated in a parameter). The
+        step is cut there."""
         if not (self.num_limit_guards + self.num_transitions):
             return s, a
         source = self.source.on_step(s.t)
@@ -315,10 +318,12 @@ class Loop(eqx.Module):
                 lambda th: g_step(frozen[1] + th * frozen[2], eval_polynomial(frozen[0], th)),
                 crossed, frozen[3], frozen[4], frozen[2], self.event_tol)
             g_of = lambda th: g_step(t + th * h, eval_polynomial(a.coefficients, th))[which]  # noqa: E731
-            g_val, g_dot = jax.jvp(g_of, (theta_located,), (jnp.ones((), dtype),))
-            g_dot = jax.lax.stop_gradient(g_dot)
-            newton = jnp.where(g_dot != 0, g_val / jnp.where(g_dot != 0, g_dot, 1), 0.0)
-            theta = jnp.clip(theta_located - newton, 0.0, 1.0)
+
+            def newton(theta):
+                g_val, g_dot = jax.jvp(g_of, (theta,), (jnp.ones((), dtype),))
+                return theta - jnp.where(g_dot != 0, g_val / jnp.where(g_dot != 0, g_dot, 1), 0.0)
+
+            theta = jnp.clip(newton(newton(theta_located)), 0.0, 1.0)
             powers = jnp.cumprod(jnp.concatenate([jnp.ones(1, dtype), jnp.full(NUM_COEFFICIENTS - 1, theta)]))
             coefficients = a.coefficients * powers[:, None]
             return coefficients, t + theta * h, eval_polynomial(coefficients, 1.0), which
