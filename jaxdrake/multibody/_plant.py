@@ -191,6 +191,27 @@ class RigidBodySystem(System):
         return cls(tree_from_pinocchio(model), actuated, loops=loops,
                    constraint_stiffness=constraint_stiffness)
 
+    @classmethod
+    def from_mjcf(cls, path, *, contact: bool = False, actuated=None, ignore_armature: bool = False,
+                  effort_limits: bool = True, joint_limits: bool = True, limit_period: float = 0.02,
+                  stiction_tolerance: float = DEFAULT_STICTION_TOLERANCE) -> "RigidBodySystem":
+        """Load an MJCF file (or a compiled `mujoco.MjModel`), compiled by MuJoCo: bodies, hinge /
+        slide joints and a free root (the floating base), inertias, damping, gravity, ranges as
+        compliant limits, `<motor>`s on joints as the inputs (joint forces) or the joints named
+        in `actuated`; `contact=True` makes the geoms touch by Drake's point contact (see
+        `jaxdrake.multibody._mjcf` for what is translated and what is refused, by name).
+        MuJoCo's free joint has q = [x, y, z, qw, qx, qy, qz] and a world-frame linear velocity;
+        the plant's floating base has [x, y, z, qx, qy, qz, qw] and body-frame velocities."""
+        from ._mjcf import tree_from_mjcf
+
+        with jax.ensure_compile_time_eval():  # parsing is host work, also inside jit / vmap
+            tree, inputs, collision = tree_from_mjcf(path, contact=contact, actuated=actuated,
+                                                     ignore_armature=ignore_armature)
+            source = pathlib.Path(path).resolve() if isinstance(path, (str, pathlib.PurePath)) else None
+            return cls(tree, inputs, effort_limits=effort_limits, joint_limits=joint_limits,
+                       limit_period=limit_period, source=source, collision=collision,
+                       stiction_tolerance=stiction_tolerance)
+
     @property
     def name(self) -> str:
         return self.tree.robot_name

@@ -297,15 +297,25 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
         links[name] = _inertial(link, path)
     joints = []
     children = set()
+    free_joint = None  # a <joint type="floating"> from the world: its child is the floating base
     for joint in root.findall("joint"):
         name, kind = joint.get("name"), joint.get("type")
         where = f"joint {name!r}"
-        if kind not in _URDF_TYPES or kind == "floating":
+        if kind not in _URDF_TYPES:
             raise URDFError(f"{path}: joint {name!r} has type {kind!r}; supported: revolute, "
-                            "continuous, prismatic, fixed (a floating base: from_urdf(..., floating_base=True))")
+                            "continuous, prismatic, fixed, and floating from the world (a floating base)")
         parent, child = joint.find("parent"), joint.find("child")
         parent = parent.get("link") if parent is not None else None
         child = child.get("link") if child is not None else None
+        if kind == "floating":
+            if parent != "world" or free_joint is not None:
+                raise URDFError(f"{path}: joint {name!r} is floating {'between two links' if parent != 'world' else 'as a second free body'}; "
+                                "jaxdrake's tree has one floating base, joined to the world: give the floating "
+                                "joint the parent 'world', and only one")
+            if child not in links:
+                raise URDFError(f"{path}: joint {name!r} names child link {child!r}, which is not defined")
+            free_joint = child
+            continue
         if parent == "world" and "world" not in links:  # Drake's convention: the world itself
             links["world"] = (0.0, np.zeros(3), np.zeros((3, 3)))
         for role, link in (("parent", parent), ("child", child)):
@@ -327,6 +337,13 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
             upper=number(limit, "upper", np.inf) if kind != "continuous" else np.inf,
             effort=number(limit, "effort", np.inf),
             damping=number(dynamics, "damping", 0.0), friction=number(dynamics, "friction", 0.0)))
+    if free_joint is not None:  # as floating_base=True: the world holds only the floating joint
+        if any(j["parent"] == "world" for j in joints):
+            raise URDFError(f"{path}: link {free_joint!r} floats while other joints hang from the world; "
+                            "jaxdrake's tree has one root: attach the environment as collision geometry on "
+                            "'world' (with_collision_geometry), not as links")
+        links.pop("world", None)
+        floating_base = True
     roots = [name for name in links if name not in children]
     if len(roots) != 1:
         raise URDFError(f"{path}: a URDF tree has exactly one root link (a link that is no joint's "
@@ -446,9 +463,16 @@ def _build_tree(robot_name, root, links, joints, floating_base, gravity, path):
         raise URDFError(f"{path}: links {missing} are not connected to the root {root!r}")
     if not bodies:
         raise URDFError(f"{path}: the URDF has no movable joint")
-    _check_every_joint_moves_mass(bodies, path)
     for name, (body, R, p) in link_body.items():
         frames.append((name, body, R, p))
+    return assemble_tree(robot_name, bodies, frames, gravity, path)
+
+
+def assemble_tree(robot_name, bodies, frames, gravity, path) -> KinematicTree:
+    """The `KinematicTree` of `bodies` (dicts: link, joint, type, parent, R, p, axis,
+    inertial = (mass, com, inertia), lower, upper, effort, damping, friction; parents first) and
+    `frames` ((name, body, R, p), body -1 the world), shared by the URDF and MJCF readers."""
+    _check_every_joint_moves_mass(bodies, path)
     floats = lambda values: device_array(values, float)  # converted on the host: nothing to compile
     arr = lambda key: floats([b[key] for b in bodies])
     repeated = lambda key, floating: floats(np.concatenate([[b[key]] * (floating if b["type"] == "floating" else 1)

@@ -1,0 +1,372 @@
+r"""An MJCF model as a kinematic tree, MuJoCo's own compiler as the parser.
+
+`mujoco.MjModel.from_xml_path` compiles the file (defaults, `fromto`, inertias from geoms,
+angles in degrees, meshes); the compiled arrays are read here:
+
+- **Bodies.** A body with hinge / slide joints is a chain of tree bodies, one per joint in
+  the file's order (all but the last without mass, named `<body>_<joint>`); a body without
+  joints is welded to its parent (its inertia merged, as a URDF fixed joint); one with a free
+  joint is the floating base, allowed for one body of the worldbody that every other moving
+  body descends from. Every body is a named frame (and `world`), at MuJoCo's body frame.
+- **Placements, exactly.** MuJoCo moves a body by $X = X_{parent} B \prod_j T(a_j) J_j(q_j -
+  q_{0,j}) T(-a_j)$ (`body_pos` / `body_quat` B, joint anchors `jnt_pos` $a_j$ in the body
+  frame, `jnt_axis`, the reference `qpos0` from `ref`). The tree's joint frame of joint j is
+  placed at $T(a_j)$ (rotated by $-q_{0,j}$ about a hinge's axis, shifted by $-q_{0,j}$ along a
+  slide's), so the tree body frame is MuJoCo's body frame shifted by $a_j$; centres of mass,
+  children and frames are placed accordingly.
+- **Inertia**: `body_mass`, `body_ipos`, `body_iquat`, `body_inertia`. **Gravity**:
+  `opt.gravity` (zero when disabled). **Damping**: `dof_damping` (zero when disabled).
+  **Limits**: `jnt_range` of `jnt_limited` joints (the plant's compliant limits, not MuJoCo's
+  soft constraints). `dof_frictionloss` is recorded on `tree.friction`, not applied (as a
+  URDF's friction).
+- **Actuators**: each `<motor>` on a hinge or slide joint makes the joint an input; the input
+  is the joint's generalized force, MuJoCo's `ctrl * gear * gain`; its effort limit is
+  `|gear gain| max|ctrlrange|` (when `ctrllimited`), at most `|gear| max|forcerange|` and the
+  joint's `actuatorfrcrange`. Any other actuator (a position or velocity servo, activation
+  dynamics, a tendon, site or body transmission) is refused by name; pass `actuated=[joint
+  names]` to make joints torque inputs instead (the actuators are then not read).
+- **Collision geometry** (`contact=True`): every geom whose `contype` or `conaffinity` is
+  non-zero: sphere, capsule (radius, 2 x half-length), box (2 x half sizes), cylinder, a plane
+  on the world (a `HalfSpace`), a mesh (the convex hull of its compiled vertices, as MuJoCo
+  collides with it). Friction `geom_friction[0]` as static and dynamic coefficient (0 for
+  `condim=1`), combined by Drake's rule; stiffness and dissipation are Drake's defaults:
+  MuJoCo's `solref` / `solimp`, `margin`, `gap`, `priority` and torsional / rolling friction
+  are not translated. Filtering as MuJoCo's: no contact between geoms of one rigid body, of a
+  body and its parent (unless `filterparent` is disabled; bodies welded to the world
+  excepted), of bodies named by `<exclude>`, nor where `contype_a & conaffinity_b` and
+  `contype_b & conaffinity_a` are both 0. The plant excludes pairs of bodies, so two bodies
+  whose geoms pass MuJoCo's filter for some pairs and not others are refused by name.
+
+Refused, each with a named error and its remedy: ball joints, a free joint below the
+worldbody or a second floating body, armature (unless `ignore_armature=True`), joint springs,
+polynomial damping, gravity compensation, fluid forces (`density`, `viscosity`), equality
+constraints, tendons, flexes, explicit contact `<pair>`s (with `contact=True`), and geoms of
+other shapes that can collide (ellipsoid, height field, SDF).
+"""
+
+from __future__ import annotations
+
+import pathlib
+
+import numpy as np
+
+from ..geometry import Box, Capsule, Convex, Cylinder, GeometryError, HalfSpace, Sphere
+from ._contact import CollisionGeometry, ContactMaterial
+from ._tree import KinematicTree, _combine, assemble_tree
+from ._urdf_collision import URDFCollisions
+
+
+class MJCFError(ValueError):
+    """An MJCF model the plant cannot represent (named element, file, remedy)."""
+
+
+def tree_from_mjcf(source, *, contact: bool = False, actuated=None, ignore_armature: bool = False):
+    """Read an MJCF file (or a compiled `mujoco.MjModel`) into a `KinematicTree` (module doc).
+
+    **Returns:** `(tree, actuated_joints, collision)`: the tree; the names of the joints that
+    are inputs (the motors' joints in the order of their actuators, or `actuated`); and the
+    `URDFCollisions` record of the collision geometry (None without `contact`)."""
+    mujoco = _mujoco()
+    model, where = _compile(mujoco, source)
+    reader = _Reader(mujoco, model, where)
+    reader.check_supported(contact, ignore_armature)
+    joints = reader.actuated_joints() if actuated is None else list(actuated)
+    tree = reader.tree()
+    return tree, joints, (reader.collisions() if contact else None)
+
+
+def _mujoco():
+    try:
+        import mujoco
+    except ImportError:
+        raise ImportError("from_mjcf compiles the file with MuJoCo: pip install mujoco==3.17.0 "
+                          "(or pip install 'jaxdrake[mujoco]')") from None
+    return mujoco
+
+
+def _compile(mujoco, source):
+    if isinstance(source, mujoco.MjModel):
+        return source, "the MjModel"
+    path = pathlib.Path(source)
+    try:
+        return mujoco.MjModel.from_xml_path(str(path)), str(path)
+    except ValueError as error:
+        raise MJCFError(f"{path}: MuJoCo's compiler refused the model: {error}") from None
+
+
+def _quaternion_matrix(wxyz):
+    w, x, y, z = np.asarray(wxyz, float) / np.linalg.norm(wxyz)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def _rotation_about(axis, angle):
+    a = np.asarray(axis, float)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+class _Reader:
+    """The compiled model's arrays, read once into bodies, frames, inputs and geometry."""
+
+    def __init__(self, mujoco, model, where):
+        self.mj, self.m, self.where = mujoco, model, where
+        self.body_name = [self._name(mujoco.mjtObj.mjOBJ_BODY, b, f"body{b}") for b in range(model.nbody)]
+        self.body_name[0] = "world"
+        self.joint_name = [self._name(mujoco.mjtObj.mjOBJ_JOINT, j, f"joint{j}") for j in range(model.njnt)]
+        self.disabled = lambda flag: bool(model.opt.disableflags & getattr(mujoco.mjtDisableBit, flag))
+
+    def _name(self, kind, index, fallback):
+        return self.mj.mj_id2name(self.m, kind, index) or fallback
+
+    def _joint(self, j):
+        return f"{self.where}: joint {self.joint_name[j]!r} (body {self.body_name[self.m.jnt_bodyid[j]]!r})"
+
+    # ----- what the plant cannot represent ------------------------------------------------------
+
+    def check_supported(self, contact, ignore_armature):
+        m, where, J = self.m, self.where, self.mj.mjtJoint
+        for j in range(m.njnt):
+            kind, body = m.jnt_type[j], m.jnt_bodyid[j]
+            if kind == J.mjJNT_BALL:
+                raise MJCFError(f"{self._joint(j)} is a ball joint; the plant has hinge, slide and one free "
+                                "(floating-base) joint. Replace it by three hinges with orthogonal axes in "
+                                "the same body (same pos)")
+            if kind == J.mjJNT_FREE and m.body_parentid[body] != 0:
+                raise MJCFError(f"{self._joint(j)} is a free joint of a body that is not a child of the "
+                                "worldbody; only a body of the worldbody can float (the plant's floating "
+                                "base). Move the body to the worldbody, or remove the free joint (weld it)")
+            dofs = slice(m.jnt_dofadr[j], m.jnt_dofadr[j] + (6 if kind == J.mjJNT_FREE else 1))
+            if np.any(m.dof_armature[dofs] != 0) and not ignore_armature:
+                raise MJCFError(f"{self._joint(j)} has armature {m.dof_armature[dofs].max():g}, which the "
+                                "plant does not model (a rotor inertia added to H's diagonal). Remove it from "
+                                "the file, or pass ignore_armature=True to drop it")
+            if (m.jnt_stiffness[j] != 0 or np.any(m.jnt_stiffnesspoly[j] != 0)) and not self.disabled("mjDSBL_SPRING"):
+                raise MJCFError(f"{self._joint(j)} has a spring (stiffness {m.jnt_stiffness[j]:g}), which the "
+                                "plant does not model. Set stiffness=\"0\" and apply the spring as a feedback "
+                                "u = -k (q - springref) around the plant, or disable springs (<flag spring=\"disable\"/>)")
+            if np.any(m.dof_dampingpoly[dofs] != 0) and not self.disabled("mjDSBL_DAMPER"):
+                raise MJCFError(f"{self._joint(j)} has polynomial damping, which the plant does not model; "
+                                "keep only its linear damping")
+        if np.any(m.body_gravcomp != 0):
+            b = int(np.flatnonzero(m.body_gravcomp)[0])
+            raise MJCFError(f"{where}: body {self.body_name[b]!r} has gravcomp {m.body_gravcomp[b]:g}; the plant "
+                            "has no gravity compensation: remove it and compensate with the input instead")
+        if m.opt.density != 0 or m.opt.viscosity != 0:
+            raise MJCFError(f"{where}: <option density={m.opt.density:g} viscosity={m.opt.viscosity:g}> asks "
+                            "for fluid forces, which the plant does not model; set both to 0")
+        for count, what, remedy in ((m.neq, "equality constraints", "close loops with RigidBodySystem(tree, "
+                                     "loops=[LoopConstraint(...)]) or couplers=[CouplerConstraint(...)]"),
+                                    (m.ntendon, "tendons", "remove them (actuate the joints instead)"),
+                                    (m.nflex, "flexes (deformable bodies)", "remove them"),
+                                    (m.npair if contact else 0, "explicit contact <pair>s",
+                                     "remove them; contype / conaffinity filtering and <exclude> are read")):
+            if count:
+                raise MJCFError(f"{where}: the model has {count} {what}, which the plant does not represent; {remedy}")
+        if np.any(m.actuator_armature != 0) and not ignore_armature:
+            raise MJCFError(f"{where}: an actuator has armature, which the plant does not model; remove it, or "
+                            "pass ignore_armature=True")
+
+    # ----- bodies and joints ------------------------------------------------------------------
+
+    def tree(self) -> KinematicTree:
+        m, J = self.m, self.mj.mjtJoint
+        bodies, frames = [], [("world", -1, np.eye(3), np.zeros(3))]
+        place = {0: (-1, np.eye(3), np.zeros(3))}  # MuJoCo body -> (tree body, R, p of it in the tree body)
+        damping_on = not self.disabled("mjDSBL_DAMPER")
+        effort = self._effort_limits()
+        for b in range(1, m.nbody):
+            parent, R_p, p_p = place[m.body_parentid[b]]
+            R_B = _quaternion_matrix(m.body_quat[b])
+            R, p = R_p @ R_B, R_p @ m.body_pos[b] + p_p  # body frame before its joints, in `parent`
+            joints = range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b])
+            for k, j in enumerate(joints):
+                if parent < 0 and bodies and bodies[0]["type"] == "floating":
+                    raise MJCFError(f"{self._joint(j)} moves a body of the worldbody beside the floating "
+                                    f"body {bodies[0]['link']!r}; the plant floats one body and everything "
+                                    "that moves descends from it. Make the body a child of the floating body, "
+                                    "or load the two as separate plants")
+                dof = m.jnt_dofadr[j]
+                common = dict(joint=self.joint_name[j], inertial=(0.0, np.zeros(3), np.zeros((3, 3))),
+                              damping=m.dof_damping[dof] if damping_on else 0.0, friction=m.dof_frictionloss[dof],
+                              effort=effort.get(j, np.inf), lower=-np.inf, upper=np.inf)
+                if m.jnt_type[j] == J.mjJNT_FREE:
+                    if bodies:
+                        raise MJCFError(f"{self._joint(j)}: the floating body must come first among the "
+                                        f"worldbody's moving bodies (body {bodies[0]['link']!r} comes before it) "
+                                        "and be the only one; move it to the top of the worldbody")
+                    bodies.append(dict(common, link=self.body_name[b], type="floating", parent=-1, R=np.eye(3),
+                                       p=np.zeros(3), axis=np.zeros(3)))
+                    parent, R, p = 0, np.eye(3), np.zeros(3)  # MuJoCo ignores body_pos for a free body
+                    continue
+                anchor, axis = m.jnt_pos[j], m.jnt_axis[j] / np.linalg.norm(m.jnt_axis[j])
+                ref = m.qpos0[m.jnt_qposadr[j]]
+                R_o, p_o = R, R @ anchor + p  # the joint frame at the anchor, turned back by ref
+                if m.jnt_type[j] == J.mjJNT_HINGE:
+                    R_o = R_o @ _rotation_about(axis, -ref)
+                else:
+                    p_o = p_o - ref * (R_o @ axis)
+                limited = bool(m.jnt_limited[j])
+                last = k == len(joints) - 1
+                bodies.append(dict(
+                    common, link=self.body_name[b] if last else f"{self.body_name[b]}_{self.joint_name[j]}",
+                    type="revolute" if m.jnt_type[j] == J.mjJNT_HINGE else "prismatic", parent=parent,
+                    R=R_o, p=p_o, axis=axis, lower=m.jnt_range[j, 0] if limited else -np.inf,
+                    upper=m.jnt_range[j, 1] if limited else np.inf))
+                if not last:
+                    frames.append((bodies[-1]["link"], len(bodies) - 1, np.eye(3), np.zeros(3)))
+                parent, R, p = len(bodies) - 1, np.eye(3), -anchor  # MuJoCo's body frame in the new body
+            place[b] = (parent, R, p)
+            frames.append((self.body_name[b], parent, R, p))
+            if parent >= 0:  # the body's inertia, in the tree body's frame
+                R_i = R @ _quaternion_matrix(m.body_iquat[b])
+                inertia = R_i @ np.diag(m.body_inertia[b]) @ R_i.T
+                bodies[parent]["inertial"] = _combine(*bodies[parent]["inertial"], m.body_mass[b],
+                                                      R @ m.body_ipos[b] + p, inertia)
+        if not bodies:
+            raise MJCFError(f"{self.where}: the model has no joint (nothing moves)")
+        names = [f[0] for f in frames]
+        if len(set(names)) != len(names):
+            raise MJCFError(f"{self.where}: body names must be unique (with `<body>_<joint>` for the extra "
+                            f"bodies of a multi-joint body); repeated: {sorted({n for n in names if names.count(n) > 1})}")
+        self.place = place
+        gravity = np.zeros(3) if self.disabled("mjDSBL_GRAVITY") else np.array(m.opt.gravity, float)
+        robot_name = bytes(m.names[: list(m.names).index(0)]).decode() if m.nnames else "mjcf_model"
+        return assemble_tree(robot_name or "mjcf_model", bodies, frames, gravity, self.where)
+
+    # ----- actuators ----------------------------------------------------------------------------
+
+    def _actuators(self):
+        """(actuator name, joint id, force bound on the joint or None, what is wrong or None) of
+        every actuator; only a motor on a hinge / slide joint is right."""
+        m, mj = self.m, self.mj
+        actuators = []
+        for a in range(m.nu):
+            name = self._name(mj.mjtObj.mjOBJ_ACTUATOR, a, f"actuator{a}")
+            j = int(m.actuator_trnid[a, 0])
+            on_joint = (int(m.actuator_trntype[a]) in (int(mj.mjtTrn.mjTRN_JOINT), int(mj.mjtTrn.mjTRN_JOINTINPARENT))
+                        and int(m.jnt_type[j]) in (int(mj.mjtJoint.mjJNT_HINGE), int(mj.mjtJoint.mjJNT_SLIDE)))
+            motor = (m.actuator_gaintype[a] == mj.mjtGain.mjGAIN_FIXED and m.actuator_biastype[a] == mj.mjtBias.mjBIAS_NONE
+                     and m.actuator_dyntype[a] == mj.mjtDyn.mjDYN_NONE and m.actuator_damping[a] == 0
+                     and m.actuator_delay[a] == 0)
+            if not on_joint:
+                actuators.append((name, j, None, "does not act on a hinge or slide joint"))
+                continue
+            if not motor:
+                actuators.append((name, j, None, "is not a motor (its gain is not a constant, or it has a bias, "
+                                  "activation dynamics, damping or a delay: a position / velocity servo, a muscle, ...)"))
+                continue
+            gear = abs(m.actuator_gear[a, 0])
+            bound = gear * abs(m.actuator_gainprm[a, 0]) * np.abs(m.actuator_ctrlrange[a]).max() \
+                if m.actuator_ctrllimited[a] else np.inf
+            if m.actuator_forcelimited[a]:
+                bound = min(bound, gear * np.abs(m.actuator_forcerange[a]).max())
+            actuators.append((name, j, bound, None))
+        return actuators
+
+    def actuated_joints(self) -> list:
+        """The joints of the motors, in the order of their actuators (a named error for any other
+        actuator)."""
+        for name, _, _, wrong in self._actuators():
+            if wrong:
+                raise MJCFError(f"{self.where}: actuator {name!r} {wrong}; the plant's inputs are joint forces. "
+                                "Pass actuated=[joint names] to make joints inputs (and close a servo loop "
+                                "around the plant yourself), or make it a <motor> on a joint")
+        return list(dict.fromkeys(self.joint_name[j] for _, j, _, _ in self._actuators()))
+
+    def _effort_limits(self) -> dict:
+        """Joint id -> the largest generalized force its motors together apply, at most the
+        joint's `actuatorfrcrange` (joints with motors)."""
+        bound = {}
+        for _, j, b, wrong in self._actuators():
+            if not wrong:
+                bound[j] = bound.get(j, 0.0) + b
+        for j in bound:
+            if self.m.jnt_actfrclimited[j]:
+                bound[j] = min(bound[j], np.abs(self.m.jnt_actfrcrange[j]).max())
+        return bound
+
+    # ----- collision geometry ----------------------------------------------------------------
+
+    def collisions(self) -> URDFCollisions:
+        m, G = self.m, self.mj.mjtGeom
+        geometries, owners = [], []
+        for g in range(m.ngeom):
+            if m.geom_contype[g] == 0 and m.geom_conaffinity[g] == 0:
+                continue  # visual only: it can never collide
+            b = m.geom_bodyid[g]
+            link = self.body_name[b]
+            name = self._name(self.mj.mjtObj.mjOBJ_GEOM, g, f"{link}_geom{g}")
+            size, kind = m.geom_size[g], m.geom_type[g]
+            where = f"{self.where}: geom {name!r} (body {link!r})"
+            try:
+                if kind == G.mjGEOM_SPHERE:
+                    shape = Sphere(size[0])
+                elif kind == G.mjGEOM_CAPSULE:
+                    shape = Capsule(size[0], 2 * size[1])
+                elif kind == G.mjGEOM_CYLINDER:
+                    shape = Cylinder(size[0], 2 * size[1])
+                elif kind == G.mjGEOM_BOX:
+                    shape = Box(*(2 * size))
+                elif kind == G.mjGEOM_PLANE:
+                    if self.place[b][0] >= 0:
+                        raise MJCFError(f"{where}: a plane on a moving body; a plane collides as a half-space "
+                                        "fixed to the world: use a box on a moving body")
+                    shape = HalfSpace()
+                elif kind == G.mjGEOM_MESH:
+                    mesh = m.geom_dataid[g]
+                    start = m.mesh_vertadr[mesh]
+                    shape = Convex.from_points(m.mesh_vert[start: start + m.mesh_vertnum[mesh]], name=name)
+                else:
+                    raise MJCFError(f"{where} is a {G(kind).name.removeprefix('mjGEOM_').lower()}, which the "
+                                    "plant cannot collide; use a sphere, capsule, box, cylinder, plane or mesh, "
+                                    "or make the geom visual only (contype=\"0\" conaffinity=\"0\")")
+            except GeometryError as error:
+                raise MJCFError(f"{where}: {error}") from None
+            mu = 0.0 if m.geom_condim[g] == 1 else float(m.geom_friction[g, 0])
+            geometries.append(CollisionGeometry(
+                name=name, link=link, shape=shape, rotation=_quaternion_matrix(m.geom_quat[g]),
+                translation=np.array(m.geom_pos[g], float), material=ContactMaterial(mu_static=mu, mu_dynamic=mu)))
+            owners.append(g)
+        return URDFCollisions(tuple(geometries), self._excluded_body_pairs(owners))
+
+    def _excluded_body_pairs(self, geoms) -> tuple:
+        """The pairs of bodies (frame names) between which MuJoCo's filters pass no geom pair."""
+        m = self.m
+        excluded_bodies = {(s >> 16, s & 0xFFFF) for s in m.exclude_signature}
+        weld = m.body_weldid
+        filter_parent = not self.disabled("mjDSBL_FILTERPARENT")
+        tree_body = lambda b: self.place[b][0]  # noqa: E731
+
+        def passes(g1, g2):
+            b1, b2 = m.geom_bodyid[g1], m.geom_bodyid[g2]
+            w1, w2 = weld[b1], weld[b2]
+            if filter_parent and w1 != 0 and w2 != 0 and (w1 == weld[m.body_parentid[w2]] or w2 == weld[m.body_parentid[w1]]):
+                return False
+            if (b1, b2) in excluded_bodies or (b2, b1) in excluded_bodies:
+                return False
+            return bool(m.geom_contype[g1] & m.geom_conaffinity[g2] or m.geom_contype[g2] & m.geom_conaffinity[g1])
+
+        verdicts = {}
+        for i, g1 in enumerate(geoms):
+            for g2 in geoms[i + 1:]:
+                b1, b2 = m.geom_bodyid[g1], m.geom_bodyid[g2]
+                if tree_body(b1) == tree_body(b2):
+                    continue  # one rigid body: never in contact, here as in MuJoCo
+                key = (min(b1, b2), max(b1, b2))
+                verdicts.setdefault(key, set()).add((passes(g1, g2), g1, g2))
+        excluded = []
+        for (b1, b2), results in verdicts.items():
+            passed = {r[0] for r in results}
+            if passed == {False}:
+                excluded.append((self.body_name[b1], self.body_name[b2]))
+            elif passed == {True, False}:
+                g1, g2 = next((r[1], r[2]) for r in results if not r[0])
+                name = lambda g: self._name(self.mj.mjtObj.mjOBJ_GEOM, g, f"geom{g}")  # noqa: E731
+                raise MJCFError(
+                    f"{self.where}: bodies {self.body_name[b1]!r} and {self.body_name[b2]!r}: MuJoCo's contype / "
+                    f"conaffinity let some of their geoms touch but not others (e.g. {name(g1)!r} and {name(g2)!r}); "
+                    "the plant filters contact by pairs of bodies. Give the geoms of each body one contype / "
+                    "conaffinity, or make the geoms that must not touch visual only (contype=\"0\" conaffinity=\"0\")")
+        return tuple(excluded)
