@@ -307,3 +307,22 @@ def test_without_contact_nothing_changes():
     far = x.at[2].add(5.0)   # well above the floor: the contact plant's dynamics are the plain one's
     np.testing.assert_allclose(np.asarray(touching.dynamics(0.0, far, jnp.zeros(4))),
                                np.asarray(plain.dynamics(0.0, far, jnp.zeros(4))), rtol=1e-14, atol=1e-12)
+
+
+def test_a_floating_joint_from_a_declared_world_is_the_floating_base(tmp_path):
+    text = (DATA / "contact_ball.urdf").read_text()
+    with_world = text.replace("</robot>", '<link name="world"/><joint name="free" type="floating">'
+                              '<parent link="world"/><child link="ball"/></joint></robot>')
+    (tmp_path / "free.urdf").write_text(with_world)
+    free = jd.RigidBodySystem.from_urdf(tmp_path / "free.urdf", contact=True).with_ground()
+    base = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True, contact=True).with_ground()
+    assert free.tree.joint_types == ("floating",) and free.state_frame.coordinates == base.state_frame.coordinates
+    x = jnp.array([0.1, 0.0, 0.095, 0, 0, 0, 1, 1.0, 0, 0, 0, 2.0, 0])
+    np.testing.assert_array_equal(np.asarray(free.dynamics(0.0, x, jnp.zeros(0))),
+                                  np.asarray(base.dynamics(0.0, x, jnp.zeros(0))))
+    two = with_world.replace("</robot>", '<link name="other"><inertial><mass value="1"/><inertia ixx="1" iyy="1" '
+                             'izz="1" ixy="0" ixz="0" iyz="0"/></inertial></link><joint name="pin" type="revolute">'
+                             '<parent link="world"/><child link="other"/><axis xyz="0 0 1"/></joint></robot>')
+    (tmp_path / "two.urdf").write_text(two)
+    with pytest.raises(URDFError, match="floats while other joints hang from the world"):
+        jd.RigidBodySystem.from_urdf(tmp_path / "two.urdf")

@@ -26,6 +26,7 @@ its own frame, Pinocchio's).
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -311,22 +312,11 @@ def _rnea(tree: KinematicTree, q, v=None, a=None, *, gravity: bool, unroll):
     return _project_forces(L, S1, S0, _subtree_sum(L, F))
 
 
-def _body_velocities(tree: KinematicTree, q, v, *, unroll):
-    """Every body's [omega; v_Bo] (n, 6, B), world axes, tree order: its angular velocity and
-    the velocity of its frame's origin."""
-    R, p, _, _, _, V = _velocities(tree, q, v, unroll=unroll)
-    w, v_O = V[:, :3], V[:, 3:]
-    return jnp.concatenate([w, v_O + _cross(w, p)], 1)[tree.layout.position]
-
-
-def _external_forces(tree: KinematicTree, q, F, *, unroll):
-    """tau = J^T F for spatial forces F (n * 6, B) on the bodies (tree order, [torque about the
-    body frame's origin; force], world axes): each moved to O and summed over subtrees."""
-    L = tree.layout
-    R, p, S1, S0 = _kinematics(tree, q, unroll=unroll)
-    F = F.reshape((tree.num_bodies, 6) + F.shape[1:])[L.order]
-    torque, force = F[:, :3], F[:, 3:]
-    return _project_forces(L, S1, S0, _subtree_sum(L, jnp.concatenate([torque + _cross(p, force), force], 1)))
+def _contact_kinematics(tree: KinematicTree, q, v, *, unroll):
+    """Level order, lanes: R, p (relative to O), V (spatial velocities about O) and the dof
+    columns (nv, 6), tree coordinate order."""
+    R, p, S1, S0, _, V = _velocities(tree, q, v, unroll=unroll)
+    return R, p, V, _dof_columns(tree.layout, S1, S0)
 
 
 def _project_forces(L, S1, S0, F):
@@ -573,17 +563,39 @@ def aba(tree: KinematicTree, q, v, tau, *, gravity: bool = True):
     return _forward_dynamics(gravity)(tree, q, v, tau)
 
 
-def body_velocities(tree: KinematicTree, q, v):
-    r"""Every body's spatial velocity, world axes, tree order: (n, 6) rows $[\omega_B; v_{B_o}]$,
-    the angular velocity and the velocity of the body frame's origin."""
-    return _lane_batched(_body_velocities)(tree, q, v)
+class BodyMotion(NamedTuple):
+    """One kinematics pass, what forces applied to bodies need: every body's world `rotation`
+    (n, 3, 3), `position` (n, 3) and spatial velocity `velocity` (n, 6) rows
+    $[\omega_B; v_{B_o}]$ (tree order), and the velocity coordinates' motion subspaces
+    `columns` (nv, 6) about the point `origin` (world axes)."""
+
+    rotation: jax.Array
+    position: jax.Array
+    velocity: jax.Array
+    columns: jax.Array
+    origin: jax.Array
 
 
-def external_forces(tree: KinematicTree, q, F):
-    r"""The generalized force $\tau = \sum_B J_B^T F_B$ of spatial forces applied to the bodies:
-    F (n, 6) rows $[\tau_{B_o}; f_B]$ (the torque about the body frame's origin and the force,
-    world axes), tree order (Drake's `F_BBo_W`)."""
-    return _lane_batched(_external_forces)(tree, q, F.reshape(-1))
+def body_motion(tree: KinematicTree, q, v) -> BodyMotion:
+    """Poses, velocities and motion subspaces from one forward-kinematics pass (`BodyMotion`)."""
+    R, p, V, columns = _in_one_lane(_contact_kinematics, tree, q, v)
+    position = tree.layout.position
+    R, p, V = R[position], p[position], V[position]
+    w = V[:, :3]
+    return BodyMotion(R, p + _offset(tree, q), jnp.concatenate([w, V[:, 3:] + jnp.cross(w, p)], 1), columns,
+                      _offset(tree, q))
+
+
+def external_forces(tree: KinematicTree, motion: BodyMotion, F):
+    r"""The generalized force $\tau = \sum_B J_B^T F_B$ of spatial forces on the bodies: F (n, 6)
+    rows $[\tau_{B_o}; f_B]$ (the torque about the body frame's origin and the force, world
+    axes, tree order: Drake's `F_BBo_W`), moved to the origin O and summed over subtrees:
+    $\tau_k = s_k \cdot \sum_{B \in \mathrm{subtree}(k)} F_B^O$."""
+    L = tree.layout
+    torque, force = F[:, :3], F[:, 3:]
+    at_origin = jnp.concatenate([torque + jnp.cross(motion.position - motion.origin, force), force], 1)
+    subtree_sums = jnp.asarray(L.subtree, F.dtype) @ at_origin[L.order]
+    return jnp.sum(motion.columns * subtree_sums[L.dof_body], 1)
 
 
 # ----- frames -----------------------------------------------------------------------------------

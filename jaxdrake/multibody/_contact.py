@@ -167,19 +167,17 @@ class ContactModel(eqx.Module):
 
     # ----- queries ------------------------------------------------------------------------
 
-    def geometry_poses(self, tree, q):
-        """World (R (g, 3, 3), p (g, 3)) of every geometry."""
-        Rs, ps = alg.body_poses(tree, q)
-        Rs = jnp.concatenate([jnp.eye(3, dtype=Rs.dtype)[None], Rs])
-        ps = jnp.concatenate([jnp.zeros((1, 3), ps.dtype), ps])
+    def geometry_poses(self, motion: alg.BodyMotion):
+        """World (R (g, 3, 3), p (g, 3)) of every geometry, from the bodies' `motion`."""
+        Rs, ps = _with_world(motion.rotation, jnp.eye(3)), _with_world(motion.position, jnp.zeros(3))
         b = np.asarray(self.bodies) + 1
         R_B, p_B = Rs[b], ps[b]
         return R_B @ self.rotation, jnp.einsum("gij,gj->gi", R_B, self.translation) + p_B
 
-    def point_pairs(self, tree, q):
+    def point_pairs(self, motion: alg.BodyMotion):
         """Candidate contacts of every pair: depth, C_a, C_b, n_BA (arrays over candidates) and
         the static geometry indices a, b of each."""
-        R, p = self.geometry_poses(tree, q)
+        R, p = self.geometry_poses(motion)
         params = {"size": self.size, "vertices": self.vertices, "vertex_valid": self.vertex_valid,
                   "planes": self.planes}
         parts, ia, ib = [], [], []
@@ -193,19 +191,19 @@ class ContactModel(eqx.Module):
             ia += np.repeat(a_idx, k).tolist()
             ib += np.repeat(b_idx, k).tolist()
         if not parts:
-            z = jnp.zeros((0, 3), q.dtype)
-            return (jnp.zeros(0, q.dtype), z, z, z), (), ()
+            z = jnp.zeros((0, 3), R.dtype)
+            return (jnp.zeros(0, R.dtype), z, z, z), (), ()
         return tuple(jnp.concatenate(x) for x in zip(*parts)), tuple(ia), tuple(ib)
 
     def results(self, tree, q, v) -> ContactResults:
         """The contact forces at (q, v) (module docstring)."""
-        (depth, pa, pb, n), ia, ib = self.point_pairs(tree, q)
+        return self._results(alg.body_motion(tree, q, v))
+
+    def _results(self, motion: alg.BodyMotion) -> ContactResults:
+        (depth, pa, pb, n), ia, ib = self.point_pairs(motion)
         ia_, ib_ = np.asarray(ia, int), np.asarray(ib, int)
         C = 0.5 * (pa + pb)
-        V = alg.body_velocities(tree, q, v)
-        Rs, ps = alg.body_poses(tree, q)
-        V = jnp.concatenate([jnp.zeros((1, 6), V.dtype), V])
-        ps = jnp.concatenate([jnp.zeros((1, 3), ps.dtype), ps])
+        V, ps = _with_world(motion.velocity, jnp.zeros(6)), _with_world(motion.position, jnp.zeros(3))
         body_a, body_b = np.asarray(self.bodies)[ia_] + 1, np.asarray(self.bodies)[ib_] + 1
         point_velocity = lambda b: V[b, 3:] + jnp.cross(V[b, :3], C - ps[b])  # noqa: E731
         v_AcBc = point_velocity(body_b) - point_velocity(body_a)
@@ -226,16 +224,21 @@ class ContactModel(eqx.Module):
                               separation_speed=vn, geometry_a=ia, geometry_b=ib)
 
     def generalized_forces(self, tree, q, v):
-        r"""$\tau_c = \sum J^T f$ of all contact forces at (q, v), and the `ContactResults`."""
-        res = self.results(tree, q, v)
-        Rs, ps = alg.body_poses(tree, q)
-        ps = jnp.concatenate([jnp.zeros((1, 3), ps.dtype), ps])
+        r"""$\tau_c = \sum J^T f$ of all contact forces at (q, v), and the `ContactResults` (one
+        forward-kinematics pass for both)."""
+        motion = alg.body_motion(tree, q, v)
+        res = self._results(motion)
+        ps = _with_world(motion.position, jnp.zeros(3))
         ia_, ib_ = np.asarray(res.geometry_a, int), np.asarray(res.geometry_b, int)
         F = jnp.zeros((tree.num_bodies + 1, 6), res.force.dtype)
         for bodies, f in ((np.asarray(self.bodies)[ia_] + 1, -res.force), (np.asarray(self.bodies)[ib_] + 1, res.force)):
-            wrench = jnp.concatenate([jnp.cross(res.point - ps[bodies], f), f], 1)
-            F = F.at[bodies].add(wrench)
-        return alg.external_forces(tree, q, F[1:]), res
+            F = F.at[bodies].add(jnp.concatenate([jnp.cross(res.point - ps[bodies], f), f], 1))
+        return alg.external_forces(tree, motion, F[1:]), res
+
+
+def _with_world(per_body, world_value):
+    """Per-body rows with the world's (index 0, body -1) in front."""
+    return jnp.concatenate([jnp.broadcast_to(world_value, (1,) + per_body.shape[1:]).astype(per_body.dtype), per_body])
 
 
 def stribeck(slip, mu_static, mu_dynamic, stiction_tolerance):
@@ -325,11 +328,11 @@ def build_contact_model(tree, geometries, *, excluded_pairs=(), stiction_toleran
             vertices[i, m:] = g.shape.vertices[0]
             planes[i, :f], planes[i, f:] = g.shape.planes, g.shape.planes[0]
     value = lambda x, default: default if x is None else x  # noqa: E731
+    rotation, translation = _poses_in_bodies(tree, geometries)
     return ContactModel(
         names=names, links=tuple(g.link for g in geometries), kinds=tuple(kinds), bodies=tuple(bodies),
         groups=tuple((ka, kb, tuple(a), tuple(b)) for (ka, kb), (a, b) in sorted(groups.items())),
-        rotation=floats([g.rotation for g in geometries]).reshape(-1, 3, 3),
-        translation=floats([g.translation for g in geometries]).reshape(-1, 3),
+        rotation=rotation, translation=translation,
         size=floats([_size(g.shape) for g in geometries]).reshape(-1, 3),
         vertices=floats(vertices), vertex_valid=jax.device_put(valid), planes=floats(planes),
         stiffness=floats([value(g.material.point_contact_stiffness, DEFAULT_STIFFNESS) for g in geometries]),
@@ -337,6 +340,25 @@ def build_contact_model(tree, geometries, *, excluded_pairs=(), stiction_toleran
         mu_static=floats([g.material.friction()[0] for g in geometries]),
         mu_dynamic=floats([g.material.friction()[1] for g in geometries]),
         stiction_tolerance=floats(stiction_tolerance))
+
+
+def _poses_in_bodies(tree, geometries):
+    """Each geometry's pose in its body's frame: its pose in its link's frame composed with the
+    link's frame in the body (a link merged into its parent by a fixed joint, a MuJoCo body
+    whose joint axis does not pass through its origin, sits at a pose in its body)."""
+    R_g = np.array([g.rotation for g in geometries], float).reshape(-1, 3, 3)
+    p_g = np.array([g.translation for g in geometries], float).reshape(-1, 3)
+    k = np.array([tree.frame_names.index(g.link) if g.link in tree.frame_names else -1 for g in geometries], int)
+    if not np.any(k >= 0):
+        return device_array(R_g), device_array(p_g)
+    try:  # on the host ...
+        R_f, p_f, xp = np.asarray(tree.frame_rotation), np.asarray(tree.frame_translation), np
+    except jax.errors.TracerArrayConversionError:  # ... or traced, for a tree of traced leaves
+        R_f, p_f, xp = tree.frame_rotation, tree.frame_translation, jnp
+    R_f = xp.concatenate([R_f, xp.eye(3, dtype=R_f.dtype)[None]])  # index -1: 'world', the identity
+    p_f = xp.concatenate([p_f, xp.zeros((1, 3), p_f.dtype)])
+    R, p = R_f[k] @ R_g, xp.einsum("gij,gj->gi", R_f[k], p_g) + p_f[k]
+    return (device_array(R), device_array(p)) if xp is np else (R, p)
 
 
 def _body_has_mass(tree, body) -> bool:
