@@ -564,7 +564,7 @@ def aba(tree: KinematicTree, q, v, tau, *, gravity: bool = True):
 
 
 class BodyMotion(NamedTuple):
-    """One kinematics pass, what forces applied to bodies need: every body's world `rotation`
+    r"""One kinematics pass, what forces applied to bodies need: every body's world `rotation`
     (n, 3, 3), `position` (n, 3) and spatial velocity `velocity` (n, 6) rows
     $[\omega_B; v_{B_o}]$ (tree order), and the velocity coordinates' motion subspaces
     `columns` (nv, 6) about the point `origin` (world axes)."""
