@@ -119,6 +119,36 @@ def test_gradient_through_a_stochastic_simulation_with_a_fixed_key():
     np.testing.assert_allclose(g, fd, rtol=1e-6)
 
 
+def test_from_functions_infers_the_output_size_as_system_from_functions_does():
+    """One rule for every from_functions: the number of outputs is the length of output()'s
+    result (here 1 of 2 states), a given num_outputs or output_frame must agree with it. The
+    stochastic one once kept 2, and a diagram then blamed the wiring."""
+    deterministic = jd.System.from_functions(lambda t, x, u: -x, output=lambda t, x, u: x[1:2], num_states=2)
+    noisy = jd.StochasticSystem.from_functions(lambda t, x, u, w: -x + w, output=lambda t, x, u, w: x[1:2] + w,
+                                               num_states=2, num_noise_inputs=1, noise_time_constant=0.1)
+    assert deterministic.num_outputs == noisy.num_outputs == 1
+    assert deterministic.output_frame.dim == noisy.output_frame.dim == 1
+    with_params = jd.StochasticSystem.from_functions(
+        lambda t, x, u, w, p: -x, output=lambda t, x, u, w, p: p * jnp.concatenate([x, x, w]),
+        num_states=2, num_noise_inputs=1, noise_time_constant=0.1, params=2.0)
+    assert with_params.num_outputs == 5
+    sink = jd.System.from_functions(lambda t, x, u: u - x, num_states=1, num_inputs=1)
+    for system in (deterministic, noisy):
+        assert jd.cascade(system, sink).num_states == 3
+        for given in (dict(num_outputs=2), dict(output_frame=jd.Frame("Y", ("a", "b")))):
+            with pytest.raises(ValueError, match="output returns 1 values but .* was given"):
+                if system is deterministic:
+                    jd.System.from_functions(lambda t, x, u: -x, output=lambda t, x, u: x[1:2], num_states=2, **given)
+                else:
+                    jd.StochasticSystem.from_functions(
+                        lambda t, x, u, w: -x + w, output=lambda t, x, u, w: x[1:2] + w, num_states=2,
+                        num_noise_inputs=1, noise_time_constant=0.1, **given)
+    named = jd.StochasticSystem.from_functions(lambda t, x, u, w: -x + w, output=lambda t, x, u, w: x[1:2] + w,
+                                               num_states=2, num_noise_inputs=1, noise_time_constant=0.1,
+                                               output_frame=jd.Frame("Y", ("y",)))
+    assert named.output_frame.coordinates == ("y",)
+
+
 def test_stochastic_errors_are_named():
     system = LinearGaussianExample()
     with pytest.raises(ValueError, match="stochastic.*needs a PRNG key"):

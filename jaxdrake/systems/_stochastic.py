@@ -16,10 +16,11 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._system import Functions, System
+from ._system import Functions, System, infer_num_outputs
 
 
 class StochasticSystem(System):
@@ -106,7 +107,8 @@ class StochasticSystem(System):
                        num_inputs: int = 0, params: Any = None, initial_state: Any = None,
                        **kwargs) -> "FunctionStochasticSystem":
         """Build a stochastic system from functions `f(t, x, u, w)` (or `f(t, x, u, w, params)`):
-        `dynamics` makes it continuous, `update` (with `sample_time`) discrete."""
+        `dynamics` makes it continuous, `update` (with `sample_time`) discrete. The number of
+        outputs is that of `output`'s result, as for `System.from_functions`."""
         if (dynamics is None) == (update is None):
             raise ValueError("StochasticSystem.from_functions needs exactly one of dynamics "
                              "(continuous) or update (discrete)")
@@ -126,6 +128,9 @@ class FunctionStochasticSystem(StochasticSystem):
     def __init__(self, dynamics_fn=None, update_fn=None, output_fn=None, *, params=None,
                  initial_state=None, **kwargs):
         self.functions = Functions(dynamics_fn, update_fn, output_fn, params, initial_state)
+        n = kwargs.get("num_noise_inputs")
+        if isinstance(n, (int, np.integer)) and n > 0:  # else StochasticSystem names the problem
+            kwargs = infer_num_outputs(self.functions, kwargs, jax.ShapeDtypeStruct((n,), jnp.zeros(()).dtype))
         super().__init__(**kwargs)
 
     def stochastic_dynamics(self, t, x, u, w):

@@ -290,8 +290,9 @@ class System(eqx.Module):
         a discrete one, both a mixed one (then give `num_discrete_states`); `output` alone with
         `num_states=0` a static one (a controller u = k(t, y), say). If `params` (any
         pytree; its arrays are leaves of the system) is given, each function is called as
-        `f(t, x, u, params)`. The number of outputs is that of `output`'s result unless
-        `num_outputs` or `output_frame` says otherwise. Other keyword arguments are those of `System`.
+        `f(t, x, u, params)`. The number of outputs is that of `output`'s result (a given
+        `num_outputs` or `output_frame` must agree with it; see `infer_num_outputs`). Other
+        keyword arguments are those of `System`.
         """
         if dynamics is None and update is None and not (num_states == 0 and output is not None):
             raise ValueError("from_functions needs dynamics (continuous) and/or update (discrete), "
@@ -300,8 +301,6 @@ class System(eqx.Module):
             if dynamics is not None and update is not None:
                 raise ValueError("a mixed system (dynamics and update) needs num_discrete_states")
             num_discrete_states = num_states if dynamics is None and update is not None else 0
-        if output is not None and kwargs.get("num_outputs") is None and kwargs.get("output_frame") is None:
-            kwargs["num_outputs"] = _output_size(output, num_states, num_inputs, params)
         return FunctionSystem(dynamics, update, output, params=params, initial_state=initial_state,
                               num_continuous_states=num_states - num_discrete_states,
                               num_discrete_states=num_discrete_states, num_inputs=num_inputs, **kwargs)
@@ -314,14 +313,36 @@ def _argument_shapes(num_states: int, num_inputs: int):
             jax.ShapeDtypeStruct((num_inputs,), dtype))
 
 
-def _output_size(output: Callable, num_states: int, num_inputs: int, params: Any) -> int:
-    """The length of `output(t, x, u[, params])`, from its shapes alone (nothing evaluated)."""
-    shape = jax.eval_shape(lambda *a: output(*a) if params is None else output(*a, params),
-                           *_argument_shapes(num_states, num_inputs)).shape
+def infer_num_outputs(functions: "Functions", kwargs: dict, *noise: jax.ShapeDtypeStruct) -> dict:
+    """The rule every `from_functions` system follows for its number of outputs: the length of
+    `functions.output(t, x, u, *noise[, params])`, from its shapes alone (nothing evaluated),
+    unless `num_outputs` or `output_frame` is given; a given size that disagrees with the
+    function's is an error naming both. Returns `kwargs` (the System's keyword arguments,
+    sizes included) with `num_outputs` set."""
+    kwargs = dict(kwargs)
+    if functions.output is None:
+        return kwargs
+    declared = kwargs.get("num_outputs")
+    frame = kwargs.get("output_frame")
+    if declared is None and isinstance(frame, Frame):
+        declared = frame.dim
+    num_states = kwargs.get("num_continuous_states", 0) + kwargs.get("num_discrete_states", 0)
+    args = _argument_shapes(num_states, kwargs.get("num_inputs", 0)) + noise
+    try:
+        shape = jax.eval_shape(lambda *a: functions.call(functions.output, *a), *args).shape
+    except Exception:  # noqa: BLE001 -- not traceable on its own: a declared size stands
+        if declared is None:
+            raise
+        return kwargs
     if len(shape) != 1:
         raise ValueError(f"from_functions: output must return a vector, got shape {shape} "
-                         "(wrap a scalar as jnp.atleast_1d(y), or give num_outputs)")
-    return shape[0]
+                         "(wrap a scalar as jnp.atleast_1d(y))")
+    if declared is not None and declared != shape[0]:
+        given = f"num_outputs={declared}" if kwargs.get("num_outputs") is not None else f"output_frame {frame}"
+        raise ValueError(f"from_functions: output returns {shape[0]} values but {given} was given; "
+                         "leave it out to have it inferred, or make them agree")
+    kwargs["num_outputs"] = shape[0]
+    return kwargs
 
 
 class Functions(eqx.Module):
@@ -350,7 +371,7 @@ class FunctionSystem(System):
     def __init__(self, dynamics_fn=None, update_fn=None, output_fn=None, *, params=None,
                  initial_state=None, **kwargs):
         self.functions = Functions(dynamics_fn, update_fn, output_fn, params, initial_state)
-        super().__init__(**kwargs)
+        super().__init__(**infer_num_outputs(self.functions, kwargs))
 
     def dynamics(self, t, x, u):
         if self.functions.dynamics is None:
