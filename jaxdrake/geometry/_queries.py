@@ -37,7 +37,7 @@ import numpy as np
 _TINY = 1e-14
 
 
-def _safe_norm(v, fallback):
+def norm_and_direction(v, fallback):
     """(|v|, v / |v|) with `fallback` (a unit vector) as the direction where |v| is ~0,
     differentiable everywhere."""
     sq = jnp.sum(v * v, -1)
@@ -52,7 +52,7 @@ _Z = jnp.array([0.0, 0.0, 1.0])
 
 
 def sphere_distance(radius, Q):
-    direction = _safe_norm(Q, _X.astype(Q.dtype))[1]
+    direction = norm_and_direction(Q, _X.astype(Q.dtype))[1]
     N = radius * direction
     return jnp.dot(Q - N, direction), N, direction
 
@@ -71,7 +71,7 @@ def _box_distance_nd(h, Q):
     """Drake's `ComputeDistanceToBox` for a box of half sizes h in any dimension."""
     clamped = jnp.clip(Q, -h, h)
     outside = jnp.any(jnp.abs(Q) > h)
-    d_out, g_out = _safe_norm(Q - clamped, jnp.zeros_like(Q).at[0].set(1.0))
+    d_out, g_out = norm_and_direction(Q - clamped, jnp.zeros_like(Q).at[0].set(1.0))
     gap = h - jnp.abs(Q)
     axis = jnp.argmin(gap)
     sign = jnp.where(Q[axis] >= 0, 1.0, -1.0).astype(Q.dtype)
@@ -89,7 +89,7 @@ def box_distance(half_sizes, Q):
 
 
 def cylinder_distance(radius, half_length, Q):
-    r, radial = _safe_norm(Q[:2], _X[:2].astype(Q.dtype))
+    r, radial = norm_and_direction(Q[:2], _X[:2].astype(Q.dtype))
     d, N2, g2 = _box_distance_nd(jnp.stack([radius, half_length]), jnp.stack([r, Q[2]]))
     to_xyz = lambda rz: jnp.stack([rz[0] * radial[0], rz[0] * radial[1], rz[1]])  # noqa: E731
     return d, to_xyz(N2), to_xyz(g2)
@@ -176,7 +176,7 @@ def _cylinder_rim_against_halfspace(params, X_A, X_B):
     radius, half = params["size"][0], params["size"][1]
     axis, n = R_A[:, 2], X_B[0][:, 2]
     down = -(n - jnp.dot(n, axis) * axis)
-    _, u = _safe_norm(down, R_A[:, 0])
+    _, u = norm_and_direction(down, R_A[:, 0])
     w = jnp.cross(axis, u)
     directions = jnp.stack([u, w, -u, -w])
     caps = jnp.stack([p_A + half * axis, p_A - half * axis])
@@ -251,18 +251,6 @@ def canonical_order(kind_a: str, kind_b: str) -> bool:
 def supported(kind_a: str, kind_b: str) -> bool:
     a, b = (kind_a, kind_b) if canonical_order(kind_a, kind_b) else (kind_b, kind_a)
     return (a, b) in _SUPPORTED
-
-
-def num_candidates(kind_a: str, kind_b: str, vertices_a: int = 0, vertices_b: int = 0) -> int:
-    """How many candidates `penetration` returns for a canonical pair."""
-    own = {"sphere": 1, "capsule": 2, "box": 8, "convex": vertices_a, "cylinder": 8}[kind_a]
-    if kind_a == "capsule" and kind_b == "capsule":
-        return 1
-    if kind_a == "capsule" and kind_b == "box":
-        return 2 + 8
-    if kind_a in ("box", "convex") and kind_b in ("box", "convex"):
-        return own + (8 if kind_b == "box" else vertices_b)
-    return own
 
 
 SUPPORTED_PAIRS = tuple(sorted(_SUPPORTED, key=lambda p: (_RANK[p[0]], _RANK[p[1]])))

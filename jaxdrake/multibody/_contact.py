@@ -33,9 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._numbers import device_array
-from ..geometry import Box, Capsule, Convex, Cylinder, GeometryError, HalfSpace, Sphere
-from ..geometry import penetration as _penetration
-from ..geometry._queries import _safe_norm, canonical_order, num_candidates, supported, SUPPORTED_PAIRS
+from ..geometry import (SUPPORTED_PAIRS, Box, Capsule, Convex, Cylinder, GeometryError, HalfSpace, Sphere,
+                        canonical_order, norm_and_direction, penetration, supported)
 from . import _algorithms as alg
 
 DEFAULT_STICTION_TOLERANCE = 1e-4
@@ -160,11 +159,6 @@ class ContactModel(eqx.Module):
     mu_dynamic: jax.Array
     stiction_tolerance: jax.Array
 
-    @property
-    def num_candidates(self) -> int:
-        v = self.vertices.shape[1]
-        return sum(len(a) * num_candidates(ka, kb, v, v) for ka, kb, a, _ in self.groups)
-
     # ----- queries ------------------------------------------------------------------------
 
     def geometry_poses(self, motion: alg.BodyMotion):
@@ -184,7 +178,7 @@ class ContactModel(eqx.Module):
         for kind_a, kind_b, a, b in self.groups:
             a_idx, b_idx = np.asarray(a), np.asarray(b)
             pick = lambda idx: jax.tree.map(lambda x: x[idx], params)  # noqa: E731
-            query = lambda pa, Ra, ta, pb, Rb, tb: _penetration(kind_a, pa, (Ra, ta), kind_b, pb, (Rb, tb))  # noqa: E731
+            query = lambda pa, Ra, ta, pb, Rb, tb: penetration(kind_a, pa, (Ra, ta), kind_b, pb, (Rb, tb))  # noqa: E731
             out = jax.vmap(query)(pick(a_idx), R[a_idx], p[a_idx], pick(b_idx), R[b_idx], p[b_idx])
             k = out[0].shape[1]
             parts.append(tuple(x.reshape((-1,) + x.shape[2:]) for x in out))
@@ -216,7 +210,7 @@ class ContactModel(eqx.Module):
         active = touching & (fn > 0)
         fn = jnp.where(active, fn, 0.0)
         vt = v_AcBc - vn[:, None] * n
-        slip, t_hat = _safe_norm(vt, jnp.zeros_like(vt).at[:, 0].set(1.0))  # mu(0) = 0: no force
+        slip, t_hat = norm_and_direction(vt, jnp.zeros_like(vt).at[:, 0].set(1.0))  # mu(0) = 0: no force
         mu = stribeck(slip, _harmonic(self.mu_static[ia_], self.mu_static[ib_]),
                       _harmonic(self.mu_dynamic[ia_], self.mu_dynamic[ib_]), self.stiction_tolerance)
         f_A = fn[:, None] * n + (mu * fn)[:, None] * t_hat
