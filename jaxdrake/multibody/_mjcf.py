@@ -7,7 +7,8 @@ angles in degrees, meshes); the compiled arrays are read here:
   the file's order (all but the last without mass, named `<body>_<joint>`); a body without
   joints is welded to its parent (its inertia merged, as a URDF fixed joint); one with a free
   joint is the floating base, allowed for one body of the worldbody that every other moving
-  body descends from. Every body is a named frame (and `world`), at MuJoCo's body frame.
+  body descends from (mocap bodies are welded where the file puts them). Every body is a
+  named frame (and `world`), at MuJoCo's body frame.
 - **Placements, exactly.** MuJoCo moves a body by $X = X_{parent} B \prod_j T(a_j) J_j(q_j -
   q_{0,j}) T(-a_j)$ (`body_pos` / `body_quat` B, joint anchors `jnt_pos` $a_j$ in the body
   frame, `jnt_axis`, the reference `qpos0` from `ref`). The tree's joint frame of joint j is
@@ -37,11 +38,13 @@ angles in degrees, meshes); the compiled arrays are read here:
   `contype_b & conaffinity_a` are both 0. The plant excludes pairs of bodies, so two bodies
   whose geoms pass MuJoCo's filter for some pairs and not others are refused by name.
 
-Refused, each with a named error and its remedy: ball joints, a free joint below the
-worldbody or a second floating body, armature (unless `ignore_armature=True`), joint springs,
+Refused, each with a named error and its remedy: ball joints, a second floating body or one
+beside other moving bodies of the worldbody (MuJoCo's compiler itself refuses a free joint
+below the worldbody), armature (unless `ignore_armature=True`), joint springs,
 polynomial damping, gravity compensation, fluid forces (`density`, `viscosity`), equality
-constraints, tendons, flexes, explicit contact `<pair>`s (with `contact=True`), and geoms of
-other shapes that can collide (ellipsoid, height field, SDF).
+constraints, tendons, flexes, explicit contact `<pair>`s (with `contact=True`), geoms of
+other shapes that can collide (ellipsoid, height field, SDF), and two geoms that MuJoCo's
+filters let touch but whose shapes the plant cannot collide (`jaxdrake.geometry.SUPPORTED_PAIRS`).
 """
 
 from __future__ import annotations
@@ -50,8 +53,8 @@ import pathlib
 
 import numpy as np
 
-from ..geometry import Box, Capsule, Convex, Cylinder, GeometryError, HalfSpace, Sphere
-from ._contact import CollisionGeometry, ContactMaterial
+from ..geometry import SUPPORTED_PAIRS, Box, Capsule, Convex, Cylinder, GeometryError, HalfSpace, Sphere, supported
+from ._contact import CollisionGeometry, ContactMaterial, shape_kind
 from ._tree import KinematicTree, _combine, assemble_tree
 from ._urdf_collision import URDFCollisions
 
@@ -128,15 +131,11 @@ class _Reader:
     def check_supported(self, contact, ignore_armature):
         m, where, J = self.m, self.where, self.mj.mjtJoint
         for j in range(m.njnt):
-            kind, body = m.jnt_type[j], m.jnt_bodyid[j]
+            kind = m.jnt_type[j]
             if kind == J.mjJNT_BALL:
                 raise MJCFError(f"{self._joint(j)} is a ball joint; the plant has hinge, slide and one free "
                                 "(floating-base) joint. Replace it by three hinges with orthogonal axes in "
                                 "the same body (same pos)")
-            if kind == J.mjJNT_FREE and m.body_parentid[body] != 0:
-                raise MJCFError(f"{self._joint(j)} is a free joint of a body that is not a child of the "
-                                "worldbody; only a body of the worldbody can float (the plant's floating "
-                                "base). Move the body to the worldbody, or remove the free joint (weld it)")
             dofs = slice(m.jnt_dofadr[j], m.jnt_dofadr[j] + (6 if kind == J.mjJNT_FREE else 1))
             if np.any(m.dof_armature[dofs] != 0) and not ignore_armature:
                 raise MJCFError(f"{self._joint(j)} has armature {m.dof_armature[dofs].max():g}, which the "
@@ -329,11 +328,15 @@ class _Reader:
                 name=name, link=link, shape=shape, rotation=_quaternion_matrix(m.geom_quat[g]),
                 translation=np.array(m.geom_pos[g], float), material=ContactMaterial(mu_static=mu, mu_dynamic=mu)))
             owners.append(g)
-        return URDFCollisions(tuple(geometries), self._excluded_body_pairs(owners))
+        return URDFCollisions(tuple(geometries), self._excluded_body_pairs(owners, [g.shape for g in geometries]))
 
-    def _excluded_body_pairs(self, geoms) -> tuple:
-        """The pairs of bodies (frame names) between which MuJoCo's filters pass no geom pair."""
+    def _excluded_body_pairs(self, geoms, shapes) -> tuple:
+        """The pairs of bodies (frame names) between which MuJoCo's filters pass no geom pair (a
+        named error where they pass some and not others, or pass a pair of shapes the plant
+        cannot collide)."""
         m = self.m
+        name = lambda g: self._name(self.mj.mjtObj.mjOBJ_GEOM, g, f"{self.body_name[m.geom_bodyid[g]]}_geom{g}")  # noqa: E731
+        kind = dict(zip(geoms, (shape_kind(s) for s in shapes)))
         excluded_bodies = {(s >> 16, s & 0xFFFF) for s in m.exclude_signature}
         weld = m.body_weldid
         filter_parent = not self.disabled("mjDSBL_FILTERPARENT")
@@ -355,7 +358,15 @@ class _Reader:
                 if tree_body(b1) == tree_body(b2):
                     continue  # one rigid body: never in contact, here as in MuJoCo
                 key = (min(b1, b2), max(b1, b2))
-                verdicts.setdefault(key, set()).add((passes(g1, g2), g1, g2))
+                touch = passes(g1, g2)
+                if touch and not supported(kind[g1], kind[g2]):
+                    raise MJCFError(
+                        f"{self.where}: geoms {name(g1)!r} ({kind[g1]}, body {self.body_name[b1]!r}) and {name(g2)!r} "
+                        f"({kind[g2]}, body {self.body_name[b2]!r}) may touch in MuJoCo, but the plant has no "
+                        f"{kind[g1]}-{kind[g2]} contact (supported: {', '.join(f'{a}-{b}' for a, b in SUPPORTED_PAIRS)}). "
+                        f"Exclude the bodies (<contact><exclude body1=... body2=.../></contact>), make the geom "
+                        "visual only (contype=\"0\" conaffinity=\"0\"), or use a supported shape")
+                verdicts.setdefault(key, set()).add((touch, g1, g2))
         excluded = []
         for (b1, b2), results in verdicts.items():
             passed = {r[0] for r in results}
@@ -363,7 +374,6 @@ class _Reader:
                 excluded.append((self.body_name[b1], self.body_name[b2]))
             elif passed == {True, False}:
                 g1, g2 = next((r[1], r[2]) for r in results if not r[0])
-                name = lambda g: self._name(self.mj.mjtObj.mjOBJ_GEOM, g, f"geom{g}")  # noqa: E731
                 raise MJCFError(
                     f"{self.where}: bodies {self.body_name[b1]!r} and {self.body_name[b2]!r}: MuJoCo's contype / "
                     f"conaffinity let some of their geoms touch but not others (e.g. {name(g1)!r} and {name(g2)!r}); "

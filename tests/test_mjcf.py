@@ -1,0 +1,363 @@
+"""`RigidBodySystem.from_mjcf`: MuJoCo's compiler as the parser. Contact-free, the plant's
+accelerations equal `mj_forward`'s on the same model at random states (a cart-pole, the
+hopper, a floating quadruped, a chain of offset slide and hinge joints in rotated bodies);
+body frames and collision shapes sit where MuJoCo puts them; named errors for what the plant
+cannot represent."""
+
+import pathlib
+
+import jax
+import numpy as np
+import pytest
+
+from jaxdrake.geometry import Box, Capsule, Convex, Cylinder, HalfSpace, Sphere
+from jaxdrake.multibody import MJCFError, RigidBodySystem, body_poses
+
+mujoco = pytest.importorskip("mujoco")
+DATA = pathlib.Path(__file__).parent / "data"
+
+QUADRUPED = """
+<mujoco model="quadruped">
+  <option gravity="0 0 -9.81"/>
+  <default><geom contype="1" conaffinity="1"/></default>
+  <asset><mesh name="wedge" vertex="0 0 0  0.1 0 0  0 0.08 0  0 0 0.06  0.1 0.08 0.06"/></asset>
+  <worldbody>
+    <geom name="floor" type="plane" size="5 5 0.1" friction="0.8 0.005 0.0001"/>
+    <body name="torso" pos="0 0 0.5" euler="0 0 20">
+      <freejoint name="root"/>
+      <geom name="torso" type="box" size="0.3 0.15 0.05" mass="5"/>
+      <geom name="lidar" type="cylinder" size="0.04 0.03" pos="0.1 0 0.08" mass="0.2"/>
+      <geom name="hull" type="mesh" mesh="wedge" pos="-0.2 0 0.05" euler="0 0 30" mass="0.1"/>
+      <geom name="antenna" type="ellipsoid" size="0.01 0.01 0.1" pos="0 0 0.2" contype="0" conaffinity="0"/>
+      {legs}
+    </body>
+  </worldbody>
+  <actuator>{motors}</actuator>
+  <contact>{excludes}</contact>
+</mujoco>
+"""
+
+LEG = """
+      <body name="{n}_hip" pos="{x} {y} 0">
+        <joint name="{n}_abduct" axis="1 0 0" damping="0.2" range="-0.6 0.6"/>
+        <geom type="capsule" fromto="0 0 0 0 {s}0.06 0" size="0.03" mass="0.3"/>
+        <body name="{n}_thigh" pos="0 {s}0.06 0" euler="0 15 0">
+          <joint name="{n}_hip" axis="0 1 0" pos="0 0 0.02" damping="0.1"/>
+          <geom type="capsule" fromto="0 0 0 0 0 -0.2" size="0.025" mass="0.4"/>
+          <body name="{n}_shin" pos="0 0 -0.2">
+            <joint name="{n}_knee" axis="0 1 0" damping="0.1" range="-2.5 -0.2"/>
+            <geom type="capsule" fromto="0 0 0 0 0 -0.2" size="0.02" mass="0.2"/>
+            <geom name="{n}_foot" type="sphere" pos="0 0 -0.2" size="0.03" mass="0.05" friction="1.2"/>
+          </body>
+        </body>
+      </body>"""
+
+
+def quadruped_xml(exclude=True):
+    """A floating quadruped; `exclude`: its thighs and shins do not touch its torso (whose
+    cylinder and mesh the plant cannot collide with their capsules)."""
+    corners = {"fl": (0.3, 0.15, ""), "fr": (0.3, -0.15, "-"), "hl": (-0.3, 0.15, ""), "hr": (-0.3, -0.15, "-")}
+    legs = "".join(LEG.format(n=n, x=x, y=y, s=s) for n, (x, y, s) in corners.items())
+    motors = "".join(f'<motor name="{n}_{j}" joint="{n}_{j}" gear="{20 + 5 * k}" ctrlrange="-1 1"/>'
+                     for n in corners for k, j in enumerate(("abduct", "hip", "knee")))
+    excludes = "".join(f'<exclude body1="torso" body2="{n}_{b}"/>' for n in corners for b in ("thigh", "shin"))
+    return (QUADRUPED.replace("{legs}", legs).replace("{motors}", motors)
+            .replace("{excludes}", excludes if exclude else ""))
+
+
+# slide and hinge joints whose anchors (pos) are off the body origins, with references (ref),
+# non-unit axes, rotated bodies, a body with two joints, a welded body, a static body
+CHAIN = """
+<mujoco model="chain">
+  <compiler angle="radian"/>
+  <option gravity="0.5 -1 -9"/>
+  <worldbody>
+    <body name="base" pos="0.1 0.2 0.3" quat="0.9 0.1 0.3 -0.2">
+      <geom name="base" type="box" size="0.1 0.1 0.1"/>
+      <body name="carriage" pos="0.2 0 0.1" euler="0.3 -0.2 0.5">
+        <joint name="rail" type="slide" axis="1 1 0" pos="0.05 0.02 -0.03" ref="0.1" damping="0.3" range="-1 1"/>
+        <geom type="box" size="0.1 0.05 0.05" mass="2" pos="0.01 0.02 0"/>
+        <body name="arm" pos="0 0.1 0" quat="0.7 -0.3 0.2 0.6">
+          <joint name="shoulder" type="hinge" axis="0 0.6 0.8" pos="0.1 -0.05 0.02" ref="0.4" damping="0.05"/>
+          <joint name="extend" type="slide" axis="0 0 2" pos="0.03 0.1 0" ref="-0.05"/>
+          <geom name="arm" type="capsule" fromto="0 0 0 0.3 0.1 0" size="0.03" mass="0.5"/>
+          <body name="tool" pos="0.3 0.1 0" euler="0.1 0.2 0.3">
+            <geom name="tool" type="sphere" size="0.05" mass="0.4" pos="0.02 0 0.01"/>
+          </body>
+          <body name="forearm" pos="0.3 0.1 0" euler="-0.4 0.1 0.9">
+            <joint name="elbow" type="hinge" axis="1 0 0.2" pos="0 0 0.05" damping="0.02"/>
+            <inertial pos="0.1 0.01 0.02" quat="0.8 0.2 -0.1 0.3" mass="0.7" diaginertia="0.01 0.02 0.015"/>
+            <geom name="forearm" type="capsule" fromto="0 0 0 0.25 0 0" size="0.02"/>
+          </body>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+  <actuator>
+    <motor name="push" joint="rail" gear="5" ctrlrange="-2 1"/>
+    <motor name="twist" joint="elbow" gear="2" forcerange="-3 3"/>
+  </actuator>
+</mujoco>
+"""
+
+
+def compiled(text):
+    return mujoco.MjModel.from_xml_string(text)
+
+
+def mujoco_acceleration(model, qpos, qvel, ctrl):
+    """MuJoCo's qacc without constraints (contacts, limits) and without clamping ctrl."""
+    model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT) | int(mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL)
+    data = mujoco.MjData(model)
+    data.qpos[:], data.qvel[:], data.ctrl[:] = qpos, qvel, ctrl
+    mujoco.mj_forward(model, data)
+    return data
+
+
+def quaternion_matrix(wxyz):
+    R = np.zeros(9)
+    mujoco.mju_quat2Mat(R, np.asarray(wxyz, float))
+    return R.reshape(3, 3)
+
+
+def to_plant(model, qpos, qvel):
+    """MuJoCo's (qpos, qvel) as the plant's x: a free root's quaternion reordered to (x, y, z, w),
+    its linear velocity turned into the body frame."""
+    q, v = np.array(qpos, float), np.array(qvel, float)
+    if model.njnt and model.jnt_type[0] == mujoco.mjtJoint.mjJNT_FREE:
+        R = quaternion_matrix(qpos[3:7])
+        q[3:7] = np.roll(qpos[3:7], -1)
+        v[:3] = R.T @ qvel[:3]
+    return np.concatenate([q, v])
+
+
+def plant_acceleration_from(model, qpos, qvel, qacc):
+    """MuJoCo's qacc as the time derivative of the plant's v: for a free root,
+    d/dt (R^T v_world) = R^T a_world - omega x v_body."""
+    a = np.array(qacc, float)
+    if model.njnt and model.jnt_type[0] == mujoco.mjtJoint.mjJNT_FREE:
+        R = quaternion_matrix(qpos[3:7])
+        a[:3] = R.T @ qacc[:3] - np.cross(qvel[3:6], R.T @ qvel[:3])
+    return a
+
+
+def random_state(model, rng):
+    """qpos within the joint ranges (where the plant's compliant limits are silent), qvel."""
+    qpos = np.array(model.qpos0, float)
+    for j in range(model.njnt):
+        a = model.jnt_qposadr[j]
+        if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE:
+            qpos[a: a + 3] = rng.normal(size=3)
+            quat = rng.normal(size=4)
+            qpos[a + 3: a + 7] = quat / np.linalg.norm(quat)
+        elif model.jnt_limited[j]:
+            lo, hi = model.jnt_range[j]
+            qpos[a] = rng.uniform(lo + 0.05 * (hi - lo), hi - 0.05 * (hi - lo))
+        else:
+            qpos[a] = rng.uniform(-2, 2)
+    return qpos, rng.normal(size=model.nv)
+
+
+def compare_accelerations(plant, model, seeds=range(5)):
+    """The largest |qdd_plant - qdd_MuJoCo| / (1 + |qdd_MuJoCo|) over random states and inputs
+    (the input u is the joint force: MuJoCo's ctrl = u / (gear gain))."""
+    dynamics = jax.jit(plant.dynamics)
+    worst = 0.0
+    for seed in seeds:
+        rng = np.random.default_rng(seed)
+        qpos, qvel = random_state(model, rng)
+        effort = np.asarray(plant.tree.effort_limit)[np.argmax(np.asarray(plant.B), 0)]  # MuJoCo clamps forcerange
+        u = np.clip(rng.normal(size=plant.num_inputs) * 3, -0.9 * effort, 0.9 * effort)
+        scale = model.actuator_gear[:, 0] * model.actuator_gainprm[:, 0]
+        data = mujoco_acceleration(model, qpos, qvel, u / scale)
+        x = to_plant(model, qpos, qvel)
+        ours = np.asarray(dynamics(0.0, x, u))[model.nq:]
+        theirs = plant_acceleration_from(model, qpos, qvel, data.qacc)
+        assert np.all(np.isfinite(theirs)) and np.all(np.isfinite(ours))
+        worst = max(worst, np.max(np.abs(ours - theirs) / (1 + np.abs(theirs))))
+        check_frames(plant, model, data, x[: model.nq])
+    return worst
+
+
+def poses_in_world(tree, q, bodies, rotations, translations):
+    """World poses of things fixed at (rotations, translations) in `bodies` (-1: the world)."""
+    Rs, ps = (np.asarray(x) for x in _body_poses(tree, q))
+    Rs, ps = np.concatenate([Rs, np.eye(3)[None]]), np.concatenate([ps, np.zeros((1, 3))])
+    bodies = np.asarray(bodies)
+    return Rs[bodies] @ np.asarray(rotations), np.einsum("gij,gj->gi", Rs[bodies], np.asarray(translations)) + ps[bodies]
+
+
+_body_poses = jax.jit(body_poses)
+
+
+def check_frames(plant, model, data, q):
+    """Every body's frame where MuJoCo puts it."""
+    tree = plant.tree
+    R, p = poses_in_world(tree, q, tree.frame_bodies, tree.frame_rotation, tree.frame_translation)
+    for b in range(1, model.nbody):
+        name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b)
+        k = tree.frame_names.index(name)
+        np.testing.assert_allclose(p[k], data.xpos[b], atol=1e-12, err_msg=name)
+        np.testing.assert_allclose(R[k], data.xmat[b].reshape(3, 3), atol=1e-12, err_msg=name)
+
+
+def test_cartpole_accelerations_equal_mujoco():
+    model = mujoco.MjModel.from_xml_path(str(DATA / "mj_cartpole.xml"))
+    plant = RigidBodySystem.from_mjcf(DATA / "mj_cartpole.xml")
+    assert plant.tree.joint_names == ("slider", "hinge") and plant.input_frame.coordinates == ("slider",)
+    np.testing.assert_allclose(plant.tree.effort_limit[0], 10.0)  # gear 10, ctrlrange [-1, 1]
+    np.testing.assert_allclose(plant.tree.damping, [0.05, 0.01])
+    assert compare_accelerations(plant, model) < 1e-12
+
+
+def test_hopper_spring_is_refused_and_without_it_accelerations_equal_mujoco():
+    with pytest.raises(MJCFError, match=r"joint 'leg' .*spring .*stiffness 2000.*feedback"):
+        RigidBodySystem.from_mjcf(DATA / "mj_hopper.xml")
+    model = mujoco.MjModel.from_xml_path(str(DATA / "mj_hopper.xml"))
+    model.jnt_stiffness[:] = 0.0  # a compiled model is accepted too
+    plant = RigidBodySystem.from_mjcf(model)
+    np.testing.assert_allclose(plant.tree.position_lower[1], -0.1)
+    np.testing.assert_allclose(plant.tree.position_upper[1], 0.15)
+    assert plant.input_frame.coordinates == ("leg",)
+    assert compare_accelerations(plant, model) < 1e-12
+
+
+def test_floating_quadruped_accelerations_equal_mujoco():
+    model = compiled(quadruped_xml())
+    plant = RigidBodySystem.from_mjcf(model)
+    assert plant.tree.joint_types[0] == "floating" and plant.tree.nq == 19 and plant.tree.nv == 18
+    assert plant.state_frame.coordinates[:7] == ("root_x", "root_y", "root_z", "root_qx", "root_qy", "root_qz", "root_qw")
+    assert plant.num_inputs == 12
+    assert compare_accelerations(plant, model) < 1e-12
+
+
+def test_offset_slide_and_hinge_chain_accelerations_equal_mujoco():
+    model = compiled(CHAIN)
+    plant = RigidBodySystem.from_mjcf(model)
+    tree = plant.tree
+    # the two-joint body is a massless body for its first joint; the welded tool merges into arm
+    assert tree.body_names == ("carriage", "arm_shoulder", "arm", "forearm")
+    assert tree.joint_types == ("prismatic", "revolute", "prismatic", "revolute")
+    assert float(tree.mass[1]) == 0.0
+    np.testing.assert_allclose(tree.mass[2], model.body_mass[3] + model.body_mass[4])
+    np.testing.assert_allclose(tree.gravity, [0.5, -1.0, -9.0])
+    # effort limits: |gear| max|ctrlrange| = 5 * 2; |gear| max|forcerange| = 2 * 3
+    np.testing.assert_allclose(np.asarray(tree.effort_limit)[[0, 3]], [10.0, 6.0])
+    assert plant.input_frame.coordinates == ("rail", "elbow")
+    assert compare_accelerations(plant, model, seeds=range(8)) < 1e-12
+
+
+def test_collision_geometry_sits_where_mujoco_puts_it():
+    model = compiled(quadruped_xml())
+    plant = RigidBodySystem.from_mjcf(model, contact=True)
+    contact, collision = plant.contact, plant.collision
+    names = contact.names
+    assert "antenna" not in names  # visual only (contype = conaffinity = 0)
+    shapes = {g.name: g.shape for g in collision.geometries}
+    assert isinstance(shapes["floor"], HalfSpace) and isinstance(shapes["lidar"], Cylinder)
+    assert shapes["torso"] == Box(0.6, 0.3, 0.1) and shapes["fl_foot"] == Sphere(0.03)
+    capsule = next(g.shape for g in collision.geometries if g.link == "fl_shin" and isinstance(g.shape, Capsule))
+    assert capsule == Capsule(0.02, 0.2)
+    hull = shapes["hull"]
+    assert isinstance(hull, Convex)
+    mesh = model.geom_dataid[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "hull")]
+    vertices = model.mesh_vert[model.mesh_vertadr[mesh]: model.mesh_vertadr[mesh] + model.mesh_vertnum[mesh]]
+    np.testing.assert_allclose(np.sort(hull.vertices, 0), np.sort(vertices, 0))
+    mu = dict(zip(names, np.asarray(contact.mu_static)))
+    assert mu["floor"] == pytest.approx(0.8) and mu["fl_foot"] == pytest.approx(1.2)
+    # MuJoCo's parent filter: a body and its parent never touch; the floor touches everything
+    excluded = {frozenset(p) for p in collision.excluded_link_pairs}
+    assert frozenset(("fl_thigh", "fl_shin")) in excluded and frozenset(("torso", "fl_hip")) in excluded
+    assert not any("world" in p for p in excluded)
+    for seed in range(3):
+        qpos, qvel = random_state(model, np.random.default_rng(seed))
+        data = mujoco_acceleration(model, qpos, qvel, np.zeros(model.nu))
+        check_geometry_poses(plant, model, data, to_plant(model, qpos, qvel)[: model.nq])
+
+
+def check_geometry_poses(plant, model, data, q):
+    """Every collision shape where MuJoCo puts its geom (the contact model's pose in its body)."""
+    contact = plant.contact
+    R, p = poses_in_world(plant.tree, q, contact.bodies, contact.rotation, contact.translation)
+    for k, geometry in enumerate(plant.collision.geometries):
+        g = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, geometry.name)
+        if g < 0:  # an unnamed geom: '<body>_geom<id>'
+            g = int(geometry.name.rsplit("_geom", 1)[1])
+        np.testing.assert_allclose(p[k], data.geom_xpos[g], atol=1e-12, err_msg=geometry.name)
+        np.testing.assert_allclose(R[k], data.geom_xmat[g].reshape(3, 3), atol=1e-12, err_msg=geometry.name)
+
+
+def test_chain_geometry_on_offset_and_welded_bodies():
+    model = compiled(CHAIN)
+    plant = RigidBodySystem.from_mjcf(model, contact=True)
+    assert plant.collision.geometries[0].link == "base"  # a static body: fixed to the world
+    for seed in range(3):
+        qpos, qvel = random_state(model, np.random.default_rng(seed))
+        data = mujoco_acceleration(model, qpos, qvel, np.zeros(model.nu))
+        check_geometry_poses(plant, model, data, to_plant(model, qpos, qvel)[: model.nq])
+
+
+def test_contype_conaffinity_filtering():
+    xml = """<mujoco><worldbody>
+      <geom name="floor" type="plane" size="1 1 .1" contype="1" conaffinity="2"/>
+      <body name="a" pos="0 0 1"><joint type="slide" axis="0 0 1"/>
+        <geom name="a" type="sphere" size=".1" contype="2" conaffinity="0"/></body>
+      <body name="b" pos="1 0 1"><joint type="slide" axis="0 0 1"/>
+        <geom name="b" type="sphere" size=".1" contype="4" conaffinity="4"/></body>
+      <body name="c" pos="2 0 1"><joint type="slide" axis="0 0 1"/>
+        <geom name="c" type="sphere" size=".1" contype="1" conaffinity="1"/></body>
+    </worldbody><contact><exclude body1="a" body2="c"/></contact></mujoco>"""
+    plant = RigidBodySystem.from_mjcf(compiled(xml), contact=True)
+    excluded = {frozenset(p) for p in plant.collision.excluded_link_pairs}
+    # floor-a: 1 & 0 = 0 but 2 & 2 != 0 -> touch; floor-b, a-b: no common bit; a-c: <exclude>;
+    # floor-c: 1 & 1 -> touch; b-c: no common bit
+    assert excluded == {frozenset(p) for p in [("world", "b"), ("a", "b"), ("a", "c"), ("b", "c")]}
+    # all three spheres 5 cm into the floor: only a and c are pushed, by Drake's default
+    # stiffness (1e6 N/m each side, 5e5 N/m combined) at rest
+    results = jax.jit(plant.contact_results)(np.array([-0.95, -0.95, -0.95, 0.0, 0.0, 0.0]))
+    names = plant.contact.names
+    pushed = {names[b] for a, b, on in zip(results.geometry_a, results.geometry_b, results.active) if on}
+    pushed |= {names[a] for a, b, on in zip(results.geometry_a, results.geometry_b, results.active) if on}
+    assert pushed == {"floor", "a", "c"}
+    np.testing.assert_allclose(np.abs(np.asarray(results.force)[np.asarray(results.active), 2]), 5e5 * 0.05, rtol=1e-9)
+
+
+@pytest.mark.parametrize("body, message", [
+    ('<body><joint name="ball" type="ball"/><geom size=".1"/></body>', r"joint 'ball' .*ball joint.*three hinges"),
+    ('<body><freejoint name="one"/><geom size=".1"/></body><body><freejoint name="two"/><geom size=".1"/></body>',
+     r"joint 'two' .*beside the floating body 'body1'"),
+    ('<body><joint name="j" armature="0.1"/><geom size=".1"/></body>', r"joint 'j' .*armature 0.1.*ignore_armature=True"),
+])
+def test_unsupported_models_are_named_errors(body, message):
+    with pytest.raises(MJCFError, match=message):
+        RigidBodySystem.from_mjcf(compiled(f"<mujoco><worldbody>{body}</worldbody></mujoco>"))
+
+
+def test_armature_can_be_ignored_and_actuators_chosen():
+    xml = """<mujoco><worldbody><body><joint name="j" armature="0.1"/><geom size=".1" mass="1"/></body></worldbody>
+      <actuator><position name="servo" joint="j" kp="10"/></actuator></mujoco>"""
+    with pytest.raises(MJCFError, match=r"actuator 'servo' is not a motor.*actuated=\[joint names\]"):
+        RigidBodySystem.from_mjcf(compiled(xml), ignore_armature=True)
+    plant = RigidBodySystem.from_mjcf(compiled(xml), ignore_armature=True, actuated=["j"])
+    assert plant.input_frame.coordinates == ("j",)
+
+
+def test_shapes_the_plant_cannot_collide_are_named_errors():
+    with pytest.raises(MJCFError, match=r"geoms 'lidar' \(cylinder, body 'torso'\) and 'fl_thigh_geom\d+' "
+                       r"\(capsule, body 'fl_thigh'\) may touch .*no cylinder-capsule contact.*<exclude"):
+        RigidBodySystem.from_mjcf(compiled(quadruped_xml(exclude=False)), contact=True)
+    xml = """<mujoco><worldbody><body><joint/><geom name="egg" type="ellipsoid" size=".1 .2 .3"/></body>
+      </worldbody></mujoco>"""
+    with pytest.raises(MJCFError, match=r"geom 'egg' \(body 'body1'\) is a ellipsoid.*contype=\"0\""):
+        RigidBodySystem.from_mjcf(compiled(xml), contact=True)
+    RigidBodySystem.from_mjcf(compiled(xml))  # without contact, geoms are only inertia
+
+
+def test_compiler_errors_are_named(tmp_path):
+    with pytest.raises(MJCFError, match="MuJoCo's compiler refused"):
+        RigidBodySystem.from_mjcf(tmp_path / "nothing.xml")
+    path = tmp_path / "nested_free.xml"  # MuJoCo itself refuses a free joint below the worldbody
+    path.write_text('<mujoco><worldbody><body><joint/><geom size=".1"/><body><freejoint name="loose"/>'
+                    '<geom size=".1"/></body></body></worldbody></mujoco>')
+    with pytest.raises(MJCFError, match=r"nested_free.xml: MuJoCo's compiler refused the model: .*free joint"):
+        RigidBodySystem.from_mjcf(path)
