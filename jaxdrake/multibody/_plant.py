@@ -58,7 +58,8 @@ class RigidBodySystem(System):
     r"""A tree of rigid bodies (from a URDF or a Pinocchio model), possibly with loop closures.
 
     **Construction:** `RigidBodySystem.from_urdf(path, floating_base=False, actuated=None,
-    gravity=True, loops=())` or `RigidBodySystem.from_pinocchio(model)`.
+    gravity=True, loops=(), contact=False)`, `RigidBodySystem.from_mjcf(path)` (MuJoCo's
+    compiler as the parser) or `RigidBodySystem.from_pinocchio(model)`.
 
     - B: the joints named by the URDF's `<transmission>`s, or `actuated` (joint names), or
       else every joint but a floating base; one input per actuated joint, in that order.
