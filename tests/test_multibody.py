@@ -532,6 +532,39 @@ def test_quadrotors_hover_and_respond_as_their_equations_say():
                                           planar.r / planar.I], rtol=1e-13)
 
 
+def test_quadrotor_gimbal_lock_is_reported_as_drake_reports_it():
+    """Within 0.458 degrees of pitch = +-90 degrees (|cos(pitch)| < 0.008, Drake's tolerance) the
+    rpy rates are singular: a named error with concrete values (once 2.3e17), NaN inside jit,
+    a failure status from simulate; just outside, Drake's numbers."""
+    quad = jd.models.Quadrotor()
+    x = jnp.zeros(12).at[9:12].set(jnp.array([0.1, 0.2, 0.3]))
+    u = jnp.ones(4)
+    for pitch in (np.pi / 2, -np.pi / 2, np.pi / 2 - 0.007):
+        with pytest.raises(ValueError, match=r"Quadrotor.dynamics: pitch = .* degrees is within 0.458371 degrees "
+                                             r"of gimbal lock.*quaternion"):
+            quad.dynamics(0.0, x.at[4].set(pitch), u)
+        assert np.all(np.isnan(jax.jit(quad.dynamics)(0.0, x.at[4].set(pitch), u)))
+    with pytest.raises(jd.SimulationError, match="gimbal lock"):
+        jd.simulate(quad, (0.0, 1.0), x.at[4].set(np.pi / 2), max_steps=64, dense=False)
+    status = jax.jit(lambda x0: jd.simulate(quad, (0.0, 1.0), x0, max_steps=64, dense=False).status)(
+        x.at[4].set(np.pi / 2))
+    assert not jd.SimulationStatus.is_success(int(status))
+    examples = pytest.importorskip("pydrake.examples")
+    drake = examples.QuadrotorPlant()
+    context = drake.CreateDefaultContext()
+    drake.get_input_port(0).FixValue(context, np.asarray(u))
+    for pitch in np.pi / 2 - np.array([0.0, 0.004, 0.0079, 0.0081, 0.01, 0.1]):
+        context.SetContinuousState(np.asarray(x.at[4].set(pitch)))
+        try:
+            expected = drake.EvalTimeDerivatives(context).CopyToVector()
+        except RuntimeError as error:
+            assert "gimbal-lock" in str(error)
+            with pytest.raises(ValueError, match="gimbal lock"):
+                quad.dynamics(0.0, x.at[4].set(pitch), u)
+        else:
+            np.testing.assert_allclose(quad.dynamics(0.0, x.at[4].set(pitch), u), expected, rtol=1e-9, atol=1e-12)
+
+
 def test_feedback_cancellation_makes_the_double_pendulum_a_simple_pendulum():
     """u = H qdd_d + C v + G with qdd_1 = -(g / l) sin q_1 (and the elbow held): the shoulder
     follows a simple pendulum of length l simulated on its own (examples/feedback_cancellation.py)."""

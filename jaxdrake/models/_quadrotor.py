@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..multibody._spatial import rpy
 from ..systems import Frame, System
@@ -51,7 +52,15 @@ class Quadrotor(System):
     (roll, pitch, yaw with R = Rz(psi) Ry(theta) Rx(phi), and their rates), Drake's order and
     defaults (m = 0.775 kg, L = 0.15 m, I = diag(0.0015, 0.0025, 0.0035) kg m^2, kF = 1,
     kM = 0.0245). The rpy accelerations come from the angular acceleration by differentiating
-    $\omega = M(\text{rpy})\,\dot{\text{rpy}}$ (autodiff, no hand-written Jacobian)."""
+    $\omega = M(\text{rpy})\,\dot{\text{rpy}}$ (autodiff, no hand-written Jacobian).
+
+    At gimbal lock ($|\cos\theta| < 0.008$, pitch within 0.458 degrees of $\pm 90$ degrees, Drake's
+    tolerance) M is singular and the rpy accelerations are undefined: as Drake's
+    `QuadrotorPlant`, `dynamics` raises there (a `ValueError`) when called with concrete values;
+    inside `jit` / `vmap` it returns NaN, so that `simulate` ends with a failure status (and,
+    outside `jit`, a `SimulationError` naming gimbal lock)."""
+
+    GIMBAL_LOCK_COS_PITCH = 0.008  # Drake's RollPitchYaw kGimbalLockToleranceCosPitchAngle
 
     m: float
     L: float
@@ -79,6 +88,32 @@ class Quadrotor(System):
         return M @ rates, M
 
     def dynamics(self, t, x, u):
+        x = jnp.asarray(x)
+        pitch = x[4]
+        if not isinstance(pitch, jax.core.Tracer) and self._at_gimbal_lock(pitch):
+            raise ValueError(f"{self.name}.dynamics: {self._gimbal_lock_message(pitch)}")
+        locked = jnp.abs(jnp.cos(pitch)) < self.GIMBAL_LOCK_COS_PITCH
+        x = x.at[4].set(jnp.where(locked, 0.0, pitch))  # finite derivatives where it is not locked
+        return jnp.where(locked, jnp.nan, self._dynamics(x, u))
+
+    def failure_hint(self, x):
+        """Names gimbal lock when the last state before a failed step is within a degree of it."""
+        pitch = np.asarray(x, float)[4]
+        if np.isfinite(pitch) and abs(np.cos(pitch)) < np.sin(np.radians(1.0)):
+            return self._gimbal_lock_message(pitch)
+        return None
+
+    def _at_gimbal_lock(self, pitch):
+        return abs(np.cos(float(pitch))) < self.GIMBAL_LOCK_COS_PITCH
+
+    def _gimbal_lock_message(self, pitch):
+        tolerance = np.degrees(np.arcsin(self.GIMBAL_LOCK_COS_PITCH))
+        return (f"pitch = {np.degrees(float(pitch)):.6g} degrees is {'within' if self._at_gimbal_lock(pitch) else 'near'} "
+                f"{tolerance:.6g} degrees of gimbal lock (+-90 degrees), where the roll-pitch-yaw rates are "
+                "singular (Drake's QuadrotorPlant raises there too); keep the pitch away from +-90 degrees, "
+                "or model the body with a quaternion (a floating-base RigidBodySystem)")
+
+    def _dynamics(self, x, u):
         angles, rates = x[3:6], x[9:12]
         R = rpy(*angles)
         thrust = self.kF * u
