@@ -97,6 +97,83 @@ def test_a_hopper_with_contacts_under_a_jaxdrake_controller_equals_c_mujoco():
     np.testing.assert_allclose(ours, expected, rtol=0, atol=1e-9)
 
 
+def heavier_hand(model):
+    model.body_mass[4] *= 1.7
+    model.body_inertia[4] *= 1.7
+
+
+def moved_and_resized(model):
+    model.body_pos[2] += [0.1, 0.0, 0.05]
+    model.geom_size[1] *= 1.3
+    model.qpos0[0] = 0.2
+
+
+@pytest.mark.parametrize("change", [heavier_hand, moved_and_resized])
+def test_derived_constants_equal_c_mujocos_mj_set_const(change):
+    """Slide, hinge, ball and free joints, a welded body, fixed and spatial tendons, motor and
+    muscle actuators, a connect constraint, tracking camera and light: the model's arrays
+    changed, its derived constants (stale in the MJX model made from it) recomputed in JAX equal
+    those of C MuJoCo's mj_setConst; under vmap over the changed body's mass and inertia too."""
+    from mujoco import mjx
+
+    from jaxdrake.multibody._mujoco import DERIVED_CONSTANTS, set_const
+
+    path = str(DATA / "mj_set_const.xml")
+    scales = (1.0, 0.5, 2.0)
+    changed = [mujoco.MjModel.from_xml_path(path) for _ in scales]
+    for k, model in zip(scales, changed):
+        change(model)
+        model.body_mass[4] *= k
+        model.body_inertia[4] *= k
+    stale = mjx.put_model(changed[0])
+    ours = jax.jit(jax.vmap(lambda k: set_const(stale.replace(body_mass=stale.body_mass.at[4].multiply(k),
+                                                              body_inertia=stale.body_inertia.at[4].multiply(k)),
+                                                changed[0])))(jnp.asarray(scales))
+    for model in changed:
+        mujoco.mj_setConst(model, mujoco.MjData(model))
+    for field in DERIVED_CONSTANTS:
+        for i, model in enumerate(changed):
+            computed = getattr(ours, field)[i]
+            expected = np.asarray(getattr(model, field)).reshape(computed.shape)
+            np.testing.assert_allclose(computed, expected, rtol=1e-12, atol=1e-12, err_msg=f"{field} x{scales[i]}")
+    moved = [f for f in DERIVED_CONSTANTS if not np.allclose(getattr(stale, f), np.reshape(getattr(changed[0], f), np.shape(getattr(stale, f))))]
+    assert len(moved) >= 4, moved  # the change matters
+
+
+LIMITED = """<mujoco model="limited"><option timestep="0.002"/>
+  <worldbody><body name="upper"><joint name="shoulder" type="hinge" axis="0 1 0" range="-0.5 0.5"
+      limited="true" frictionloss="0.05"/><geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.02" mass="1"/>
+    <body name="lower" pos="0 0 -0.5"><joint name="elbow" type="hinge" axis="0 1 0" range="-0.3 0.3" limited="true"/>
+      <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.02" mass="0.5"/></body></body></worldbody></mujoco>"""
+
+
+def test_a_replaced_mass_steps_as_c_mujoco_after_mj_set_const():
+    """A double pendulum against its joint limits (constraints scaled by dof_invweight0), the
+    lower link 3 times heavier by eqx.tree_at: 1.5 s equal C MuJoCo with mj_setConst applied to
+    the same change (the compiled constants kept were 2e-2 off)."""
+    import equinox as eqx
+
+    system = jd.MujocoSystem.from_xml(LIMITED)
+    lower = system.mj_model.body("lower").id
+    heavier = eqx.tree_at(lambda s: (s.model.body_mass, s.model.body_inertia), system,
+                          (system.model.body_mass.at[lower].multiply(3.0),
+                           system.model.body_inertia.at[lower].multiply(3.0)))
+    x0 = np.array([0.0, 0.0, 1.0, 1.0])
+    steps = 750
+
+    def c_run(set_const):
+        model = mujoco.MjModel.from_xml_string(LIMITED)
+        model.body_mass[lower] *= 3.0
+        model.body_inertia[lower] *= 3.0
+        if set_const:
+            mujoco.mj_setConst(model, mujoco.MjData(model))
+        return c_mujoco(model, x0, np.zeros((steps, 0)), warmstart=False)[-1]
+
+    ours = jd.simulate(heavier, (0.0, steps * system.sample_time), jnp.asarray(x0), dense=False).final_state
+    np.testing.assert_allclose(ours, c_run(True), rtol=0, atol=1e-10)
+    assert np.max(np.abs(c_run(False) - c_run(True))) > 1e-2
+
+
 @pytest.mark.slow
 def test_vmap_over_states_and_masses_equals_single_runs():
     system = jd.MujocoSystem.from_xml(DATA / "mj_cartpole.xml")

@@ -14,6 +14,16 @@ reaches them. Gradients through contacts: `jax.grad` needs a one-iteration solve
 (`<option iterations="1" ls_iterations="4"/>`, MuJoCo Playground's setting); with more
 iterations MJX's solver is a `while_loop`, which reverse mode cannot differentiate (JAX's error
 then names `while_loop`): use `simulate(..., autodiff="forward")` with `jax.jacfwd`. Needs `pip install mujoco==3.17.0 mujoco-mjx==3.17.0` (the `mujoco` extra).
+
+MuJoCo derives constants from the model's arrays when it compiles a model (`mj_setConst`):
+subtree masses, the inverse weights that scale constraints (`body_invweight0`,
+`dof_invweight0`, `tendon_invweight0`), `dof_M0`, `actuator_acc0` (muscles), rest lengths,
+camera and light offsets, connect and weld anchors, geom bounds. MJX 3.17 has no JAX
+counterpart (only its Warp backend has one), so `set_const` computes them in JAX, as
+`mj_setConst` does, and every step whose model arrays differ from the compiled model's uses
+them: a model whose arrays are replaced (a mass by `eqx.tree_at`, or under `vmap`) steps as C
+MuJoCo does after `mj_setConst` (once, the compiled constants were kept: 2e-2 off after 1.5 s). XLA drops the ones a step does not read; tracing
+them adds about a second to a first compile.
 """
 
 from __future__ import annotations
@@ -24,6 +34,7 @@ import sys
 from typing import Any
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -135,17 +146,29 @@ class MujocoSystem(System):
             model = mujoco.MjModel.from_xml_path(str(path), assets or {})
         return cls(model, output=output, warm_start=warm_start)
 
-    def _data(self, t, x, u):
+    def stepped_model(self):
+        """The `mjx.Model` each step uses: `model`, its derived constants recomputed from its
+        arrays (`set_const`, as C MuJoCo's `mj_setConst`) where those differ from the compiled
+        model's (`mj_model`); where they do not, the compiled constants themselves (to the bit:
+        a one-iteration solver turns a last-bit change of `body_invweight0` into 1e-3 in 300
+        steps)."""
+        fresh = set_const(self.model, self.mj_model)
+        compiled = _as_compiled(self.model, self.mj_model)
+        return fresh.replace(**{name: jnp.where(compiled, getattr(self.model, name), getattr(fresh, name))
+                                for name in DERIVED_CONSTANTS})
+
+    def _data(self, model, t, x, u):
         _, mjx = _mujoco()
         nq, nv, na = self.sizes
-        data = mjx.make_data(self.model)
+        data = mjx.make_data(model)
         data = data.replace(time=jnp.asarray(t, x.dtype), qpos=x[:nq], qvel=x[nq: nq + nv],
                             act=x[nq + nv: nq + nv + na], ctrl=u.astype(x.dtype))
         return data.replace(qacc_warmstart=x[nq + nv + na:]) if self.warm_start else data
 
     def update(self, t, x, u):
         _, mjx = _mujoco()
-        data = mjx.step(self.model, self._data(t, x, u))
+        model = self.stepped_model()
+        data = mjx.step(model, self._data(model, t, x, u))
         parts = [data.qpos, data.qvel, data.act] + ([data.qacc_warmstart] if self.warm_start else [])
         return jnp.concatenate(parts).astype(x.dtype)
 
@@ -153,7 +176,8 @@ class MujocoSystem(System):
         if not self.sensors:
             return x
         _, mjx = _mujoco()
-        return mjx.forward(self.model, self._data(t, x, u)).sensordata.astype(x.dtype)
+        model = self.stepped_model()
+        return mjx.forward(model, self._data(model, t, x, u)).sensordata.astype(x.dtype)
 
     def initial_state(self):
         """The model's qpos0 at rest, activations (and warm start) zero: MuJoCo's reset state."""
@@ -172,6 +196,159 @@ class MujocoSystem(System):
         with renderer(self.mj_model, height, width) as scene:
             scene.update_scene(data, camera)
             return scene.render()
+
+
+DERIVED_CONSTANTS = ("body_subtreemass", "dof_M0", "body_invweight0", "dof_invweight0", "tendon_invweight0",
+                     "tendon_length0", "actuator_acc0", "cam_pos0", "cam_poscom0", "cam_mat0", "light_pos0",
+                     "light_poscom0", "light_dir0", "eq_data", "geom_aabb", "geom_rbound")
+_SOURCES = ("qpos0", "body_", "jnt_", "dof_", "geom_", "site_", "cam_", "light_", "tendon_", "wrap_", "actuator_")
+
+
+def _as_compiled(model, mj_model):
+    """Whether the arrays the derived constants come from (those of bodies, joints, dofs,
+    geoms, sites, cameras, lights, tendons, actuators, `qpos0`, the given part of `eq_data`)
+    are still the compiled model's: a traced boolean (per member under `vmap`)."""
+    same = [jnp.asarray(True)]
+    for name in dir(mj_model):
+        if not name.startswith(_SOURCES) or name in DERIVED_CONSTANTS:
+            continue
+        value = getattr(model, name, None)
+        if not eqx.is_inexact_array(value):
+            continue
+        original = np.asarray(getattr(mj_model, name))
+        if original.size == value.size:
+            same.append(jnp.all(value == jnp.asarray(original.reshape(value.shape), value.dtype)))
+    if mj_model.neq:  # the anchors and scales given, not those derived
+        given = np.r_[0:3, 10:mj_model.eq_data.shape[1]]
+        same.append(jnp.all(model.eq_data[:, given] == jnp.asarray(mj_model.eq_data[:, given], model.eq_data.dtype)))
+    return jnp.all(jnp.stack(same))
+
+
+def set_const(model, mj_model):
+    """`model` (an `mjx.Model`) with the constants C MuJoCo's `mj_setConst` derives from a
+    model's arrays recomputed in JAX (differentiable, `vmap`-able); `mj_model`, the C model
+    it was made from, gives the static structure MJX does not keep (light bodies).
+
+    Recomputed: `body_subtreemass` and `geom_aabb` / `geom_rbound` (primitive geoms; meshes
+    and height fields keep theirs) from the arrays; from the kinematics and the mass matrix M
+    at `qpos0` (mocap bodies at their `body_pos`): `dof_M0` = diag(M) without tendon armature,
+    `dof_invweight0` (diag(M^-1), averaged over a ball joint's and over a free joint's
+    translational and rotational dofs), `body_invweight0` (the mean diagonal of J M^-1 J^T over
+    the translational and over the rotational rows of the Jacobian at the body's centre of
+    mass; zero for bodies welded to the world), `tendon_invweight0` (J M^-1 J^T),
+    `tendon_length0`, `actuator_acc0` (|M^-1 moment|), camera and light offsets (`*_pos0`,
+    `*_poscom0`, `cam_mat0`, `light_dir0`), and the second anchor of connect constraints and
+    the relative pose of marked welds between bodies (`eq_data`). Checked against C to 1e-12
+    (tests/test_mujoco.py); `actuator_length0`, `dof_length` and BVHs, which MJX does not
+    keep, are not."""
+    _, mjx = _mujoco()
+    # MJX's own kinematic helpers and enums (private modules of the pinned mujoco-mjx 3.17)
+    from mujoco.mjx._src.math import quat_inv, quat_mul
+    from mujoco.mjx._src.support import local_to_global
+    from mujoco.mjx._src.types import EqType, GeomType, JointType, ObjType
+
+    dtype = model.body_mass.dtype
+    parent = np.asarray(model.body_parentid)
+    subtreemass = model.body_mass
+    for i in range(model.nbody - 1, 0, -1):  # children after parents: accumulate leaves first
+        subtreemass = subtreemass.at[parent[i]].add(subtreemass[i])
+
+    data = mjx.make_data(model).replace(qpos=model.qpos0)
+    mocap = np.asarray(model.body_mocapid) >= 0
+    if mocap.any():
+        order = np.argsort(np.asarray(model.body_mocapid)[mocap])
+        data = data.replace(mocap_pos=model.body_pos[mocap][order], mocap_quat=model.body_quat[mocap][order])
+    data = mjx.kinematics(model, data)
+    data = mjx.com_pos(model, data)
+    data = mjx.tendon(model, data)
+    data = mjx.crb(model, data)
+    dof_M0 = jnp.diagonal(mjx.full_m(model, data)) if model.nv else jnp.zeros(0, dtype)
+    data = mjx.tendon_armature(model, data)
+    data = mjx.transmission(model, data)
+    changes = dict(body_subtreemass=subtreemass, dof_M0=dof_M0, tendon_length0=data.ten_length)
+
+    if model.nv:
+        factor = jax.scipy.linalg.cho_factor(mjx.full_m(model, data))
+        quadratic = lambda J: jnp.sum(J * jax.scipy.linalg.cho_solve(factor, J.T).T, axis=-1)  # noqa: E731
+        A = quadratic(jnp.eye(model.nv, dtype=dtype))
+        dof_invweight0 = A
+        for j, kind in enumerate(np.asarray(model.jnt_type)):
+            a = int(model.jnt_dofadr[j])
+            groups = {JointType.FREE: ((a, a + 3), (a + 3, a + 6)), JointType.BALL: ((a, a + 3),)}.get(kind, ())
+            for lo, hi in groups:
+                dof_invweight0 = dof_invweight0.at[lo:hi].set(jnp.mean(A[lo:hi]))
+        jacp, jacr = jax.vmap(lambda point, b: mjx.jac(model, data, point, b))(data.xipos, jnp.arange(model.nbody))
+        rows = jnp.concatenate([jacp, jacr], axis=2).transpose(0, 2, 1).reshape(6 * model.nbody, model.nv)
+        diag = quadratic(rows).reshape(model.nbody, 6)
+        trans, rot = jnp.mean(diag[:, :3], axis=1), jnp.mean(diag[:, 3:], axis=1)
+        static = (np.arange(model.nbody) == 0) | (np.asarray(model.body_weldid) == 0)
+        changes.update(dof_invweight0=dof_invweight0,
+                       body_invweight0=jnp.where(static[:, None], 0.0, jnp.stack([trans, rot], axis=1)))
+        if model.ntendon:
+            changes["tendon_invweight0"] = quadratic(data._impl.ten_J)
+        if model.nu:
+            moments = data._impl.actuator_moment
+            changes["actuator_acc0"] = jnp.linalg.norm(jax.scipy.linalg.cho_solve(factor, moments.T), axis=0)
+
+    def offsets(body, target, xpos):
+        """(xpos - the body's origin, xpos - the subtree com of the target, or of the body)."""
+        return xpos - data.xpos[body], xpos - data.subtree_com[np.where(target >= 0, target, body)]
+
+    if model.ncam:
+        body, target = np.asarray(model.cam_bodyid), np.asarray(model.cam_targetbodyid)
+        xpos, xmat = jax.vmap(local_to_global)(data.xpos[body], data.xquat[body], model.cam_pos, model.cam_quat)
+        pos0, poscom0 = offsets(body, target, xpos)
+        changes.update(cam_pos0=pos0, cam_poscom0=poscom0, cam_mat0=xmat)
+    if mj_model.nlight:
+        body, target = np.asarray(mj_model.light_bodyid), np.asarray(mj_model.light_targetbodyid)
+        xpos = data.xpos[body] + jnp.einsum("lij,lj->li", data.xmat[body], model.light_pos)
+        pos0, poscom0 = offsets(body, target, xpos)
+        changes.update(light_pos0=pos0, light_poscom0=poscom0,
+                       light_dir0=jnp.einsum("lij,lj->li", data.xmat[body], model.light_dir))
+
+    if model.neq:
+        eq_data = model.eq_data
+        for k in range(model.neq):
+            if int(model.eq_objtype[k]) != ObjType.BODY:
+                continue
+            b1, b2, kind = int(model.eq_obj1id[k]), int(model.eq_obj2id[k]), int(model.eq_type[k])
+            if kind == EqType.CONNECT:  # the anchor in body 1's frame, seen from body 2
+                p = data.xpos[b1] + data.xmat[b1] @ eq_data[k, 0:3]
+                eq_data = eq_data.at[k, 3:6].set(data.xmat[b2].T @ (p - data.xpos[b2]))
+            elif kind == EqType.WELD and float(mj_model.eq_data[k, 11]) != 0:  # marked: pose from qpos0
+                p = data.xpos[b2] + data.xmat[b2] @ eq_data[k, 0:3]
+                relative = quat_mul(quat_inv(data.xquat[b1]), data.xquat[b2])
+                eq_data = eq_data.at[k, 3:6].set(data.xmat[b1].T @ (p - data.xpos[b1])).at[k, 6:10].set(relative)
+        changes["eq_data"] = eq_data
+
+    if model.ngeom:
+        changes.update(_geom_bounds(model, GeomType))
+    return model.replace(**changes)
+
+
+def _geom_bounds(model, GeomType):
+    """geom_aabb (centre, half sizes) and geom_rbound of primitive and height-field geoms from
+    their sizes, as mj_setConst; meshes and SDFs keep theirs."""
+    kinds = np.asarray(model.geom_type)
+    size = model.geom_size
+    half = {GeomType.SPHERE: (jnp.stack([size[:, 0]] * 3, 1), size[:, 0]),
+            GeomType.CAPSULE: (jnp.stack([size[:, 0], size[:, 0], size[:, 0] + size[:, 1]], 1), size[:, 0] + size[:, 1]),
+            GeomType.CYLINDER: (jnp.stack([size[:, 0], size[:, 0], size[:, 1]], 1), jnp.hypot(size[:, 0], size[:, 1])),
+            GeomType.ELLIPSOID: (size, jnp.max(size, axis=1)),
+            GeomType.BOX: (size, jnp.linalg.norm(size, axis=1))}
+    aabb, rbound = model.geom_aabb, model.geom_rbound
+    for kind, (hi, r) in half.items():
+        chosen = kinds == kind
+        if chosen.any():
+            aabb = aabb.at[chosen].set(jnp.concatenate([jnp.zeros_like(hi), hi], 1)[chosen])
+            rbound = rbound.at[chosen].set(r[chosen])
+    planes = kinds == GeomType.PLANE
+    if planes.any():  # unbounded below z = 0
+        big = sys.modules["mujoco"].mjMAXVAL
+        lo, hi = np.array([-big, -big, -big]), np.array([big, big, 0.0])
+        aabb = aabb.at[planes].set(jnp.asarray(np.concatenate([(hi + lo) / 2, (hi - lo) / 2]), aabb.dtype))
+        rbound = rbound.at[planes].set(0.0)
+    return dict(geom_aabb=aabb, geom_rbound=rbound)
 
 
 def _name(mujoco, model, kind, i, fallback):
