@@ -236,6 +236,18 @@ def test_modes_with_different_state_sizes():
     np.testing.assert_allclose(traj.eval(jnp.array([0.5, 3.0]))[:, 0], [0.75, np.exp(-t)], rtol=1e-9)
 
 
+def test_a_hybrid_system_names_its_state_as_its_modes_do():
+    """Modes sharing one state frame give it to the hybrid system (Drake's names for the
+    walkers, not x0, x1, ...); modes naming different ones leave the padded state generic."""
+    assert RimlessWheel().state_frame.coordinates == ("theta", "thetadot")
+    assert jd.models.CompassGait().state_frame.coordinates == ("stance", "swing", "stancedot", "swingdot")
+    assert BouncingBall().state_frame.coordinates == ("q", "qdot")
+    named = jd.System.from_functions(lambda t, x, u: -x, num_states=1, state_frame=jd.Frame("A", ("a",)))
+    other = jd.System.from_functions(lambda t, x, u: -x, num_states=1, state_frame=jd.Frame("B", ("b",)))
+    mixed = jd.HybridSystem([named, other], [jd.Transition(0, _reach_one, lambda s, t, x, u: x, 1)])
+    assert mixed.state_frame.generic and mixed.state_frame.coordinates == ("x0",)
+
+
 def test_not_guard_and_a_discrete_mode():
     """A counter that ticks (discrete, dt = 0.5) while a continuous clock runs: not_guard of
     (x_c - 1) fires when the clock passes 1 and switches to a mode that holds the count."""

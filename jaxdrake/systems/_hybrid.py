@@ -98,6 +98,8 @@ class HybridSystem(System):
     - `initial_mode`: the mode at the start of a simulation (default 0).
     - `input_frame`, `output_frame`: default to the first mode's; modes inherit them (a mode
       that names a different frame is an error).
+    - `state_frame`: defaults to the modes' state frame where they all name the same one
+      (the rimless wheel's `theta, thetadot`); else a generic `x0, x1, ...`.
 
     Subclass it to give the system parameters of its own (the notes' `BallPlant` has `r` and
     `cor`), calling `super().__init__(modes, transitions)` at the end of `__init__`.
@@ -150,6 +152,9 @@ class HybridSystem(System):
                 if not own.generic and not frame.generic and own != frame:
                     raise ValueError(f"{name}: mode {i} ({m.name}) has {role} frame {own}, but the "
                                      f"hybrid system's {role} frame is {frame}")
+        if state_frame is None and len({m.state_frame for m in modes}) == 1 and not first.state_frame.generic \
+                and all(m.num_states == first.num_states for m in modes):
+            state_frame = first.state_frame  # the modes share one state layout: the padded state is it
         self.modes = modes
         self.transitions = transitions
         self.initial_mode = initial_mode
