@@ -330,3 +330,34 @@ def test_a_floating_joint_from_a_declared_world_is_the_floating_base(tmp_path):
     (tmp_path / "two.urdf").write_text(two)
     with pytest.raises(URDFError, match="floats while other joints hang from the world"):
         jd.RigidBodySystem.from_urdf(tmp_path / "two.urdf")
+
+
+def test_filtering_pairs_and_the_stiction_tolerance_of_a_plant_built_in_steps():
+    hopper = jd.RigidBodySystem.from_urdf(DATA / "contact_hopper.urdf", floating_base=True, stiction_tolerance=0.02)
+    hopper = hopper.with_collision_geometry("left_shin", Sphere(0.03), translation=(0, 0, -0.2), name="l")
+    hopper = hopper.with_collision_geometry("right_shin", Sphere(0.03), translation=(0, 0, -0.2), name="r")
+    hopper = hopper.with_ground()
+    assert float(hopper.contact.stiction_tolerance) == 0.02   # not Drake's default: the plant's own
+    pairs = lambda p: {(p.contact.names[a], p.contact.names[b]) for _, _, ia, ib in p.contact.groups  # noqa: E731
+                       for a, b in zip(ia, ib)}
+    assert pairs(hopper) == {("l", "r"), ("l", "ground"), ("r", "ground")}
+    assert pairs(hopper.without_collisions_between("left_shin", "right_shin")) == {("l", "ground"), ("r", "ground")}
+    assert pairs(hopper.without_collisions_between(["left_shin", "right_shin", "world"])) == set()
+    with pytest.raises(ValueError, match="no link 'left_foot_typo'"):
+        hopper.without_collisions_between("left_foot_typo")
+
+
+def test_a_non_convex_mesh_collides_through_its_hull_when_asked(tmp_path):
+    trimesh = pytest.importorskip("trimesh")
+    trimesh.creation.torus(major_radius=0.3, minor_radius=0.05).export(tmp_path / "ring.stl")
+    (tmp_path / "ring.urdf").write_text(
+        '<robot name="ring"><link name="ring"><inertial><mass value="1"/><inertia ixx="0.01" iyy="0.01" izz="0.02" '
+        'ixy="0" ixz="0" iyz="0"/></inertial><collision><geometry><mesh filename="ring.stl"/></geometry></collision>'
+        '</link></robot>')
+    ring = jd.RigidBodySystem.from_urdf(tmp_path / "ring.urdf", floating_base=True, contact=True, mesh_hulls=True)
+    ring = ring.with_ground()
+    x = jnp.array([0.0, 0.0, 0.049, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0])   # lying flat, 1 mm into the floor
+    res = ring.contact_results(x)
+    depths = np.asarray(res.depth)[np.asarray(res.active)]
+    assert len(depths) >= 3   # its hull's bottom rim rests on several vertices
+    np.testing.assert_allclose(depths.max(), 0.001, rtol=1e-9)   # the lowest vertices: -0.05 exactly

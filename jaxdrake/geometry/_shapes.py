@@ -132,7 +132,8 @@ class Convex:
                     f"{path}: the collision mesh is not convex (its volume is "
                     f"{abs(mesh.volume * np.prod(scale)) / hull_volume:.0%} of its convex hull's); point contact would "
                     "act on the hull, not the surface. Split it into convex pieces (one <collision> "
-                    "each), or pass require_convex=False to collide with its hull")
+                    "each), or collide with its hull: from_urdf(..., mesh_hulls=True) (require_convex=False "
+                    "here)")
         return shape
 
 
@@ -142,12 +143,11 @@ def _hull_volume(shape: Convex) -> float:
 
 
 def _merge_coplanar(planes, tol=1e-9):
-    """Qhull triangulates faces: keep one row per distinct plane."""
-    kept = []
-    for row in planes:
-        if not any(np.allclose(row, other, atol=tol * max(1.0, abs(row[3]))) for other in kept):
-            kept.append(row)
-    return np.array(kept)
+    """Qhull triangulates faces: keep one row per distinct plane (the first of each)."""
+    scale = tol * np.maximum(1.0, np.abs(planes[:, 3]))
+    same = np.all(np.abs(planes[:, None, :] - planes[None, :, :]) <= scale[:, None, None], axis=-1)
+    first = np.argmax(same, axis=1)   # the first row equal to each row
+    return planes[first == np.arange(len(planes))]
 
 
 def _positive(shape, name, allow_zero=False):

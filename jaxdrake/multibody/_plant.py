@@ -104,6 +104,7 @@ class RigidBodySystem(System):
     source: str | None = _static(default=None)  # the URDF file, when loaded from one
     contact: ContactModel | None = None
     collision: URDFCollisions | None = _static(default=None)  # what `contact` was built from
+    stiction_tolerance: float = _static(default=DEFAULT_STICTION_TOLERANCE)  # seeds contact models built later
 
     def __init__(self, tree: KinematicTree, actuated_joints=None, *, loops=(), couplers=(),
                  constraint_stiffness: float = 20.0, effort_limits: bool = True,
@@ -142,6 +143,7 @@ class RigidBodySystem(System):
         self.constraint_stiffness = constraint_stiffness
         self.source = None if source is None else str(source)
         self.collision = collision
+        self.stiction_tolerance = float(stiction_tolerance)
         self.contact = None if collision is None else build_contact_model(
             tree, collision.geometries, excluded_pairs=collision.excluded_link_pairs,
             stiction_tolerance=stiction_tolerance, source=tree.robot_name)
@@ -158,6 +160,7 @@ class RigidBodySystem(System):
                   welded=(), loops=(), mimic: bool = False, constraint_stiffness: float = 20.0,
                   effort_limits: bool = True, joint_limits: bool = True,
                   limit_period: float = 0.02, contact: bool = False, package_map=None,
+                  mesh_hulls: bool = False,
                   stiction_tolerance: float = DEFAULT_STICTION_TOLERANCE) -> "RigidBodySystem":
         """Load a URDF; joints named in `welded` are fixed at zero; `mimic=True` couples each
         `<mimic>` joint to its leader (a `CouplerConstraint`).
@@ -165,7 +168,9 @@ class RigidBodySystem(System):
         `contact=True` reads the `<collision>` elements (and Drake's proximity properties and
         collision filter groups) and makes them touch: Drake's continuous point contact with
         `stiction_tolerance` (m/s) and Drake's default properties where the file gives none
-        (stiffness 1e6 N/m, dissipation 50 s/m, friction 1.0). Mesh files are read only from the
+        (stiffness 1e6 N/m, dissipation 50 s/m, friction 1.0). A mesh collides through its
+        convex hull; a non-convex mesh is refused unless `mesh_hulls=True` (Drake's point contact
+        uses the hull silently). Mesh files are read only from the
         URDF's folder, or for `package://NAME/...` from `package_map[NAME]`."""
         with jax.ensure_compile_time_eval():  # parsing is host work, also inside jit / vmap
             path = pathlib.Path(path)
@@ -179,7 +184,7 @@ class RigidBodySystem(System):
                                     "is fixed or welded; weld both, or neither")
             if actuated is None and transmitted:
                 actuated = list(transmitted)
-            collision = read_urdf_collisions(path, package_map=package_map) if contact else None
+            collision = read_urdf_collisions(path, package_map=package_map, mesh_hulls=mesh_hulls) if contact else None
             return cls(tree, actuated, loops=loops, couplers=couplers,
                        constraint_stiffness=constraint_stiffness, effort_limits=effort_limits,
                        joint_limits=joint_limits, limit_period=limit_period, source=path.resolve(),
@@ -268,8 +273,27 @@ class RigidBodySystem(System):
         collision = self.collision or URDFCollisions((), _joint_link_pairs(self.tree))
         name = name or f"{link}_{type(shape).__name__.lower()}_{len(collision.geometries)}"
         geometry = CollisionGeometry(name, link, shape, rotation, translation, material or ContactMaterial())
-        collision = dataclasses.replace(collision, geometries=collision.geometries + (geometry,))
-        stiction = DEFAULT_STICTION_TOLERANCE if self.contact is None else self.contact.stiction_tolerance
+        return self._with_collision(dataclasses.replace(collision, geometries=collision.geometries + (geometry,)))
+
+    def without_collisions_between(self, links_a, links_b=None) -> "RigidBodySystem":
+        """A copy in which no geometry on a link of `links_a` touches one on a link of `links_b`
+        (None: the links of `links_a` among themselves), Drake's collision filter declarations
+        `ExcludeBetween` / `ExcludeWithin`; e.g. a robot's links whose collision meshes overlap
+        at rest."""
+        with jax.ensure_compile_time_eval():
+            links_a = [links_a] if isinstance(links_a, str) else list(links_a)
+            links_b = links_a if links_b is None else ([links_b] if isinstance(links_b, str) else list(links_b))
+            known = set(self.tree.frame_names) | {"world"}
+            for link in links_a + links_b:
+                if link not in known:
+                    raise ValueError(f"{self.name}: no link {link!r}; the links are {sorted(known)}")
+            collision = self.collision or URDFCollisions((), _joint_link_pairs(self.tree))
+            pairs = tuple((a, b) for a in links_a for b in links_b if a != b)
+            return self._with_collision(dataclasses.replace(
+                collision, excluded_link_pairs=collision.excluded_link_pairs + pairs))
+
+    def _with_collision(self, collision):
+        stiction = self.stiction_tolerance if self.contact is None else self.contact.stiction_tolerance
         model = build_contact_model(self.tree, collision.geometries, excluded_pairs=collision.excluded_link_pairs,
                                     stiction_tolerance=stiction, source=self.name)
         return _replace_fields(self, contact=model, collision=collision)

@@ -49,14 +49,16 @@ def _children(element, name):
     return [c for c in element if _local(c.tag) == name]
 
 
-def read_urdf_collisions(path, *, package_map=None) -> URDFCollisions:
+def read_urdf_collisions(path, *, package_map=None, mesh_hulls: bool = False) -> URDFCollisions:
+    """The URDF's collision geometry (module docstring); `mesh_hulls`: collide a non-convex mesh
+    through its convex hull (Drake's point contact does) instead of refusing it."""
     path = pathlib.Path(path)
     root = ET.fromstring(read_urdf_text(path))
     geometries = []
     for link in root.findall("link"):
         name = link.get("name")
         for k, element in enumerate(link.findall("collision")):
-            geometries.append(_collision(element, name, k, path, package_map or {}))
+            geometries.append(_collision(element, name, k, path, package_map or {}, mesh_hulls))
     names = [g.name for g in geometries]
     seen = set()
     for i, n in enumerate(names):  # Drake makes repeated names unique per link the same way
@@ -74,7 +76,7 @@ def read_urdf_collisions(path, *, package_map=None) -> URDFCollisions:
     return URDFCollisions(tuple(geometries), tuple(excluded))
 
 
-def _collision(element, link, index, path, package_map) -> CollisionGeometry:
+def _collision(element, link, index, path, package_map, mesh_hulls) -> CollisionGeometry:
     name = element.get("name") or f"{link}_collision_{index}"
     where = f"link {link!r}, <collision name={name!r}>"
     R, p = _origin(element.find("origin"), path, where)
@@ -83,7 +85,7 @@ def _collision(element, link, index, path, package_map) -> CollisionGeometry:
     if len(shapes) != 1:
         raise URDFError(f"{path}: {where}: a <geometry> needs exactly one shape element, found "
                         f"{[_local(s.tag) for s in shapes] or 'none'}")
-    shape = _shape(shapes[0], path, where, package_map)
+    shape = _shape(shapes[0], path, where, package_map, mesh_hulls)
     material = ContactMaterial()
     for properties in _children(element, "drake:proximity_properties"):
         values = {}
@@ -102,7 +104,7 @@ def _collision(element, link, index, path, package_map) -> CollisionGeometry:
                              material=material)
 
 
-def _shape(element, path, where, package_map):
+def _shape(element, path, where, package_map, mesh_hulls):
     kind = _local(element.tag)
     number = lambda attribute: float(_numbers(element, attribute, 1, np.nan, path, where))  # noqa: E731
     try:
@@ -118,7 +120,8 @@ def _shape(element, path, where, package_map):
             scale = element.get("scale")
             scale = (1.0, 1.0, 1.0) if scale is None else tuple(
                 np.broadcast_to(_numbers(element, "scale", len(scale.split()), None, path, where), 3))
-            return Convex.from_mesh_file(_mesh_path(element.get("filename"), path, where, package_map), scale)
+            return Convex.from_mesh_file(_mesh_path(element.get("filename"), path, where, package_map), scale,
+                                         require_convex=not mesh_hulls)
     except GeometryError as error:
         raise URDFError(f"{path}: {where}: {error}") from None
     raise URDFError(f"{path}: {where}: unsupported collision shape <{kind}>; use a sphere, box, cylinder, "
