@@ -360,4 +360,4 @@ def test_a_non_convex_mesh_collides_through_its_hull_when_asked(tmp_path):
     res = ring.contact_results(x)
     depths = np.asarray(res.depth)[np.asarray(res.active)]
     assert len(depths) >= 3   # its hull's bottom rim rests on several vertices
-    np.testing.assert_allclose(depths.max(), 0.001, rtol=1e-9)   # the lowest vertices: -0.05 exactly
+    np.testing.assert_allclose(depths.max(), 0.001, rtol=1e-6)   # the lowest vertices: -0.05 (mesh file precision)
