@@ -26,7 +26,9 @@ monodromy matrix, the trajectory) is then evaluated at $z^*$, so that its deriva
 one, $\partial g/\partial p + (\partial g/\partial z)\,dz^*/dp$: the period of the rimless
 wheel's orbit moves with the slope mostly through the speed on the orbit. Forward mode
 (`jax.jacfwd`, `jax.jvp`) by default; `autodiff="reverse"` for `jax.grad` (every output but the
-monodromy matrix and the multipliers, whose derivatives are forward-mode only).
+monodromy matrix and the multipliers, whose derivatives are forward-mode only: JAX then names
+`while_loop`). First derivatives only: the step holds DF, so a derivative of a derivative
+misses terms.
 """
 
 from __future__ import annotations
