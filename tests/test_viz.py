@@ -2,6 +2,7 @@
 and `frame_pose`; movies decode back to the right frames, with the drawn parts where the
 axes' transform puts them; the HTML export needs no network."""
 
+import pathlib
 import re
 
 import jax
@@ -226,3 +227,53 @@ def test_urdf_robot_movies_rendered_by_mujoco_put_links_where_the_camera_sees_th
     robot = jd.viz.MeshcatVisualizer(panda, width=160, height=120).images(
         jnp.concatenate([panda.tree.neutral_configuration(), jnp.zeros(7)])[None])[0]
     assert robot.std() > 10  # meshes on the floor, not an empty frame
+
+
+def test_meshcat_draws_each_active_contact_as_an_arrow_of_its_force(tmp_path):
+    """A ball resting on the ground: an arrow from the contact point straight up, |f| /
+    newtons_per_meter long (f = m g at rest), in a drawn scene and in a saved animation, whose
+    frames follow the contact results of a dropped ball (hidden in flight); a robot's name
+    stays text in the page."""
+    import base64
+
+    meshcat = pytest.importorskip("meshcat")
+    import umsgpack
+    from jaxdrake.multibody import ContactMaterial
+
+    urdf = (pathlib.Path(__file__).parent / "data/contact_ball.urdf").read_text()
+    (tmp_path / "ball.urdf").write_text(urdf.replace('name="contact_ball"', 'name="&lt;/title&gt;&lt;script&gt;x"'))
+    ball = jd.RigidBodySystem.from_urdf(tmp_path / "ball.urdf", floating_base=True, contact=True).with_ground(
+        material=ContactMaterial(point_contact_stiffness=1e6, hunt_crossley_dissipation=50.0))
+    recorder = jd.viz.SceneRecorder()
+    vis = jd.viz.MeshcatVisualizer(ball, scene=meshcat.Visualizer(window=recorder), contact_forces=True,
+                                   newtons_per_meter=50.0)
+    m, g, k = 2.0, 9.81, 3e4 * 1e6 / (3e4 + 1e6)  # the ball's and the ground's stiffness in series
+    resting = jnp.array([0.0, 0.0, 0.1 - m * g / k, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0])
+    vis.draw(resting)
+    arrow = "/meshcat/contact_forces/</title><script>x/0"
+    last = {}
+    for c in recorder.commands:
+        last[(c["type"], c["path"])] = c
+    assert last[("set_property", arrow)]["value"] is True
+    placed = np.asarray(last[("set_transform", arrow)]["matrix"]).reshape(4, 4).T
+    np.testing.assert_allclose(placed[:3, 3], [0.0, 0.0, -m * g / k / 2], atol=1e-12)  # C, between the surfaces
+    np.testing.assert_allclose(placed[:3, 1], [0.0, 0.0, 1.0], atol=1e-12)  # up: the ground's push on the ball
+    shaft = np.asarray(last[("set_transform", arrow + "/shaft")]["matrix"]).reshape(4, 4).T
+    np.testing.assert_allclose(shaft[1, 1], m * g / 50.0, rtol=1e-9)
+    head = np.asarray(last[("set_transform", arrow + "/head")]["matrix"]).reshape(4, 4).T
+    np.testing.assert_allclose(head[1, 3], m * g / 50.0, rtol=1e-9)
+    vis.draw(resting.at[2].set(0.5))
+    assert recorder.commands[-1] == {"type": "set_property", "path": arrow, "property": "visible", "value": False}
+
+    traj = jd.simulate(ball, (0.0, 0.5), resting.at[2].set(0.15), solver="rk4", dt=1e-3)  # falls 5 cm, lands
+    page = vis.save(traj, tmp_path / "ball.html", fps=20).read_text()
+    assert "<script>x" not in page and "&lt;/title&gt;&lt;script&gt;x" in page
+    commands = [umsgpack.unpackb(base64.b64decode(c)) for c in re.findall(r'^"([A-Za-z0-9+/=]+)",?$', page, re.M)]
+    clips = {a["path"]: {t["name"]: t["keys"] for t in a["clip"]["tracks"]} for a in commands[-1]["animations"]}
+    visible = [key["value"] for key in clips[arrow][".visible"]]
+    lengths = [key["value"][1] for key in clips[arrow + "/shaft"][".scale"]]
+    assert len(visible) == 10 and not visible[0] and any(visible)
+    results = jax.jit(lambda ts: jax.vmap(ball.contact_results)(traj.state(ts)))(jnp.arange(10) / 20)
+    forces = np.linalg.norm(np.asarray(results.force[:, 0]), axis=1)
+    np.testing.assert_array_equal(visible, np.asarray(results.active[:, 0]) & (forces > 0.01))
+    np.testing.assert_allclose(np.where(visible, lengths, 0.0), np.where(visible, forces / 50.0, 0.0), rtol=1e-9)

@@ -11,24 +11,35 @@ $t_k = t_0 + k/\mathrm{fps}$, played by the browser with its own controls; `save
 "robot.html")` writes the scene and the animation as one self-contained file (the viewer's
 JavaScript inlined, the commands base64-encoded); `save(traj, "robot.gif")` (or `.mp4`) a movie
 of the same visuals rendered offscreen by MuJoCo (`_puppet.py`).
+
+With `contact_forces=True` (a plant with collision geometry) the scene also shows each active
+contact as Drake's `ContactVisualizer` does: a dot at the contact point $C$ and an arrow from it
+along the force $f$ on the moving geometry (`ContactResults.force`, on the second geometry,
+negated where that one is fixed to the world, so ground contacts point up), $|f|$ /
+`newtons_per_meter` long; candidates not touching, or whose force is below
+`force_threshold`, are hidden. The arrows are animated with the robot (position,
+orientation, length, visibility per frame). MuJoCo's movies show the robot only.
 """
 
 from __future__ import annotations
 
 import base64
 import functools
+import html
 import pathlib
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ..multibody import RigidBodySystem
+from ..multibody import ContactModel, RigidBodySystem
 from ..multibody import _algorithms as alg
 from ..multibody._tree import KinematicTree
-from ._visualizer import DRAW_PERIOD, Visualizer, batched
+from ._visualizer import DRAW_PERIOD, Visualizer, _in_notebook, batched
 
-_GREY, _SKELETON = 0xA0A0A8, 0x4C72B0
+_GREY, _SKELETON, _FORCE = 0xA0A0A8, 0x4C72B0, 0x2CA02C
+# contact arrows (m): shaft and dot radii, the head's length and radius (Drake draws 2 mm shafts)
+_SHAFT, _DOT, _HEAD_LENGTH, _HEAD_RADIUS = 0.003, 0.006, 0.02, 0.008
 
 
 class SceneRecorder:
@@ -57,6 +68,13 @@ def _transform(R, p):
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, p
     return T
+
+
+def _y_onto(d):
+    """A rotation taking +y (the axis of three.js cylinders) onto the unit vector d."""
+    x = np.cross(d, [0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 else np.cross(d, [1.0, 0.0, 0.0])
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, d, np.cross(x, d)])
 
 
 def urdf_color(visual, materials):
@@ -116,16 +134,25 @@ class MeshcatVisualizer(Visualizer):
     (default: the one the plant was loaded from). `prefix`: the scene path of this robot.
     `save(traj, "robot.gif" or ".mp4")` writes a movie (`width` x `height`) rendered offscreen
     by MuJoCo from the same visuals (`render`, `images`).
+
+    `contact_forces=True` draws the contacts of a plant with collision geometry (module
+    docstring): arrows `newtons_per_meter` N per metre (Drake's `ContactVisualizerParams`
+    default, 10), forces below `force_threshold` N (0.01) hidden; `contact_arrows(x)` gives
+    what is drawn.
     """
 
     tree: KinematicTree
+    contact: ContactModel | None
     links: tuple = eqx.field(static=True)
     width: int = eqx.field(static=True)
     height: int = eqx.field(static=True)
+    newtons_per_meter: float = eqx.field(static=True)
+    force_threshold: float = eqx.field(static=True)
     _connection: dict = eqx.field(static=True)
 
     def __init__(self, plant: RigidBodySystem, *, urdf=None, scene=None, prefix: str | None = None,
-                 width: int = 640, height: int = 480, draw_period: float = DRAW_PERIOD):
+                 width: int = 640, height: int = 480, draw_period: float = DRAW_PERIOD,
+                 contact_forces: bool = False, newtons_per_meter: float = 10.0, force_threshold: float = 0.01):
         if not isinstance(plant, RigidBodySystem):
             raise TypeError(f"MeshcatVisualizer draws a RigidBodySystem (a URDF robot), not "
                             f"{type(plant).__name__}; use jaxdrake.viz.visualizer_for for the notes' plants")
@@ -136,8 +163,16 @@ class MeshcatVisualizer(Visualizer):
         super().__init__(plant, draw_period)
         self.tree, self.links = plant.tree, tuple(plant.tree.frame_names)
         self.width, self.height = int(width), int(height)
+        if contact_forces and plant.contact is None:
+            raise ValueError(f"contact_forces=True: {plant.name} has no collision geometry; load it with "
+                             "from_urdf(..., contact=True) or add some with with_collision_geometry / with_ground")
+        if not (np.isfinite(newtons_per_meter) and newtons_per_meter > 0 and force_threshold >= 0):
+            raise ValueError(f"newtons_per_meter must be positive and force_threshold non-negative, got "
+                             f"{newtons_per_meter} and {force_threshold}")
+        self.contact = plant.contact if contact_forces else None
+        self.newtons_per_meter, self.force_threshold = float(newtons_per_meter), float(force_threshold)
         self._connection = {"urdf": pathlib.Path(urdf), "scene": scene,
-                            "prefix": prefix or plant.name, "loaded": False}
+                            "prefix": prefix or plant.name, "loaded": False, "arrows_loaded": False}
 
     # ----- kinematics (JAX) -----------------------------------------------------------------
 
@@ -154,6 +189,30 @@ class MeshcatVisualizer(Visualizer):
         """`link_transforms` of a batch of states (n, num_states), on the host: (n, links, 4, 4)."""
         xs = jnp.asarray(xs)[..., : self.num_inputs]
         return np.asarray(batched(self, "link_transforms")(xs), dtype=float)  # MeshCat packs Python floats
+
+    def contact_arrows(self, x):
+        """What `contact_forces=True` draws in state x: every candidate contact's point C (c, 3),
+        force on its moving geometry (c, 3, world: `ContactResults.force`, on the second
+        geometry, negated where that one is the world's) and whether it is shown (c,) (JAX)."""
+        tree, contact = self.tree, self.contact
+        results = contact.results(tree, x[: tree.nq], x[tree.nq: tree.nq + tree.nv])
+        on_world = np.asarray(contact.bodies)[np.asarray(results.geometry_b, int)] < 0  # static
+        force = results.force * jnp.asarray(np.where(on_world, -1.0, 1.0), results.force.dtype)[:, None]
+        shown = results.active & (jnp.sum(force ** 2, axis=-1) > self.force_threshold ** 2)
+        return results.point, force, shown
+
+    def _arrow_frames(self, xs):
+        """The arrows of a batch of states, on the host: (n, c, 4, 4) placements (origin at C,
+        +y along f) and (n, c) lengths (0 where hidden)."""
+        xs = jnp.asarray(xs)[..., : self.num_inputs]
+        points, forces, shown = (np.asarray(a) for a in batched(self, "contact_arrows")(xs))
+        size = np.linalg.norm(forces, axis=-1)
+        lengths = np.where(shown, size, 0.0) / self.newtons_per_meter
+        placements = np.tile(np.eye(4), points.shape[:2] + (1, 1))
+        placements[..., :3, 3] = points
+        for k, c in zip(*np.nonzero(shown)):
+            placements[k, c, :3, :3] = _y_onto(forces[k, c] / size[k, c])
+        return placements.astype(float), lengths.astype(float)
 
     # ----- the scene --------------------------------------------------------------------------
 
@@ -184,6 +243,26 @@ class MeshcatVisualizer(Visualizer):
         return ({link.name: link.visuals for link in model.robot.links}, {m.name: m for m in model.robot.materials},
                 model._filename_handler)
 
+    def _arrow_nodes(self, count: int):
+        """The scene node of this robot's `count` contact arrows (one per candidate contact,
+        named by its index); on first use each gets a dot, a shaft (a unit cylinder along +y
+        under a node scaled by the arrow's length) and a head (a cone moved to the shaft's end)."""
+        import meshcat.geometry as g
+
+        arrows = self.scene["contact_forces"][self._connection["prefix"]]
+        if not self._connection["arrows_loaded"]:
+            green = g.MeshLambertMaterial(color=_FORCE)
+            for c in range(count):
+                arrow = arrows[str(c)]
+                arrow["dot"].set_object(g.Sphere(_DOT), green)
+                arrow["shaft"]["cylinder"].set_object(g.Cylinder(1.0, _SHAFT), green)
+                arrow["shaft"]["cylinder"].set_transform(_transform(np.eye(3), [0.0, 0.5, 0.0]))
+                arrow["head"]["cone"].set_object(g.Cylinder(_HEAD_LENGTH, radiusTop=0.0, radiusBottom=_HEAD_RADIUS),
+                                                 green)
+                arrow["head"]["cone"].set_transform(_transform(np.eye(3), [0.0, _HEAD_LENGTH / 2, 0.0]))
+            self._connection["arrows_loaded"] = True
+        return arrows
+
     def _load(self, robot):
         import meshcat.geometry as g
 
@@ -199,12 +278,9 @@ class MeshcatVisualizer(Visualizer):
         for name in self.links:
             robot[name]["joint"].set_object(g.Sphere(0.03), g.MeshLambertMaterial(color=_SKELETON))
             for k, offset in enumerate(skeleton.get(name, [])):
-                length = float(np.linalg.norm(offset))
-                y = offset / length  # a three.js cylinder along y, centred: turn y onto the offset
-                x = np.cross(y, [0.0, 0.0, 1.0]) if abs(y[2]) < 0.9 else np.cross(y, [1.0, 0.0, 0.0])
-                x /= np.linalg.norm(x)
+                length = float(np.linalg.norm(offset))  # a three.js cylinder along y, centred
                 robot[name][f"rod{k}"].set_object(g.Cylinder(length, 0.015), g.MeshLambertMaterial(color=_SKELETON))
-                robot[name][f"rod{k}"].set_transform(_transform(np.column_stack([x, y, np.cross(x, y)]), offset / 2))
+                robot[name][f"rod{k}"].set_transform(_transform(_y_onto(offset / length), offset / 2))
 
     def _neutral_transforms(self):
         """`link_transforms` at the neutral configuration, at rest (links, 4, 4)."""
@@ -233,11 +309,28 @@ class MeshcatVisualizer(Visualizer):
 
     def draw(self, x, ax=None):
         """Place the robot at state x in the scene; returns the `meshcat.Visualizer`."""
-        scene = self.scene
-        robot = scene[self._connection["prefix"]]
-        for name, T in zip(self.links, self.frame_transforms(jnp.asarray(x)[None])[0]):
+        xs = jnp.asarray(x)[None]
+        arrows = None if self.contact is None else tuple(a[0] for a in self._arrow_frames(xs))
+        self._place(self.frame_transforms(xs)[0], arrows)
+        return self.scene
+
+    def _place(self, transforms, arrows=None):
+        """Place the links at `transforms` (links, 4, 4) and the contact arrows at (placements
+        (c, 4, 4), lengths (c,)), those of length 0 hidden."""
+        robot = self.scene[self._connection["prefix"]]
+        for name, T in zip(self.links, transforms):
             robot[name].set_transform(T)
-        return scene
+        if arrows is None:
+            return
+        placements, lengths = arrows
+        nodes = self._arrow_nodes(len(lengths))
+        for c, (T, length) in enumerate(zip(placements, lengths)):
+            arrow = nodes[str(c)]
+            arrow.set_property("visible", bool(length > 0))
+            if length > 0:
+                arrow.set_transform(T)
+                arrow["shaft"].set_transform(np.diag([1.0, length, 1.0, 1.0]))
+                arrow["head"].set_transform(_transform(np.eye(3), [0.0, length, 0.0]))
 
     def live(self):
         """`show(x, t=None)`: place the robot at state x in the live scene."""
@@ -245,11 +338,14 @@ class MeshcatVisualizer(Visualizer):
 
     def animate(self, traj, fps=None, rate: float = 1.0, ax=None):
         """Send the trajectory to the scene as a MeshCat animation (frames at `fps`, played
-        `rate` times faster by the browser, with its own controls); returns it."""
+        `rate` times faster by the browser, with its own controls), the scene placed at its
+        first frame; returns it."""
         from meshcat.animation import Animation
 
         times, xs, _, fps = self.frames(traj, fps, single=True)
         transforms = self.frame_transforms(xs)
+        arrows = None if self.contact is None else self._arrow_frames(xs)
+        self._place(transforms[0], None if arrows is None else (arrows[0][0], arrows[1][0]))
         scene = self.scene
         robot = scene[self._connection["prefix"]]
         animation = Animation(default_framerate=fps * rate)
@@ -257,11 +353,29 @@ class MeshcatVisualizer(Visualizer):
             with animation.at_frame(robot, k) as frame:
                 for name, T in zip(self.links, transforms[k]):
                     frame[name].set_transform(T)
+        if arrows is not None:  # the candidates that touch at some frame; the others stay hidden
+            placements, lengths = arrows
+            nodes = self._arrow_nodes(lengths.shape[1])
+            for c in np.nonzero(np.any(lengths > 0, axis=0))[0]:
+                for k in range(len(times)):
+                    with animation.at_frame(nodes[str(c)], k) as frame:
+                        frame.set_property("visible", "boolean", bool(lengths[k, c] > 0))
+                        frame.set_transform(placements[k, c])
+                        frame["shaft"].set_property("scale", "vector3", [1.0, max(lengths[k, c], 1e-9), 1.0])
+                        frame["head"].set_property("position", "vector3", [0.0, lengths[k, c], 0.0])
         scene.set_animation(animation, play=True, repetitions=1)
         return animation
 
     def playback(self, traj, rate: float = 1.0, fps=None):
-        """Play the trajectory in the live viewer (real time, `rate` times faster); returns its URL."""
+        """Play the trajectory (real time, `rate` times faster): inline in a notebook (returns the
+        self-contained scene of `save(..., ".html")` to display, no server), else in the live
+        viewer (returns its URL)."""
+        if _in_notebook():
+            from IPython.display import HTML
+
+            page = html.escape(self._page(traj, fps, rate))  # as an attribute's text
+            return HTML(f'<div><iframe srcdoc="{page}" style="width: 100%; height: {self.height}px; '
+                        'border: none"></iframe></div>')
         self.animate(traj, fps, rate)
         return self.url()
 
@@ -289,24 +403,28 @@ class MeshcatVisualizer(Visualizer):
         path = pathlib.Path(path)
         if path.suffix.lower() != ".html":
             return super().save(traj, path, fps)
+        page = self._page(traj, fps)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(page)
+        return path
+
+    def _page(self, traj, fps=None, rate: float = 1.0) -> str:
+        """The scene with the trajectory's animation as a self-contained HTML page."""
         meshcat = _meshcat()
         recorder = SceneRecorder()
         live = dict(self._connection)
-        self._connection.update(scene=meshcat.Visualizer(window=recorder), loaded=False)
+        self._connection.update(scene=meshcat.Visualizer(window=recorder), loaded=False, arrows_loaded=False)
         try:  # the same robot and animation, drawn into a recorder
-            first = traj if np.ndim(traj.t_final) == 0 else traj[0]
-            self.draw(first.state(first.t0))
-            self.animate(traj, fps)
+            self.animate(traj, fps, rate)
         finally:
             self._connection.update(live)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(scene_html(recorder.commands, title=self.plant_name))
-        return path
+        return scene_html(recorder.commands, title=self.plant_name)
 
 
 def scene_html(commands, title: str = "jaxdrake") -> str:
     """A standalone HTML page replaying MeshCat `commands` (lowered dicts) in the viewer, whose
-    JavaScript is inlined: it opens offline."""
+    JavaScript is inlined: it opens offline. The title (a robot's name) is escaped; the
+    commands travel base64-encoded, never as markup."""
     import umsgpack
 
     _meshcat()
@@ -316,7 +434,7 @@ def scene_html(commands, title: str = "jaxdrake") -> str:
     encoded = ",\n".join(f'"{base64.b64encode(umsgpack.packb(c)).decode()}"' for c in commands)
     return f"""<!DOCTYPE html>
 <html>
-<head><meta charset="utf-8"><title>{title}</title>
+<head><meta charset="utf-8"><title>{html.escape(title)}</title>
 <style>body {{ margin: 0; }} #meshcat-pane {{ width: 100vw; height: 100vh; overflow: hidden; }}</style></head>
 <body>
 <div id="meshcat-pane"></div>
