@@ -361,3 +361,15 @@ def test_a_non_convex_mesh_collides_through_its_hull_when_asked(tmp_path):
     depths = np.asarray(res.depth)[np.asarray(res.active)]
     assert len(depths) >= 3   # its hull's bottom rim rests on several vertices
     np.testing.assert_allclose(depths.max(), 0.001, rtol=1e-6)   # the lowest vertices: -0.05 (mesh file precision)
+
+
+def test_contact_results_of_a_resting_ball_are_k_times_depth():
+    ball = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True, contact=True).with_ground(
+        material=_material(1e6, 50.0, 0.8, 0.6))
+    x = jnp.array([0.0, 0.0, 0.0995, 0, 0, 0, 1, 0.0, 0.0, 0.0, 0, 0, 0])   # 0.5 mm deep, at rest
+    res = ball.contact_results(x)
+    k = 3e4 * 1e6 / (3e4 + 1e6)   # the URDF's 3e4 in series with the floor's 1e6
+    np.testing.assert_allclose(np.asarray(res.normal_force), [k * 5e-4], rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(res.force), [[0.0, 0.0, -k * 5e-4]], atol=1e-9)  # on the floor (B)
+    np.testing.assert_allclose(np.asarray(res.point), [[0.0, 0.0, -2.5e-4]], atol=1e-15)   # the witnesses' midpoint
+    assert ball.contact.names[res.geometry_a[0]] == "ball_surface" and ball.contact.names[res.geometry_b[0]] == "ground"

@@ -117,15 +117,18 @@ def _size(shape):
 class ContactResults(eqx.Module):
     """Every candidate contact at one state (Drake's `ContactResults` for point pairs), arrays
     over candidates: `active` (touching with a positive normal force), `depth`, `point` (C,
-    world), `normal` ($\\hat n_{BA}$), `force` (on B at C, world: Drake's `f_Bc_W`),
-    `slip_speed`, `separation_speed` ($v_n$), and the geometry indices `geometry_a`,
-    `geometry_b` (static, into `ContactModel.names`)."""
+    world), `normal` ($\\hat n_{BA}$, from B into A), `force` (on B at C, world: Drake's
+    `f_Bc_W`; A receives -force), `normal_force` ($f_n \\ge 0$, the magnitude pushing the two
+    apart), `slip_speed`, `separation_speed` ($v_n$), and the geometry indices `geometry_a`,
+    `geometry_b` (static, into `ContactModel.names`; which of a pair is A follows the shape
+    kinds' order: a sphere before a box before a half-space)."""
 
     active: jax.Array
     depth: jax.Array
     point: jax.Array
     normal: jax.Array
     force: jax.Array
+    normal_force: jax.Array
     slip_speed: jax.Array
     separation_speed: jax.Array
     geometry_a: tuple = eqx.field(static=True)
@@ -214,7 +217,7 @@ class ContactModel(eqx.Module):
         mu = stribeck(slip, _harmonic(self.mu_static[ia_], self.mu_static[ib_]),
                       _harmonic(self.mu_dynamic[ia_], self.mu_dynamic[ib_]), self.stiction_tolerance)
         f_A = fn[:, None] * n + (mu * fn)[:, None] * t_hat
-        return ContactResults(active=active, depth=depth, point=C, normal=n, force=-f_A, slip_speed=slip,
+        return ContactResults(active=active, depth=depth, point=C, normal=n, force=-f_A, normal_force=fn, slip_speed=slip,
                               separation_speed=vn, geometry_a=ia, geometry_b=ib)
 
     def generalized_forces(self, tree, q, v):

@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import pathlib
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -258,8 +259,7 @@ class RigidBodySystem(System):
         if self.contact is None:
             raise ValueError(f"{self.name} has no collision geometry: load it with from_urdf(..., contact=True) "
                              "or add some with with_collision_geometry / with_ground")
-        x = jnp.asarray(x)
-        return self.contact.results(self.tree, x[: self.tree.nq], x[self.tree.nq:])
+        return _contact_results(self, jnp.asarray(x))
 
     def with_collision_geometry(self, link: str, shape, *, rotation=np.eye(3), translation=(0.0, 0.0, 0.0),
                                 name: str | None = None, material: ContactMaterial | None = None,
@@ -519,6 +519,13 @@ def _is_ancestor(parents, i, b):
     while b > i:
         b = parents[b]
     return b == i
+
+
+@eqx.filter_jit
+def _contact_results(plant, x):
+    """`contact_results`, compiled once per plant structure (eager, the narrow phase and the
+    kinematics cost seconds op by op; inside a trace this is inlined)."""
+    return plant.contact.results(plant.tree, x[: plant.tree.nq], x[plant.tree.nq:])
 
 
 @jax.jit
