@@ -87,8 +87,11 @@ class RigidBodySystem(System):
       (Hunt-Crossley normal force, regularised Stribeck friction; `jaxdrake.multibody._contact`),
       their generalized force $\sum J^T f$ added to the dynamics. `contact` holds the
       geometry's leaves (stiffness, dissipation, friction, sizes, poses) that you may
-      replace; `contact_results(x)` gives the points and forces. Stiff contact: simulate with
-      `solver="rosenbrock23"` (error-controlled, L-stable).
+      replace; `contact_results(x)` gives the points and forces. Solvers: Drake's stiction
+      tolerance (1e-4 m/s) makes resting friction stiff; `solver="rosenbrock23"` (L-stable)
+      takes long steps through it but compiles the dynamics' Jacobian (Solo-12: 20-45 s first
+      call), `dopri5` compiles in seconds and suits a stiction tolerance of ~1 cm/s
+      (`stiction_tolerance=`); see benchmarks/RESULTS.md.
 
     The tree's masses, inertias, lengths and axes are pytree leaves: `jax.grad` with respect
     to a link mass works (system identification); build the system outside `jit`.
