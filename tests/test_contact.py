@@ -69,7 +69,9 @@ def _random_state(scene, plant, rng):
     return np.concatenate([q, rng.normal(size=plant.tree.nv)])
 
 
-@pytest.mark.parametrize("scene", SCENES)
+@pytest.mark.parametrize("scene", [pytest.param("ball_between_walls"),
+                                   pytest.param("dumbbell_on_a_slope", marks=pytest.mark.slow),
+                                   pytest.param("hopper_landing")])
 def test_time_derivatives_equal_drakes_continuous_plant(scene):
     pytest.importorskip("pydrake")
     from _drake_contact import drake_velocity_derivative
@@ -188,6 +190,7 @@ def test_the_gradient_at_the_instant_of_touch_is_finite():
     assert np.all(np.isfinite(np.asarray(g)))
 
 
+@pytest.mark.slow   # 11 s; batching of the contact law is exercised by the GPU benchmark and the example
 def test_vmap_over_friction_equals_a_loop():
     ball = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True, contact=True).with_ground()
     import equinox as eqx

@@ -22,7 +22,8 @@ EXAMPLES = sorted(p for p in (ROOT / "examples").glob("*.py") if not p.name.star
 # batch): what tests/test_mujoco.py checks (C MuJoCo agreement, the hopper under a controller)
 SLOW = {"swing_up.ipynb", "lqr.ipynb", "swing_up.py",  # lqr.ipynb: 45 s, extends lqr.py (run with -m slow)
         "trajectory_optimization.py", "trajectory_optimization.ipynb", "mujoco_models.py", "mujoco_models.ipynb",
-        "mujoco_contacts.py", "mujoco_contacts.ipynb"}
+        "mujoco_contacts.py", "mujoco_contacts.ipynb",
+        "contact.ipynb"}  # ~40 s, the same computations as contact.py (which runs by default)
 NOTEBOOKS = [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW else p
              for p in sorted((ROOT / "notebooks").glob("*.ipynb"))]
 WORKERS = 3
