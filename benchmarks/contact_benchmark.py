@@ -21,10 +21,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-jax.config.update("jax_enable_x64", True)
-
-import jaxdrake as jd  # noqa: E402
-from _common import machine_line  # noqa: E402
+import jaxdrake as jd
+from _common import machine_line
 
 T_FINAL = 0.5
 SPHERES = ([(f"{leg}_FOOT", (0.0, 0.0, 0.0), 0.02) for leg in ("FL", "FR", "HL", "HR")]
@@ -32,13 +30,17 @@ SPHERES = ([(f"{leg}_FOOT", (0.0, 0.0, 0.0), 0.02) for leg in ("FL", "FR", "HL",
            + [("base_link", (x, y, 0.0), 0.03) for x in (-0.19, 0.19) for y in (-0.1, 0.1)])
 
 
-def solo_without_mesh_collisions(folder):
-    root = pathlib.Path(str(importlib.metadata.distribution("example-robot-data").locate_file(
-        "cmeel.prefix/share/example-robot-data/robots")))
-    text = (root / "solo_description/robots/solo12.urdf").read_text()
+def solo_without_mesh_collisions(folder, source=None):
+    """solo12.urdf (example-robot-data's, or the file `source`) without its <collision> and
+    <visual> elements (the meshes), written into `folder`."""
+    if source is None:
+        root = pathlib.Path(str(importlib.metadata.distribution("example-robot-data").locate_file(
+            "cmeel.prefix/share/example-robot-data/robots")))
+        source = root / "solo_description/robots/solo12.urdf"
+    text = pathlib.Path(source).read_text()
     text = re.sub(r"<collision>.*?</collision>", "", text, flags=re.S)
     text = re.sub(r"<visual>.*?</visual>", "", text, flags=re.S)
-    path = pathlib.Path(folder) / "solo12_feet.urdf"
+    path = pathlib.Path(folder) / "solo12_spheres.urdf"
     path.write_text(text)
     return path
 
@@ -105,6 +107,7 @@ def main():
                                                        "radau3:1e-4", "radau3:1e-6"],
                         help="integrator:target accuracy (max step 0.01 s)")
     args = parser.parse_args()
+    jax.config.update("jax_enable_x64", True)   # here, not at import: the GPU benchmark imports the scene
     print(machine_line())
     with tempfile.TemporaryDirectory() as folder:
         path = solo_without_mesh_collisions(folder)

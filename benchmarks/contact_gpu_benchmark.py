@@ -42,9 +42,7 @@ from __future__ import annotations
 
 import argparse
 import copy
-import importlib.metadata
 import pathlib
-import re
 import tempfile
 import time
 
@@ -55,30 +53,14 @@ import numpy as np
 
 import jaxdrake as jd
 from _common import machine_line  # benchmarks/_common.py
+from contact_benchmark import SPHERES, solo_without_mesh_collisions  # the same scene as the CPU benchmark
 
 LEGS = ("FL", "FR", "HL", "HR")
-SPHERES = ([(f"{leg}_FOOT", (0.0, 0.0, 0.0), 0.02) for leg in LEGS]
-           + [(f"{leg}_LOWER_LEG", (0.0, 0.0, 0.0), 0.02) for leg in LEGS]
-           + [("base_link", (x, y, 0.0), 0.03) for x in (-0.19, 0.19) for y in (-0.1, 0.1)])
 KP, KD = 5.0, 0.1          # N m / rad, N m s / rad (joint damping ratio ~1 on the knee)
 FRICTION = 0.5             # Drake's default, combined as 2 mu mu / (mu + mu) = 0.5
 MJX_DT = 0.002             # MuJoCo's default time step
 HEIGHT_BAND = (-0.04, 0.02)
 TILT = np.cos(np.radians(18.0))
-
-
-def stripped_urdf(folder, source=None):
-    """solo12.urdf without its <collision> and <visual> elements (the meshes), in `folder`."""
-    if source is None:
-        root = pathlib.Path(str(importlib.metadata.distribution("example-robot-data").locate_file(
-            "cmeel.prefix/share/example-robot-data/robots")))
-        source = root / "solo_description/robots/solo12.urdf"
-    text = pathlib.Path(source).read_text()
-    text = re.sub(r"<collision>.*?</collision>", "", text, flags=re.S)
-    text = re.sub(r"<visual>.*?</visual>", "", text, flags=re.S)
-    path = pathlib.Path(folder) / "solo12_spheres.urdf"
-    path.write_text(text)
-    return path
 
 
 def posture(joint):
@@ -261,7 +243,7 @@ def main():
     print(machine_line())
     batch, duration = args.batch, args.duration
     with tempfile.TemporaryDirectory() as folder:
-        path = stripped_urdf(folder, args.urdf)
+        path = solo_without_mesh_collisions(folder, args.urdf)
         plant = our_plant(path)
         nominal, x0 = starts(plant, batch)
         h_nom = float(nominal[2])
@@ -275,7 +257,6 @@ def main():
     rates = {}
     xs = jnp.asarray(x0, jnp.float32)
     if args.mjx:
-        import mujoco
         from mujoco import mjx
         qpos0, qvel0 = to_mujoco(plant, model, x0)
         qpos0, qvel0 = jnp.asarray(qpos0, jnp.float32), jnp.asarray(qvel0, jnp.float32)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import jaxdrake as jd
-from jaxdrake.geometry import Box, Capsule, Convex, Cylinder, GeometryError, HalfSpace, Sphere, penetration
+from jaxdrake.geometry import Box, Convex, GeometryError, HalfSpace, Sphere, penetration
 from jaxdrake.multibody import ContactMaterial, URDFError
 
 DATA = pathlib.Path(__file__).parent / "data"

@@ -196,8 +196,7 @@ def penetration(kind_a: str, params_a, X_A, kind_b: str, params_b, X_B):
             return _concat(own, _swap(_points_against("capsule", params_a, X_A, *corners)))
         return own
     if kind_a == "capsule" and kind_b == "capsule":
-        c_a, c_b = _closest_points_of_segments(params_a, X_A, params_b, X_B)
-        del c_b
+        c_a = _closest_point_on_segment_a(params_a, X_A, params_b, X_B)
         return _points_against("capsule", params_b, X_B, c_a[None], params_a["size"][:1], jnp.ones(1, bool))
     if kind_a in ("box", "convex"):
         own = _points_against(kind_b, params_b, X_B, *_contact_points(kind_a, params_a, X_A))
@@ -211,9 +210,9 @@ def penetration(kind_a: str, params_a, X_A, kind_b: str, params_b, X_B):
     raise ValueError(f"unsupported shape pair ({kind_a}, {kind_b})")
 
 
-def _closest_points_of_segments(params_a, X_A, params_b, X_B):
-    """The closest points of two capsules' segments (clamped parameters; parallel segments
-    take the middle of their overlap)."""
+def _closest_point_on_segment_a(params_a, X_A, params_b, X_B):
+    """The point of capsule A's segment closest to capsule B's segment (clamped parameters;
+    parallel segments take the middle of their overlap); B's capsule distance does the rest."""
     (R_A, p_A), (R_B, p_B) = X_A, X_B
     ha, hb = params_a["size"][1], params_b["size"][1]
     da, db = R_A[:, 2], R_B[:, 2]
@@ -231,8 +230,7 @@ def _closest_points_of_segments(params_a, X_A, params_b, X_B):
     lo = jnp.maximum(-ha, -jnp.abs(b) * hb - c)
     hi = jnp.minimum(ha, jnp.abs(b) * hb - c)
     s = jnp.where(parallel, jnp.clip(0.5 * (lo + hi), -ha, ha), s)
-    t = jnp.where(parallel, jnp.clip(b * s + f, -hb, hb), t)
-    return p_A + s * da, p_B + t * db
+    return p_A + s * da
 
 
 # ----- which pairs, in which order --------------------------------------------------------------

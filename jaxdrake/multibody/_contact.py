@@ -359,15 +359,8 @@ def _poses_in_bodies(tree, geometries):
 
 
 def _body_has_mass(tree, body) -> bool:
-    """Whether the body, or anything beyond it, moves mass or inertia (else H is singular there)."""
-    mass, inertia = np.asarray(tree.mass), np.asarray(tree.inertia)
-    subtree = [b for b in range(tree.num_bodies) if _descends(tree.parents, b, body)]
-    return any(mass[b] > 0 or np.trace(inertia[b]) > 0 for b in subtree)
-
-
-def _descends(parents, b, ancestor):
-    while b >= 0:
-        if b == ancestor:
-            return True
-        b = parents[b]
-    return False
+    """Whether the body, or anything beyond it, moves mass or inertia (else H is singular there):
+    the tree layout's subtree sums."""
+    L = tree.layout
+    moved = np.asarray(tree.mass) + np.trace(np.asarray(tree.inertia), axis1=1, axis2=2)
+    return bool((L.subtree @ moved[L.order])[L.position[body]] > 0)
