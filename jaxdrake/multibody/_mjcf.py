@@ -55,6 +55,7 @@ import numpy as np
 
 from ..geometry import SUPPORTED_PAIRS, Box, Capsule, Convex, Cylinder, GeometryError, HalfSpace, Sphere, supported
 from ._contact import CollisionGeometry, ContactMaterial, shape_kind
+from ._files import parse_xml, read_xml, resolve_model_file
 from ._tree import KinematicTree, _combine, assemble_tree
 from ._urdf_collision import URDFCollisions
 
@@ -91,10 +92,80 @@ def _compile(mujoco, source):
     if isinstance(source, mujoco.MjModel):
         return source, "the MjModel"
     path = pathlib.Path(source)
+    if path.is_file():  # a missing file: MuJoCo's own message
+        check_model_files(path)
     try:
         return mujoco.MjModel.from_xml_path(str(path)), str(path)
     except ValueError as error:
         raise MJCFError(f"{path}: MuJoCo's compiler refused the model: {error}") from None
+
+
+_DIRECTORY = {"mesh": "meshdir", "skin": "meshdir", "hfield": "meshdir", "texture": "texturedir"}
+
+
+def check_model_files(path=None, *, text=None, assets=None):
+    """Refuse, before MuJoCo reads anything, a model file that names files outside its folder.
+
+    The model: the MJCF (or URDF, for MuJoCo's importer) at `path`, or MJCF `text` (its
+    folder: the working directory, where MuJoCo looks). Its XML and that of every
+    `<include>`d file is parsed by `parse_xml` (no DTD, no entities); every `file*` attribute
+    (includes, `<model>`, meshes, skins, height fields, textures and their cube faces; a URDF's
+    `<mesh filename>`, by its base name unless `strippath="false"`) must name a file inside the
+    folder, taken from the folder of the main file and from that of the file naming it (MuJoCo
+    looks in both), under `<compiler meshdir texturedir assetdir>`, themselves inside it.
+    Names found in `assets` ({name: bytes}, read from memory) are not looked up on disk;
+    included ones are checked the same way. Refusals: `MJCFError` naming the file, the element
+    and the remedy."""
+    assets = assets or {}
+    main = pathlib.Path(path) if path is not None else pathlib.Path.cwd() / "model.xml"
+    label = str(path) if path is not None else "the MJCF text"
+    documents, pending, seen = [], [(label, None if path is None else main, text)], set()
+    while pending:  # the model and the files it includes
+        source, file, data = pending.pop()
+        if file is not None and data is None:
+            root = read_xml(file, MJCFError)
+        else:
+            root = parse_xml(data.encode() if isinstance(data, str) else data, source, MJCFError)
+        documents.append((source, file, root))
+        for include in root.iter("include"):
+            name = include.get("file")
+            if name in assets:
+                pending.append((name, None, assets[name]))
+                continue
+            for target in _model_paths(name, main, file, "", f"{source}: <include>"):
+                if target.is_file() and target not in seen:
+                    seen.add(target)
+                    pending.append((str(target), target, None))
+    urdf = any(root.tag == "robot" for _, _, root in documents)
+    dirs, strip = {}, urdf  # MuJoCo strips a URDF's mesh paths to their base names by default
+    for source, file, root in documents:
+        for compiler in root.iter("compiler"):
+            for key in ("meshdir", "texturedir", "assetdir"):
+                if compiler.get(key) is not None:
+                    _model_paths(compiler.get(key), main, file, "", f"{source}: <compiler {key}>")
+                    dirs[key] = compiler.get(key)
+            strip = compiler.get("strippath", str(strip)).lower() in ("true", "1")
+    for source, file, root in documents:
+        for element in root.iter():
+            for attribute, name in element.attrib.items():
+                if not attribute.startswith("file") or element.tag == "include":
+                    continue
+                if strip:
+                    name = pathlib.PurePosixPath(name.replace("\\", "/")).name
+                if name in assets:
+                    continue
+                directory = dirs.get(_DIRECTORY.get(element.tag), dirs.get("assetdir", ""))
+                label = element.get("name")
+                where = f"{source}: <{element.tag}{'' if label is None else f' name={label!r}'} {attribute}>"
+                _model_paths(name, main, file, directory, where)
+
+
+def _model_paths(name, main, file, directory, where):
+    """Where MuJoCo may look for `name` (a file of `directory`, from the folder of the main
+    model and from that of the `file` that names it), each checked inside the main folder."""
+    folders = {main.resolve().parent} | ({file.resolve().parent} if file is not None else set())
+    return [resolve_model_file(name, main, where, MJCFError, base=folder / directory, must_exist=False)
+            for folder in sorted(folders)]
 
 
 def _quaternion_matrix(wxyz):
@@ -232,7 +303,7 @@ class _Reader:
         self.place = place
         gravity = np.zeros(3) if self.disabled("mjDSBL_GRAVITY") else np.array(m.opt.gravity, float)
         robot_name = bytes(m.names[: list(m.names).index(0)]).decode() if m.nnames else "mjcf_model"
-        return assemble_tree(robot_name or "mjcf_model", bodies, frames, gravity, self.where)
+        return assemble_tree(robot_name or "mjcf_model", bodies, frames, gravity, self.where, MJCFError)
 
     # ----- actuators ----------------------------------------------------------------------------
 

@@ -39,6 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..systems import Frame, System
+from ._mjcf import check_model_files
 
 _POSITIONS = {0: ("x", "y", "z", "qw", "qx", "qy", "qz"), 1: ("qw", "qx", "qy", "qz"), 2: ("",), 3: ("",)}
 _VELOCITIES = {0: ("vx", "vy", "vz", "wx", "wy", "wz"), 1: ("wx", "wy", "wz"), 2: ("dot",), 3: ("dot",)}
@@ -107,6 +108,9 @@ class MujocoSystem(System):
             raise ValueError(f"output must be 'state' or 'sensors', got {output!r}")
         if output == "sensors" and mj_model.nsensordata == 0:
             raise ValueError("output='sensors', but the model declares no <sensor>")
+        if mj_model.nq + mj_model.nv + mj_model.na == 0:
+            raise ValueError("the MuJoCo model has no degrees of freedom (no joint and no actuator state): there "
+                             "is nothing to simulate; give a body a <joint> or <freejoint>")
         self.mj_model, self.model = mj_model, mjx.put_model(mj_model)
         self.sizes = (mj_model.nq, mj_model.nv, mj_model.na)
         self.sensors = output == "sensors"
@@ -134,15 +138,19 @@ class MujocoSystem(System):
 
     @classmethod
     def from_xml(cls, text_or_path, assets=None, *, output: str = "state", warm_start: bool = False) -> "MujocoSystem":
-        """From MJCF text or a file path (an `.xml` MJCF or a `.urdf`); `assets`: {file name: bytes}."""
+        """From MJCF text or a file path (an `.xml` MJCF or a `.urdf`); `assets`: {file name: bytes}.
+        The files a model names are read only from inside its folder (the working directory for
+        text) or from `assets`; its XML without DTD or entities (`_mjcf.check_model_files`)."""
         mujoco, _ = _mujoco()
         text = str(text_or_path)
         if text.lstrip().startswith("<"):
+            check_model_files(text=text, assets=assets)
             model = mujoco.MjModel.from_xml_string(text, assets or {})
         else:
             path = pathlib.Path(text)
             if not path.exists():
                 raise FileNotFoundError(f"no MuJoCo model file {path}")
+            check_model_files(path, assets=assets)
             model = mujoco.MjModel.from_xml_path(str(path), assets or {})
         return cls(model, output=output, warm_start=warm_start)
 

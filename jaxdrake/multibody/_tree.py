@@ -20,7 +20,6 @@ axes and placements, masses, centres of mass, inertias, damping, friction, limit
 from __future__ import annotations
 
 import pathlib
-import re
 import xml.etree.ElementTree as ET
 
 import functools
@@ -30,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._numbers import device_array
+from ._files import read_xml
 from ._spatial import rpy
 
 JOINT_DOFS = {"revolute": (1, 1), "prismatic": (1, 1), "floating": (7, 6)}
@@ -240,21 +240,14 @@ def tree_layout(parents: tuple, joint_types: tuple) -> TreeLayout:
 
 # ----- URDF ---------------------------------------------------------------------------------
 
-_FORBIDDEN = re.compile(rb"<!\s*(DOCTYPE|ENTITY)", re.IGNORECASE)
-
-
-def read_urdf_text(path) -> str:
-    """The URDF's text, refusing DOCTYPE / ENTITY declarations (entity-expansion bombs,
-    external entities that would read files or the network)."""
+def read_urdf(path) -> ET.Element:
+    """The URDF's root `<robot>` element, parsed as untrusted XML (`_files.parse_xml`: no
+    DOCTYPE, no entities)."""
     path = pathlib.Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as e:
-        raise URDFError(f"cannot read URDF {path}: {e}") from None
-    if _FORBIDDEN.search(data):
-        raise URDFError(f"{path}: XML DOCTYPE / ENTITY declarations are not accepted in a URDF "
-                        "(they allow entity-expansion bombs and external entities)")
-    return data.decode("utf-8", errors="replace")
+    root = read_xml(path, URDFError)
+    if root.tag != "robot":
+        raise URDFError(f"{path}: the root element is <{root.tag}>, not <robot>")
+    return root
 
 
 def _numbers(element, name, count, default, path, where):
@@ -279,13 +272,7 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
     `<transmission>`s actuate (empty without transmissions). Joints named in `welded` are
     treated as fixed at zero (e.g. a gripper's fingers)."""
     path = pathlib.Path(path)
-    text = read_urdf_text(path)
-    try:
-        root = ET.fromstring(text)
-    except ET.ParseError as e:
-        raise URDFError(f"{path}: not well-formed XML: {e}") from None
-    if root.tag != "robot":
-        raise URDFError(f"{path}: the root element is <{root.tag}>, not <robot>")
+    root = read_urdf(path)
 
     links = {}
     for link in root.findall("link"):
@@ -373,7 +360,7 @@ def urdf_mimic_joints(path, welded=()) -> tuple:
     multiplier, offset) tuples: the follower's position is multiplier * leader's + offset
     (defaults 1 and 0, as urdfdom's). Fixed followers and those named in `welded` are left out."""
     path = pathlib.Path(path)
-    root = ET.fromstring(read_urdf_text(path))
+    root = read_urdf(path)
     defined = {joint.get("name") for joint in root.findall("joint")}
     couplings = []
     for joint in root.findall("joint"):
@@ -407,14 +394,30 @@ def _inertial(link, path):
     get = lambda k: _numbers(i, k, 1, 0.0, path, where)
     I = np.array([[get("ixx"), get("ixy"), get("ixz")], [get("ixy"), get("iyy"), get("iyz")],
                   [get("ixz"), get("iyz"), get("izz")]])
-    if not (mass >= 0 and np.isfinite(mass)):
-        raise URDFError(f"{path}: link {name!r} has mass {mass}; it must be >= 0")
-    eig = np.linalg.eigvalsh(I)
-    tol = 1e-12 * max(1.0, np.max(np.abs(eig)))
-    if np.any(eig < -tol) or not np.all(np.isfinite(I)):
-        raise URDFError(f"{path}: link {name!r} has an inertia that is not positive semi-definite "
-                        f"(principal moments {eig})")
+    problem = _inertia_problem(mass, I, triangle=False)  # the triangle inequality: per body, once merged
+    if problem:
+        raise URDFError(f"{path}: link {name!r} {problem}; fix its <inertial> (the mass and the moments "
+                        "of the solid it describes, e.g. from the CAD model)")
     return mass, com, R @ I @ R.T
+
+
+def _inertia_problem(mass, inertia, *, triangle: bool):
+    """Why a mass and a rotational inertia (about the centre of mass) belong to no rigid body,
+    or None: a mass that is negative or not finite; an inertia not finite, or not positive
+    semi-definite; with `triangle`, principal moments breaking the triangle inequality
+    $I_1 + I_2 \\ge I_3$ (every body's moments obey it; relative tolerance 1e-6, absolute 1e-12)."""
+    if not (np.isfinite(mass) and mass >= 0):
+        return f"has mass {mass}; a mass is a finite number >= 0"
+    if not np.all(np.isfinite(inertia)):
+        return f"has an inertia with non-finite entries {np.asarray(inertia).tolist()}"
+    eig = np.linalg.eigvalsh(inertia)
+    tolerance = 1e-12 * max(1.0, np.max(np.abs(eig)))  # rounding in the file's digits
+    if np.any(eig < -tolerance):
+        return f"has an inertia that is not positive semi-definite (principal moments {eig})"
+    if triangle and eig[0] + eig[1] < eig[2] * (1 - 1e-6) - tolerance:
+        return (f"has principal moments of inertia {eig} that break the triangle inequality "
+                f"(I1 + I2 = {eig[0] + eig[1]:.6g} < I3 = {eig[2]:.6g}: no mass distribution has them)")
+    return None
 
 
 def _combine(m1, c1, I1, m2, c2, I2):
@@ -468,10 +471,12 @@ def _build_tree(robot_name, root, links, joints, floating_base, gravity, path):
     return assemble_tree(robot_name, bodies, frames, gravity, path)
 
 
-def assemble_tree(robot_name, bodies, frames, gravity, path) -> KinematicTree:
+def assemble_tree(robot_name, bodies, frames, gravity, path, error=URDFError) -> KinematicTree:
     """The `KinematicTree` of `bodies` (dicts: link, joint, type, parent, R, p, axis,
     inertial = (mass, com, inertia), lower, upper, effort, damping, friction; parents first) and
-    `frames` ((name, body, R, p), body -1 the world), shared by the URDF and MJCF readers."""
+    `frames` ((name, body, R, p), body -1 the world), shared by the URDF and MJCF readers.
+    Physically impossible bodies and joints are refused here with `error` (`_check_bodies`)."""
+    _check_bodies(bodies, path, error)
     _check_every_joint_moves_mass(bodies, path)
     floats = lambda values: device_array(values, float)  # converted on the host: nothing to compile
     arr = lambda key: floats([b[key] for b in bodies])
@@ -491,6 +496,27 @@ def assemble_tree(robot_name, bodies, frames, gravity, path) -> KinematicTree:
         damping=per_dof("damping"), friction=per_dof("friction"),
         position_lower=per_q("lower"), position_upper=per_q("upper"), effort_limit=per_dof("effort"),
         gravity=floats(gravity))
+
+
+def _check_bodies(bodies, path, error):
+    """Refuse what no physical joint or body has: a rigid body's (merged) mass and inertia
+    (`_inertia_problem`), a negative or non-finite damping or friction, a negative or NaN
+    effort limit, a NaN position limit or a lower limit above the upper."""
+    for b in bodies:
+        problem = _inertia_problem(b["inertial"][0], b["inertial"][2], triangle=True)
+        if problem:
+            raise error(f"{path}: the rigid body of link {b['link']!r} (with the links welded to it) {problem}; "
+                        "fix the inertias of its links")
+        where = f"{path}: joint {b['joint']!r}"
+        for key in ("damping", "friction"):
+            if not (np.isfinite(b[key]) and b[key] >= 0):
+                raise error(f"{where} has {key} {b[key]}; it must be a finite number >= 0 (a negative {key} "
+                            "feeds energy into the motion): fix its <dynamics>")
+        if not b["effort"] >= 0:
+            raise error(f"{where} has effort limit {b['effort']}; it must be >= 0 (or absent: unlimited)")
+        if not b["lower"] <= b["upper"]:
+            raise error(f"{where} has lower limit {b['lower']} above upper limit {b['upper']} (or one is NaN); "
+                        "swap them, or leave the limits out for an unlimited joint")
 
 
 def _check_every_joint_moves_mass(bodies, path):

@@ -12,20 +12,21 @@ r"""A URDF's collision geometry, read as Drake's parser reads it.
 - joints (not fixed, not floating, parent not the world): their two links do not collide.
 
 Mesh files are read only from inside the URDF's folder, or from the folders given as
-`package_map` for `package://NAME/...` names: nothing outside a model's folder is opened.
+`package_map` for `package://NAME/...` names: nothing outside a model's folder is opened
+(`_files.resolve_model_file`, the one owner of that rule).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import pathlib
-import xml.etree.ElementTree as ET
 
 import numpy as np
 
 from ..geometry import Box, Capsule, Convex, Cylinder, GeometryError, Sphere
 from ._contact import URDF_DEFAULT_FRICTION, CollisionGeometry, ContactMaterial
-from ._tree import URDFError, _numbers, _origin, read_urdf_text
+from ._files import resolve_model_file
+from ._tree import URDFError, _numbers, _origin, read_urdf
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,7 +54,7 @@ def read_urdf_collisions(path, *, package_map=None, mesh_hulls: bool = False) ->
     """The URDF's collision geometry (module docstring); `mesh_hulls`: collide a non-convex mesh
     through its convex hull (Drake's point contact does) instead of refusing it."""
     path = pathlib.Path(path)
-    root = ET.fromstring(read_urdf_text(path))
+    root = read_urdf(path)
     geometries = []
     for link in root.findall("link"):
         name = link.get("name")
@@ -120,37 +121,13 @@ def _shape(element, path, where, package_map, mesh_hulls):
             scale = element.get("scale")
             scale = (1.0, 1.0, 1.0) if scale is None else tuple(
                 np.broadcast_to(_numbers(element, "scale", len(scale.split()), None, path, where), 3))
-            return Convex.from_mesh_file(_mesh_path(element.get("filename"), path, where, package_map), scale,
-                                         require_convex=not mesh_hulls)
+            mesh = resolve_model_file(element.get("filename"), path, f"{where}: <mesh>", URDFError,
+                                      package_map=package_map)
+            return Convex.from_mesh_file(mesh, scale, require_convex=not mesh_hulls)
     except GeometryError as error:
         raise URDFError(f"{path}: {where}: {error}") from None
     raise URDFError(f"{path}: {where}: unsupported collision shape <{kind}>; use a sphere, box, cylinder, "
                     "capsule (<drake:capsule>) or a convex mesh")
-
-
-def _mesh_path(filename, path, where, package_map) -> pathlib.Path:
-    """The mesh file, resolved inside the URDF's folder or a `package_map` folder, never outside."""
-    if not filename:
-        raise URDFError(f"{path}: {where}: <mesh> has no filename")
-    if filename.startswith("package://"):
-        package, _, rest = filename[len("package://"):].partition("/")
-        if package not in package_map:
-            raise URDFError(f"{path}: {where}: mesh {filename!r} names package {package!r}; pass "
-                            f"package_map={{{package!r}: '/path/to/{package}'}} to say where it is "
-                            "(package paths are never searched for)")
-        base, relative = pathlib.Path(package_map[package]).resolve(), rest
-    elif "://" in filename or pathlib.PurePath(filename).is_absolute():
-        raise URDFError(f"{path}: {where}: mesh {filename!r} is not a path relative to the URDF's folder; "
-                        "only files inside the model's folder are read")
-    else:
-        base, relative = path.resolve().parent, filename
-    target = (base / relative).resolve()
-    if base not in target.parents:
-        raise URDFError(f"{path}: {where}: mesh {filename!r} lies outside the model's folder {base}; "
-                        "only files inside it are read")
-    if not target.is_file():
-        raise URDFError(f"{path}: {where}: mesh file {target} does not exist")
-    return target
 
 
 def _filter_group_exclusions(root, path):
