@@ -5,6 +5,8 @@ import platform
 import time
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 
 
 def best_time(fn, repeats: int) -> float:
@@ -33,3 +35,15 @@ def argument_parser(doc: str, *, repeats: int, gpu_help: str, batch: int | None 
     parser.add_argument("--repeats", type=int, default=repeats)
     parser.add_argument("--gpu", action="store_true", help=gpu_help)
     return parser
+
+
+def final_state_or_nan(traj):
+    """A simulation's final state, NaN where it failed: a benchmark times the runs that
+    failed too, and must not report them as if they had run (see `failures`)."""
+    return jnp.where(traj.success, traj.final_state, jnp.nan)
+
+
+def failures(values) -> int:
+    """How many members (rows of `values`) are not finite: failed runs, not to be timed."""
+    values = np.atleast_2d(np.asarray(values))  # one final state: one member
+    return int(np.sum(~np.isfinite(values.reshape(values.shape[0], -1)).all(axis=1)))

@@ -18,13 +18,13 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxdrake as jd
-from _common import argument_parser, machine_line  # benchmarks/_common.py
+from _common import argument_parser, failures, final_state_or_nan, machine_line  # benchmarks/_common.py
 
 PENDULUM = jd.models.Pendulum()
 
 
 def final_state(x0):
-    return jd.simulate(PENDULUM, (0.0, 10.0), x0, rtol=1e-8, atol=1e-8, dense=False, throw=False).final_state
+    return final_state_or_nan(jd.simulate(PENDULUM, (0.0, 10.0), x0, rtol=1e-8, atol=1e-8, dense=False, throw=False))
 
 
 def timed(fn):
@@ -33,7 +33,10 @@ def timed(fn):
     first = time.perf_counter() - start
     start = time.perf_counter()
     out = jax.block_until_ready(fn())
-    return out, first, time.perf_counter() - start
+    second = time.perf_counter() - start
+    if failures(out):
+        raise SystemExit(f"{failures(out)} of {len(out)} simulations failed: no time is reported")
+    return out, first, second
 
 
 def main():

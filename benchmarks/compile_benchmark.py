@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxdrake as jd
-from _common import argument_parser, machine_line  # benchmarks/_common.py
+from _common import argument_parser, failures, final_state_or_nan, machine_line  # benchmarks/_common.py
 
 jax.config.update("jax_enable_x64", True)
 
@@ -64,12 +64,14 @@ def systems():
 
 
 def first_and_second(fn):
+    """(first call, second call) in seconds, or None when the result is not finite (a failed
+    simulation: no time is reported for it)."""
     start = time.perf_counter()
     jax.block_until_ready(fn())
     first = time.perf_counter() - start
     start = time.perf_counter()
-    jax.block_until_ready(fn())
-    return first, time.perf_counter() - start
+    out = jax.block_until_ready(fn())
+    return None if failures(out) else (first, time.perf_counter() - start)
 
 
 def measure(name, make, make_x0, options=None):
@@ -85,7 +87,7 @@ def measure(name, make, make_x0, options=None):
         lambda: jd.simulate(plant, (0.0, 1.0), x0, **options).final_state)
     if name != "ball":
         rows["simulate (euler)"] = first_and_second(
-            lambda: jd.simulate(plant, (0.0, 1.0), x0, solver="euler", dt=1e-2, throw=False).final_state)
+            lambda: final_state_or_nan(jd.simulate(plant, (0.0, 1.0), x0, solver="euler", dt=1e-2, throw=False)))
     loss = jax.jit(jax.grad(lambda x: jnp.sum(jd.simulate(plant, (0.0, 1.0), x, **options).final_state ** 2)))
     rows["jit(grad(simulate))"] = first_and_second(lambda: loss(x0))
     return rows
@@ -99,8 +101,12 @@ def main():
     print(f"{'system':10s} {'program':22s} {'first call':>11s} {'second':>9s} {'/ dynamics':>11s}")
     for name in args.systems:
         rows = measure(name, *systems()[name])
-        reference = rows.get("jit(dynamics)", (None,))[0]
-        for program, (first, second) in rows.items():
+        reference = (rows.get("jit(dynamics)") or (None,))[0]
+        for program, times in rows.items():
+            if times is None:
+                print(f"{name:10s} {program:22s} {'failed (non-finite result): not timed':>33s}", flush=True)
+                continue
+            first, second = times
             ratio = f"{first / reference:10.1f}x" if reference else ""
             print(f"{name:10s} {program:22s} {first:10.2f}s {second * 1e3:7.1f}ms {ratio:>11s}", flush=True)
         jax.clear_caches()

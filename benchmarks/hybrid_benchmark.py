@@ -30,7 +30,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 import jaxdrake as jd
-from _common import argument_parser, best_time, machine_line  # benchmarks/_common.py
+from _common import argument_parser, best_time, failures, final_state_or_nan, machine_line  # benchmarks/_common.py
 
 jax.config.update("jax_enable_x64", True)
 
@@ -119,8 +119,8 @@ def diffrax_runner(problem, max_events=64):
 
 def jaxdrake_runner(problem):
     def one(x0):
-        return jd.simulate(problem["system"], (0.0, problem["tf"]), x0, rtol=RTOL, atol=ATOL,
-                           dense=False, max_events=64, throw=False).final_state
+        return final_state_or_nan(jd.simulate(problem["system"], (0.0, problem["tf"]), x0, rtol=RTOL, atol=ATOL,
+                           dense=False, max_events=64, throw=False))
     return jax.jit(one), jax.jit(jax.vmap(one))
 
 
@@ -140,7 +140,7 @@ def run(batch, gpu, repeats):
         def record(label, seconds, finals, kind, compile_s=None):
             ref = ref_single[None] if kind == "single" else ref_batch
             err = np.max(np.abs(np.asarray(finals)[: len(ref)] - ref))
-            rows.append((label, kind, seconds, err, compile_s))
+            rows.append((label, kind, None if failures(finals) else seconds, err, compile_s))
 
         contenders = [("jaxdrake", jaxdrake_runner(problem))]
         try:
@@ -168,10 +168,13 @@ def run(batch, gpu, repeats):
             record(f"scipy RK45 events loop {batch}*", t,
                    np.stack([scipy_loop(problem, x) for x in x0s[:check]]), "batch")
 
-        base = {kind: s for label, kind, s, _, _ in rows if label.startswith("jaxdrake")}
+        base = {kind: s for label, kind, s, _, _ in rows if s is not None and label.startswith("jaxdrake")}
         for label, kind, seconds, err, compile_s in rows:
+            if seconds is None:
+                print(f"{name:8s} {label:36s} failed (non-finite results): not timed")
+                continue
             extra = f"   (compile {compile_s:.2f} s)" if compile_s is not None else ""
-            print(f"{name:8s} {label:36s} {seconds * 1e3:10.2f}ms {seconds / base[kind]:11.2f}x "
+            print(f"{name:8s} {label:36s} {seconds * 1e3:10.2f}ms {seconds / base.get(kind, float('nan')):11.2f}x "
                   f"{err:10.1e}{extra}")
     if not gpu:
         print("* scipy batch: 100 members timed, scaled to the batch size")

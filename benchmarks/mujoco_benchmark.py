@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxdrake as jd
-from _common import argument_parser, machine_line  # benchmarks/_common.py
+from _common import argument_parser, failures, final_state_or_nan, machine_line  # benchmarks/_common.py
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -64,13 +64,17 @@ def main():
             return jnp.concatenate([data.qpos, data.qvel, data.qacc_warmstart])
 
         def ours(x):
-            return jd.simulate(system, (0.0, args.steps * dt), x, dense=False, throw=False).final_state
+            return final_state_or_nan(jd.simulate(system, (0.0, args.steps * dt), x, dense=False, throw=False))
 
         rows = {"MJX lax.scan(mjx.step)": jax.jit(jax.vmap(mjx_rollout)),
                 "jaxdrake simulate": jax.jit(jax.vmap(ours))}
         reference = None
         for label, fn in rows.items():
             first, second = timed(fn, starts)
+            failed = failures(fn(starts))
+            if failed:
+                print(f"{name:10s} {label:28s} {failed} of {args.batch} runs failed (non-finite): not timed")
+                continue
             rate = args.batch * args.steps / second
             reference = reference or rate
             print(f"{name:10s} {label:28s} {first:10.2f}s {second:8.3f}s {rate:12.0f} {rate / reference:7.2f}x",

@@ -22,7 +22,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 import jaxdrake as jd
-from _common import argument_parser, best_time, machine_line  # benchmarks/_common.py
+from _common import argument_parser, best_time, failures, final_state_or_nan, machine_line  # benchmarks/_common.py
 from jaxdrake.models import Pendulum, VanDerPol
 
 jax.config.update("jax_enable_x64", True)
@@ -55,8 +55,8 @@ def reference(rhs, x0s):
 
 def jaxdrake_runner(system, autodiff):
     def one(x0):
-        return jd.simulate(system, (0.0, TF), x0, rtol=RTOL, atol=ATOL, dense=False,
-                           autodiff=autodiff, max_steps=4096, throw=False).final_state
+        return final_state_or_nan(jd.simulate(system, (0.0, TF), x0, rtol=RTOL, atol=ATOL, dense=False,
+                           autodiff=autodiff, max_steps=4096, throw=False))
     return jax.jit(one), jax.jit(jax.vmap(one))
 
 
@@ -116,7 +116,7 @@ def run(batch, gpu, repeats):
 
         def record(label, seconds, finals, compile_s=None):
             err = np.max(np.abs(np.asarray(finals)[:check] - ref[: len(np.asarray(finals)[:check])]))
-            rows.append((label, seconds, err, compile_s))
+            rows.append((label, None if failures(finals) else seconds, err, compile_s))
 
         # jaxdrake, single and batch, both loop kinds
         for autodiff in ("reverse", "forward"):
@@ -162,8 +162,12 @@ def run(batch, gpu, repeats):
             record(f"scipy RK45 loop over {batch}", best_time(loop, 1), loop())
 
         base = {kind: s for label, s, _, _ in rows for kind in ("single", "batch")
-                if label == f"jaxdrake {kind} (reverse)" or label.startswith(f"jaxdrake {kind} {batch} (reverse)")}
+                if s is not None and (label == f"jaxdrake {kind} (reverse)"
+                                      or label.startswith(f"jaxdrake {kind} {batch} (reverse)"))}
         for label, seconds, err, compile_s in rows:
+            if seconds is None:
+                print(f"{name:10s} {label:32s} failed (non-finite results): not timed")
+                continue
             kind = "single" if "single" in label else "batch"
             ratio = seconds / base[kind] if kind in base else float("nan")
             extra = f"   (compile {compile_s:.2f} s)" if compile_s is not None else ""

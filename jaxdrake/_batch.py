@@ -9,7 +9,9 @@ predecessors' results, so the devices are not idle while results come back. On s
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import os
 
 import jax
 import jax.numpy as jnp
@@ -26,7 +28,8 @@ def run_batch(fn, inputs, *, chunk_size: int | None = None, devices=None, progre
     - `fn`: a function of one member (a pytree of arrays) returning a pytree of arrays.
     - `inputs`: a pytree whose leaves share a leading batch axis of size B.
     - `chunk_size`: members per chunk (rounded up to a multiple of the number of devices);
-      default: the whole batch in one chunk.
+      default: as many as fit in a quarter of the devices' free memory (`default_chunk_size`),
+      at most the whole batch.
     - `devices`: default `jax.local_devices()`; `progress`: a progress bar over chunks (tqdm).
     - `gather`: return NumPy arrays on the host (device memory holds one chunk at a time);
       False keeps the results on the devices, sharded along the batch axis.
@@ -45,7 +48,9 @@ def run_batch(fn, inputs, *, chunk_size: int | None = None, devices=None, progre
         raise ValueError("run_batch: the batch is empty")
     devices = tuple(jax.local_devices() if devices is None else devices)
     count = len(devices)
-    chunk = size if chunk_size is None else int(chunk_size)
+    member = jax.tree.unflatten(treedef, [jax.ShapeDtypeStruct(np.shape(leaf)[1:], jnp.result_type(leaf))
+                                          for leaf in leaves])
+    chunk = default_chunk_size(fn, member, devices) if chunk_size is None else int(chunk_size)
     if chunk < 1:
         raise ValueError(f"run_batch: chunk_size must be a positive int, got {chunk_size}")
     chunk = -(-min(chunk, size) // count) * count  # a multiple of the device count
@@ -58,19 +63,83 @@ def run_batch(fn, inputs, *, chunk_size: int | None = None, devices=None, progre
         piece = [padded(np.asarray(leaf[start:stop]) if not isinstance(leaf, jax.Array) else leaf[start:stop],
                          chunk) for leaf in leaves]
         piece = jax.device_put(jax.tree.unflatten(treedef, piece), sharding)
-        out = mapped(piece)  # dispatched; runs while the previous chunk is copied back
-        if pending is not None:
-            results.append(_collect(*pending, gather))
+        with _out_of_memory_named(fn, member, chunk):
+            out = mapped(piece)  # dispatched; runs while the previous chunk is copied back
+            if pending is not None:
+                results.append(_collect(*pending, gather))
             if bar:
                 bar.update(1)
         pending = (out, stop - start)
-    results.append(_collect(*pending, gather))
+    with _out_of_memory_named(fn, member, chunk):
+        results.append(_collect(*pending, gather))
     if bar:
         bar.update(1)
         bar.close()
     if gather:
         return jax.tree.map(lambda *parts: np.concatenate(parts), *results)
     return jax.tree.map(lambda *parts: jnp.concatenate(parts) if len(parts) > 1 else parts[0], *results)
+
+
+MEMORY_FACTOR = 3  # a member's live memory over its inputs, outputs and largest value (copies)
+
+
+def member_bytes(fn, member) -> int:
+    """Estimated device memory of one member: `MEMORY_FACTOR` x (its inputs + its outputs +
+    the largest value computed on the way, e.g. a simulation's trajectory buffers), from the
+    traced program without running it; kept per function and shapes."""
+    leaves, treedef = jax.tree.flatten(member)
+    return _member_bytes(fn, treedef, tuple(leaves))
+
+
+@functools.lru_cache(maxsize=64)
+def _member_bytes(fn, treedef, leaves) -> int:
+    closed = jax.make_jaxpr(lambda m: fn(m))(jax.tree.unflatten(treedef, leaves))
+    ends = sum(_bytes(v.aval) for v in (*closed.jaxpr.invars, *closed.jaxpr.outvars))
+    return MEMORY_FACTOR * max(ends + _largest_value(closed.jaxpr), 1)
+
+
+def _bytes(aval) -> int:
+    return int(np.prod(getattr(aval, "shape", ()))) * np.dtype(getattr(aval, "dtype", np.uint8)).itemsize
+
+
+def _largest_value(jaxpr) -> int:
+    """Bytes of the largest array any equation of `jaxpr` (or of its sub-programs) makes."""
+    largest = 0
+    for eqn in jaxpr.eqns:
+        largest = max([largest, *(_bytes(v.aval) for v in eqn.outvars)])
+        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+            largest = max(largest, _largest_value(sub))
+    return largest
+
+
+def free_memory(device) -> int:
+    """Bytes free on `device` (its allocator's limit minus use; on the CPU the host's
+    available memory)."""
+    stats = device.memory_stats()
+    if stats and "bytes_limit" in stats:
+        return int(stats["bytes_limit"] - stats.get("bytes_in_use", 0))
+    return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+
+
+def default_chunk_size(fn, member, devices) -> int:
+    """Members per chunk that fit in a quarter of the least free memory of `devices`, per
+    device (at least one per device)."""
+    per_device = min(free_memory(d) for d in devices) // 4 // member_bytes(fn, member)
+    return max(int(per_device), 1) * len(devices)
+
+
+@contextlib.contextmanager
+def _out_of_memory_named(fn, member, chunk):
+    """Re-raise XLA's bare RESOURCE_EXHAUSTED as a MemoryError naming the remedies."""
+    try:
+        yield
+    except jax.errors.JaxRuntimeError as error:
+        if "RESOURCE_EXHAUSTED" not in str(error):
+            raise
+        raise MemoryError(f"run_batch: a chunk of {chunk} members did not fit in device memory (about "
+                          f"{member_bytes(fn, member):,} bytes per member, estimated): pass a smaller "
+                          "chunk_size, or return less per member (simulate(..., dense=False) keeps only the "
+                          "final state)") from error
 
 
 @functools.lru_cache(maxsize=64)

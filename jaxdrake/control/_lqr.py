@@ -104,6 +104,33 @@ def _require_stabilising(system, lin, K, S):
             "inputs, or penalise every state in Q (Q > 0).")
 
 
+def check_cost_weights(caller: str, Q, R, N=None, Qf=None):
+    """Refuse weights that make the quadratic cost $x^T Q x + 2 x^T N u + u^T R u$ unbounded
+    below or the gain undefined: R positive definite, [[Q, N], [N^T, R]] (and Qf) positive
+    semidefinite, all symmetric (traced weights are not checked)."""
+    if any(isinstance(M, jax.core.Tracer) for M in (Q, R, N, Qf)):
+        return
+    Q, R = np.asarray(Q, float), np.asarray(R, float)
+    N = np.zeros((Q.shape[0], R.shape[0])) if N is None else np.asarray(N, float)
+    for label, M in (("Q", Q), ("R", R)) + ((("Qf", np.asarray(Qf, float)),) if Qf is not None else ()):
+        if not np.all(np.isfinite(M)):
+            raise ValueError(f"{caller}: {label} has non-finite entries")
+        if not np.allclose(M, M.T, rtol=1e-10, atol=1e-12 * max(1.0, np.abs(M).max())):
+            raise ValueError(f"{caller}: {label} must be symmetric (use (M + M.T) / 2)")
+        if label == "Qf" and np.linalg.eigvalsh(M).min() < -1e-10 * max(1.0, np.abs(M).max()):
+            raise ValueError(f"{caller}: Qf must be positive semidefinite (its least eigenvalue is "
+                             f"{np.linalg.eigvalsh(M).min():.3g})")
+    if np.linalg.eigvalsh(R).min() <= 0:
+        raise ValueError(f"{caller}: R must be positive definite (its least eigenvalue is "
+                         f"{np.linalg.eigvalsh(R).min():.3g})")
+    joint = np.block([[Q, N], [N.T, R]])
+    least = np.linalg.eigvalsh(joint).min()
+    if least < -1e-10 * max(1.0, np.abs(joint).max()):
+        what = "Q" if N is None or not N.any() else "[[Q, N], [N^T, R]]"
+        raise ValueError(f"{caller}: {what} must be positive semidefinite (its least eigenvalue is "
+                         f"{least:.3g}): the cost would be unbounded below")
+
+
 def lqr(system: System, Q, R, x0=None, u0=None, *, N=None, check_equilibrium: bool = True) -> LQRResult:
     """The infinite-horizon LQR of `system` about (x0, u0) (default: the origin, u = 0):
     continuous or discrete to match the system; `N` the cross term. Differentiable with
@@ -117,8 +144,7 @@ def lqr(system: System, Q, R, x0=None, u0=None, *, N=None, check_equilibrium: bo
             raise ValueError(f"lqr: {label} must be ({size}, {size}) for {system.name}, got {M.shape}")
     if N is not None:
         N = jnp.asarray(N, float).reshape(n, m)
-    if not isinstance(R, jax.core.Tracer) and np.min(np.linalg.eigvalsh(np.asarray(R))) <= 0:
-        raise ValueError("lqr: R must be positive definite")
+    check_cost_weights("lqr", Q, R, N)
     lin = linearize(system, x0, u0, check_equilibrium=check_equilibrium)
     K, S = _lqr_gain(lin.A, lin.B, Q, R, N, lin.is_discrete)
     if not isinstance(K, jax.core.Tracer):

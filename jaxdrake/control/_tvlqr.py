@@ -17,11 +17,11 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from ..simulation import SimulatedTrajectory, simulate
 from ..systems import System
 from ..trajectories import Trajectory
+from ._lqr import check_cost_weights
 
 def _nominal_at(nominal, t):
     """A nominal signal at time t: a `Trajectory` (its state) or a constant array."""
@@ -113,8 +113,7 @@ def finite_horizon_lqr(system: System, Q, R, tspan, *, Qf=None, x_nominal=None, 
     for label, M, size in (("Q", Q, n), ("R", R, m), ("Qf", Qf, n)):
         if M.shape != (size, size):
             raise ValueError(f"finite_horizon_lqr: {label} must be ({size}, {size}) for {system.name}, got {M.shape}")
-    if not isinstance(R, jax.core.Tracer) and np.min(np.linalg.eigvalsh(np.asarray(R))) <= 0:
-        raise ValueError("finite_horizon_lqr: R must be positive definite")
+    check_cost_weights("finite_horizon_lqr", Q, R, N, Qf)
     x_nominal = _as_nominal(x_nominal, n, "state", system.name)
     u_nominal = _as_nominal(u_nominal, m, "input", system.name)
 

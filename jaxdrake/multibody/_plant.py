@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import pathlib
+import warnings
 
 import equinox as eqx
 import jax
@@ -30,6 +31,7 @@ from ._tree import KinematicTree, URDFError, tree_from_pinocchio, tree_from_urdf
 from ._urdf_collision import URDFCollisions, read_urdf_collisions
 
 _AXES = {"x": 0, "y": 1, "z": 2}
+_WARNED_LIMITS: set = set()  # (plant name, joint name) already warned of a start past a limit
 
 
 @dataclasses.dataclass(frozen=True)
@@ -349,8 +351,10 @@ class RigidBodySystem(System):
                                 self.forward_dynamics(q, v, u)])
 
     def initial_state(self):
-        """At rest in the neutral configuration (coupled joints placed by their couplers)."""
-        q = self.tree.neutral_configuration()
+        """At rest in the neutral configuration, with each joint whose zero lies outside its
+        position limits at its nearest limit (the Panda's joint 4), and coupled joints placed
+        by their couplers."""
+        q = jnp.clip(self.tree.neutral_configuration(), self.tree.position_lower, self.tree.position_upper)
         for coupler in self.couplers:
             iq, lq = (self.tree.q_starts[self.tree.joint_names.index(j)] for j in (coupler.joint, coupler.leader))
             q = q.at[iq].set(coupler.gear_ratio * q[lq] + coupler.offset)
@@ -405,6 +409,24 @@ class RigidBodySystem(System):
         if self.loops or self.couplers:
             parts += [self.constraint_residual(q), self.constraint_jacobian(q) @ v]
         return jnp.concatenate(parts) if parts else jnp.zeros(0, x.dtype)
+
+    def check_initial_state(self, x0):
+        """Warn once per joint when x0 starts a limited joint past its position limit: the
+        compliant limit then pushes it back at once, a stiff start."""
+        tree, x0 = self.tree, np.asarray(x0, float)
+        try:
+            lower, upper = np.asarray(tree.position_lower), np.asarray(tree.position_upper)
+        except jax.errors.TracerArrayConversionError:
+            return
+        q_owner = {tree.q_starts[i]: name for i, name in enumerate(tree.joint_names)}
+        for qi, _ in self.limited:
+            name, value = q_owner[qi], x0[qi]
+            past = ("lower", lower[qi]) if value < lower[qi] else ("upper", upper[qi]) if value > upper[qi] else None
+            if past and (self.name, name) not in _WARNED_LIMITS:
+                _WARNED_LIMITS.add((self.name, name))
+                warnings.warn(f"{self.name}: the start state puts joint {name!r} at {value:.6g}, past its {past[0]} "
+                              f"limit {past[1]:.6g}; the compliant limit will push it back at once (a stiff start). "
+                              "Start inside the limits, or build the plant with joint_limits=False", stacklevel=4)
 
     def failure_hint(self, x):
         """Names a singular mass matrix H(q) at x (the joints spanning its null space), the usual

@@ -100,6 +100,7 @@ class LoopState(eqx.Module):
     status: jax.Array  # a SimulationStatus
     iterations: jax.Array  # loop iterations so far (bounded by max_steps)
     rejected: jax.Array  # rejected steps so far
+    accepted: jax.Array  # accepted steps so far
     pieces: PieceRecord
     events: EventRecord
 
@@ -202,7 +203,7 @@ class Loop(eqx.Module):
             k0_valid=jnp.asarray(False) if self.fsal else None,
             samples=(jnp.ceil(t0 / self.periods) if self.periods is not None else jnp.zeros((), dtype)),
             at_breakpoint=jnp.asarray(False), status=status, iterations=jnp.asarray(0),
-            rejected=jnp.asarray(0), pieces=pieces, events=events)
+            rejected=jnp.asarray(0), accepted=jnp.asarray(0), pieces=pieces, events=events)
 
 
     # ----- the stages, in order -------------------------------------------------------------
@@ -430,7 +431,8 @@ class Loop(eqx.Module):
             k0_valid=k0_valid, samples=s.samples,
             at_breakpoint=jnp.where(accept, ~a.event & (a.t_end >= self.source.next_breakpoint(s.t)), s.at_breakpoint),
             status=status, iterations=s.iterations + 1,
-            rejected=s.rejected + (~accept & ~ready.fired & ~a.priming), pieces=p, events=e)
+            rejected=s.rejected + (~accept & ~ready.fired & ~a.priming), accepted=s.accepted + accept,
+            pieces=p, events=e)
 
     # ----- the whole loop -------------------------------------------------------------------
 
@@ -446,11 +448,26 @@ class Loop(eqx.Module):
                                kind="lax" if autodiff == "forward" else "checkpointed", buffers=buffers)
 
 
+def initial_status(system, source, t0, tf, x0):
+    """The failures visible before the first step (inside `jit`, where they cannot raise): a
+    time span that is not finite with t0 < tf, a non-finite x0 or u(t0), a NaN parameter."""
+    parameters = [jnp.any(jnp.isnan(leaf)) for leaf in jax.tree.leaves(eqx.filter(system, eqx.is_inexact_array))]
+    failures = [(~(jnp.isfinite(t0) & jnp.isfinite(tf) & (tf > t0)), SimulationStatus.INVALID_TIME_SPAN),
+                (~jnp.all(jnp.isfinite(x0)), SimulationStatus.NONFINITE_INITIAL_STATE),
+                (~jnp.all(jnp.isfinite(source(t0))), SimulationStatus.NONFINITE_INPUT),
+                (jnp.any(jnp.stack(parameters)) if parameters else jnp.asarray(False),
+                 SimulationStatus.NAN_PARAMETER)]
+    status = jnp.asarray(int(SimulationStatus.SUCCESS), jnp.int32)
+    for failed, failure in reversed(failures):  # the first failure in the list wins
+        status = jnp.where(failed, jnp.asarray(int(failure), jnp.int32), status)
+    return status
+
+
 def run_simulation(system, solver, controller, source, t0, tf, x0, h0, dt_max, event_tol, max_steps: int,
                    max_events: int, dense: bool, constraint_projection: bool, autodiff: str) -> SimulatedTrajectory:
     """Project x0 onto the state constraints, run the loop, and package the trajectory."""
     dtype, eps = x0.dtype, jnp.finfo(x0.dtype).eps
-    status = jnp.asarray(int(SimulationStatus.SUCCESS), jnp.int32)
+    status = initial_status(system, source, t0, tf, x0)
     if system.num_state_constraints:
         x0 = project_to_constraints(system, x0)
         residual = jnp.max(jnp.abs(system.state_constraints(x0)))
@@ -481,5 +498,6 @@ def run_simulation(system, solver, controller, source, t0, tf, x0, h0, dt_max, e
     return SimulatedTrajectory(
         state_trajectory=Trajectory(t_start, t_end, coefficients, count, side="left"), modes=modes,
         t_final=s.t, status=status, event_times=e.times, event_indices=e.indices, event_modes=e.modes,
-        event_states=e.states, num_events=e.count, num_rejected_steps=s.rejected, system=system,
+        event_states=e.states, num_events=e.count, num_rejected_steps=s.rejected,
+        num_accepted_steps=s.accepted, system=system,
         inputs=source, dense=dense)

@@ -23,7 +23,7 @@ class SimulatedTrajectory(eqx.Module):
     - `state_trajectory`: x(t) as a `Trajectory` (one piece per accepted step, in the
       solver's dense output; left-continuous at jumps, the notes' timing for discrete states).
     - `modes`: the hybrid mode of each piece.
-    - `t_final`, `status` (a `SimulationStatus`), `num_rejected_steps`.
+    - `t_final`, `status` (a `SimulationStatus`), `num_accepted_steps`, `num_rejected_steps`.
     - `event_times`, `event_indices`, `event_modes`, `event_states`, `num_events`: the
       events, in fixed-size buffers (`events` gives them on the host).
     - `system`, `inputs`: the simulated system and its input source, so `eval(t)` gives the
@@ -41,6 +41,7 @@ class SimulatedTrajectory(eqx.Module):
     event_states: jax.Array
     num_events: jax.Array
     num_rejected_steps: jax.Array
+    num_accepted_steps: jax.Array
     system: Any
     inputs: Any
     dense: bool = eqx.field(static=True, default=True)
@@ -77,8 +78,8 @@ class SimulatedTrajectory(eqx.Module):
 
     @property
     def num_steps(self) -> int:
-        """The number of accepted integration steps (pieces after the initial point)."""
-        return int(self.num_segments) - 1
+        """The number of accepted integration steps (also when `dense=False`)."""
+        return int(self.num_accepted_steps)
 
     def __getitem__(self, i) -> "SimulatedTrajectory":
         """Member i of a batch (the result of `jax.vmap(simulate...)`)."""

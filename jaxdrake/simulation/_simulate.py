@@ -18,6 +18,7 @@ import numpy as np
 from .._numbers import device_array
 from ..systems import Diagram, HybridSystem, System
 from ..systems._system import check_initialised
+from ..trajectories._trajectory import NUM_COEFFICIENTS
 from ._controller import ConstantStepSize, IController
 from ._inputs import NoisyInput, leaves_to_arrays, make_source
 from ._loop import run_simulation
@@ -81,7 +82,8 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     if x0 is None:
         x0 = system.initial_state()
     x0 = device_array(x0)
-    dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else dtype
+    # float16 / bfloat16 states are promoted: the step-size control needs float32 at least
+    dtype = jnp.promote_types(x0.dtype, jnp.float32) if jnp.issubdtype(x0.dtype, jnp.floating) else dtype
     x0 = x0.astype(dtype)
     nx = system.num_states
     if x0.shape == () and nx == 1:
@@ -100,6 +102,8 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     t0, tf = device_array(t0, dtype), device_array(tf, dtype)
     if _concrete(x0) and not np.all(np.isfinite(x0)):
         raise ValueError(f"x0 is not finite: {x0}")
+    if _concrete(x0):
+        system.check_initial_state(x0)
     source = make_source(system, inputs, t0, dtype)
     if system.is_stochastic:
         if key is None:
@@ -131,6 +135,14 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
         traj = _run_simulation(system, solver, controller, source, t0, tf, x0, arr(h0),
                                arr(jnp.inf if max_step_size is None else max_step_size), arr(event_tol),
                                max_steps, max_events, dense, constraint_projection, autodiff)
+    except jax.errors.JaxRuntimeError as error:
+        if "RESOURCE_EXHAUSTED" not in str(error):
+            raise
+        member = trajectory_bytes(nx, max_steps, max_events, dense, np.dtype(dtype).itemsize)
+        raise MemoryError(f"simulate: out of device memory; each simulated trajectory holds about {member:,} "
+                          f"bytes (dense={dense}, max_steps={max_steps}). For a large batch: "
+                          "simulate(..., dense=False) keeps only the final state, and "
+                          "jd.run_batch(fn, inputs, chunk_size=...) runs it in chunks") from error
     except TypeError as error:
         if "forward-mode autodiff" not in str(error):
             raise
@@ -140,12 +152,30 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     if throw and _concrete(traj.status):
         status = SimulationStatus(int(traj.status))
         if not SimulationStatus.is_success(status):
-            size = float(jnp.max(jnp.abs(traj.final_state))) if traj.final_state.size else 0.0
-            hint = system.failure_hint(traj.final_state)
-            raise SimulationError(status, f"simulating {system.name} over [{float(t0)}, {float(tf)}] "
-                                          f"stopped at t = {float(traj.t_final)!r} with max |x| = {size:.3g}: "
-                                          + (f"{hint} (status: {status.name})" if hint else status.message))
+            raise SimulationError(status, _failure_message(system, status, t0, tf, traj))
     return traj
+
+
+def trajectory_bytes(num_states: int, max_steps: int, max_events: int, dense: bool, itemsize: int) -> int:
+    """Bytes of one trajectory's buffers: per piece its polynomial (NUM_COEFFICIENTS x n),
+    start, end and mode; per event its state, time, index and mode."""
+    pieces = (max_steps + 1 if dense else 2) * (NUM_COEFFICIENTS * num_states + 3)
+    return (pieces + max_events * (num_states + 3)) * itemsize
+
+
+def _failure_message(system, status, t0, tf, traj) -> str:
+    """What failed, where and the remedy; values that are traced (under `jax.grad` outside
+    `jit` the status is concrete, the states are not) are left out."""
+    span = f" over [{float(t0)}, {float(tf)}]" if _concrete(t0, tf) else ""
+    where = f" stopped at t = {float(traj.t_final)!r}" if _concrete(traj.t_final) else " stopped"
+    if _concrete(traj.final_state):
+        size = float(jnp.max(jnp.abs(traj.final_state))) if traj.final_state.size else 0.0
+        hint = system.failure_hint(traj.final_state)
+        where += f" with max |x| = {size:.3g}"
+    else:
+        hint = None
+    return (f"simulating {system.name}{span}{where}: "
+            + (f"{hint} (status: {status.name})" if hint else f"{status.message} (status: {status.name})"))
 
 
 def _check_no_nan_parameters(system):

@@ -148,7 +148,7 @@ def _combine(weights, ks):
     whose order XLA may change under vmap), so a batched run agrees with single runs bit for
     bit."""
     total = None
-    for w, k in zip(np.asarray(weights, float), ks):
+    for w, k in zip(np.asarray(weights, float).tolist(), ks):  # Python floats: weakly typed
         if w != 0.0:
             total = w * k if total is None else total + w * k
     return jnp.zeros_like(ks[0]) if total is None else total

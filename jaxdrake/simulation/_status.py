@@ -15,6 +15,10 @@ class SimulationStatus(enum.IntEnum):
     TOO_MANY_EVENTS = 4
     CONSTRAINT_PROJECTION_FAILED = 5
     STOPPED_BY_RESET = 6  # a reset asked to stop (the notes' status): not a failure
+    INVALID_TIME_SPAN = 7
+    NONFINITE_INITIAL_STATE = 8
+    NONFINITE_INPUT = 9
+    NAN_PARAMETER = 10
 
     @property
     def message(self) -> str:
@@ -42,6 +46,14 @@ _MESSAGES = {
                                       "chattering?)",
     SimulationStatus.CONSTRAINT_PROJECTION_FAILED: "no state satisfying the state constraints "
                                                    "phi(x) = 0 was found near x0",
+    SimulationStatus.INVALID_TIME_SPAN: "the time span (t0, tf) is not finite with t0 < tf: nothing was "
+                                        "simulated",
+    SimulationStatus.NONFINITE_INITIAL_STATE: "the initial state x0 is not finite (NaN or inf): nothing "
+                                              "was simulated",
+    SimulationStatus.NONFINITE_INPUT: "the input u(t0) is not finite (NaN or inf): nothing was simulated "
+                                      "(check the input tape or function)",
+    SimulationStatus.NAN_PARAMETER: "a parameter of the system is NaN: nothing was simulated (check "
+                                    "the values given to the system, e.g. under vmap)",
 }
 
 

@@ -259,6 +259,10 @@ class Diagram(System):
                  for i, (name, system) in enumerate(zip(self.names, self.subsystems))]
         return "; ".join(f"{name}: {hint}" for name, hint in hints if hint) or None
 
+    def check_initial_state(self, x0):
+        for i, system in enumerate(self.subsystems):
+            system.check_initial_state(self.subsystem_state(i, x0))
+
     def initial_state(self):
         x = jnp.zeros(self.num_states)
         for i, s in enumerate(self.subsystems):

@@ -172,6 +172,11 @@ class System(eqx.Module):
         to its error message."""
         return None
 
+    def check_initial_state(self, x0) -> None:
+        """Warn about a (concrete) start state that the system can tell is questionable (a
+        rigid-body plant: a joint past its position limit); nothing by default. `simulate`
+        calls it before compiling."""
+
     def state_constraints(self, x):
         """Announced constraints $\\phi(x) = 0$ (size `num_state_constraints`)."""
         if self.num_state_constraints:

@@ -1,0 +1,160 @@
+"""Issue 39: every failure reported as what it is — inside and outside jit / vmap — and the
+reported bugs and silently accepted inputs, each from its repro line."""
+
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxdrake as jd
+from jaxdrake._batch import default_chunk_size, member_bytes
+from jaxdrake.models import Pendulum
+from jaxdrake.trajectories._trajectory import NUM_COEFFICIENTS
+
+S = jd.SimulationStatus
+X0 = jnp.array([1.0, 0.0])
+
+
+@jax.jit
+def _jitted(t0, tf, x0, b=0.1, u=0.0):  # one program for every case below
+    return jd.simulate(Pendulum(b=b), (t0, tf), x0, inputs=lambda t: jnp.full(1, u))
+
+
+def _jitted_status(t0, tf, x0, b=0.1, u=0.0):
+    return _jitted(*(jnp.asarray(v, float) for v in (t0, tf, x0, b, u)))
+
+
+@pytest.mark.parametrize("t0, tf", [(1.0, 0.0), (0.0, np.nan), (0.0, np.inf), (0.5, 0.5)])
+def test_an_invalid_time_span_inside_jit_is_a_status(t0, tf):
+    traj = _jitted_status(t0, tf, X0)
+    assert S(int(traj.status)) == S.INVALID_TIME_SPAN and not traj.success
+    assert int(traj.num_steps) == 0 and "t0 < tf" in S.INVALID_TIME_SPAN.message
+
+
+@pytest.mark.parametrize("x0, b, u, expected", [
+    (jnp.array([np.nan, 0.0]), 0.1, 0.0, S.NONFINITE_INITIAL_STATE),
+    (X0, 0.1, np.nan, S.NONFINITE_INPUT),
+    (X0, np.nan, 0.0, S.NAN_PARAMETER)])
+def test_non_finite_values_stop_at_once_inside_jit_and_vmap(x0, b, u, expected):
+    traj = _jitted_status(0.0, 1.0, x0, b, u)
+    assert S(int(traj.status)) == expected and int(traj.num_steps) == 0  # no max_steps burnt
+    batch = jax.vmap(lambda x, b: jd.simulate(Pendulum(b=b), (0.0, 1.0), x, inputs=lambda t: jnp.full(1, u)))(
+        jnp.stack([X0, x0]), jnp.array([0.1, b]))
+    assert [S(int(s)) for s in batch.status] == [S.SUCCESS if u == 0.0 else S.NONFINITE_INPUT, expected]
+
+
+def test_outside_jit_the_same_inputs_are_named_errors():
+    with pytest.raises(ValueError, match="t0 < tf"):
+        jd.simulate(Pendulum(), (1.0, 0.0), X0)
+    with pytest.raises(ValueError, match="x0 is not finite"):
+        jd.simulate(Pendulum(), (0.0, 1.0), jnp.array([np.nan, 0.0]))
+    with pytest.raises(ValueError, match=r"Pendulum\.b is NaN"):
+        jd.simulate(Pendulum(b=np.nan), (0.0, 1.0), X0)
+    with pytest.raises(jd.SimulationError, match="NONFINITE_INPUT"):
+        jd.simulate(Pendulum(), (0.0, 1.0), X0, inputs=lambda t: jnp.full(1, jnp.nan))
+
+
+def test_grad_through_a_failing_simulation_raises_its_own_error_outside_jit_and_a_status_inside():
+    def loss(x0):
+        return jd.simulate(Pendulum(), (0.0, 10.0), x0, max_steps=5).final_state[0]
+
+    with pytest.raises(jd.SimulationError, match="max_steps was reached") as caught:
+        jax.grad(loss)(X0)
+    assert caught.value.status == S.MAX_STEPS_REACHED
+    assert np.all(np.isfinite(jax.jit(jax.grad(loss))(X0)))  # inside jit: no error raised ...
+    traj = jax.jit(lambda x0: jd.simulate(Pendulum(), (0.0, 10.0), x0, max_steps=5))(X0)
+    assert S(int(traj.status)) == S.MAX_STEPS_REACHED  # ... the status is on the result
+
+
+def test_num_steps_counts_accepted_steps_also_when_not_dense():
+    dense = jd.simulate(Pendulum(), (0.0, 3.0), X0)
+    sparse = jd.simulate(Pendulum(), (0.0, 3.0), X0, dense=False)
+    assert int(sparse.num_steps) == int(dense.num_steps) == int(dense.num_segments) - 1 > 10
+
+
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16, jnp.float32])
+def test_low_precision_initial_states_are_promoted_to_float32_at_least(dtype):
+    traj = jd.simulate(Pendulum(b=0.0), (0.0, 1.0), X0.astype(dtype))
+    assert traj.final_state.dtype == jnp.float32
+    # energy m g l (1 - cos 1) conserved to the float32 tolerance of the run
+    reference = jd.simulate(Pendulum(b=0.0), (0.0, 1.0), X0)
+    np.testing.assert_allclose(traj.final_state, reference.final_state, atol=1e-4)
+
+
+def test_a_lone_free_floating_body_falls_freely(tmp_path):
+    urdf = tmp_path / "one.urdf"
+    urdf.write_text('<robot name="one"><link name="body"><inertial><mass value="2"/><inertia ixx="0.1" '
+                    'iyy="0.2" izz="0.3" ixy="0" ixz="0" iyz="0"/></inertial></link></robot>')
+    body = jd.RigidBodySystem.from_urdf(urdf, floating_base=True)
+    traj = jd.simulate(body, (0.0, 1.0))
+    np.testing.assert_allclose(traj.final_state[:3], [0.0, 0.0, -0.5 * 9.81], atol=1e-9)  # z = -g t^2 / 2
+
+
+def test_a_mujoco_model_without_degrees_of_freedom_says_so():
+    mujoco = pytest.importorskip("mujoco")
+    model = mujoco.MjModel.from_xml_string('<mujoco><worldbody><geom type="plane" size="1 1 0.1"/>'
+                                           '<body><geom type="sphere" size="0.1"/></body></worldbody></mujoco>')
+    with pytest.raises(ValueError, match="no degrees of freedom.*<joint>"):
+        jd.MujocoSystem(model)
+
+
+def test_lqr_refuses_cost_weights_that_make_the_cost_unbounded():
+    upright = dict(x0=[np.pi, 0.0])
+    for Q in (-np.eye(2), np.diag([1.0, -1.0])):
+        with pytest.raises(ValueError, match="Q must be positive semidefinite.*-1"):
+            jd.control.lqr(Pendulum(), Q, np.eye(1), **upright)
+    with pytest.raises(ValueError, match="symmetric"):
+        jd.control.lqr(Pendulum(), np.array([[1.0, 1.0], [0.0, 1.0]]), np.eye(1), **upright)
+    with pytest.raises(ValueError, match=r"\[\[Q, N\], \[N\^T, R\]\] must be positive semidefinite"):
+        jd.control.lqr(Pendulum(), np.eye(2), np.eye(1), N=np.array([[2.0], [0.0]]), **upright)
+    with pytest.raises(ValueError, match="Qf must be positive semidefinite"):
+        jd.control.finite_horizon_lqr(Pendulum(), np.eye(2), np.eye(1), (0.0, 1.0), Qf=-np.eye(2))
+
+
+def test_a_start_past_a_joint_limit_is_warned_once_and_the_default_start_is_inside():
+    panda = jd.models.Panda()
+    lower, upper = np.asarray(panda.tree.position_lower), np.asarray(panda.tree.position_upper)
+    q = np.asarray(panda.initial_state())[:7]
+    assert np.all((lower <= q) & (q <= upper))  # joint 4's zero is past its upper limit -0.0698
+    x0 = panda.initial_state().at[3].set(0.5)
+    with pytest.warns(UserWarning, match=r"'panda_joint4' at 0\.5, past its upper limit -0\.0698"):
+        jd.simulate(panda, (0.0, 0.01), x0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        jd.simulate(panda, (0.0, 0.01), x0)  # once per joint
+
+
+def test_out_of_memory_names_dense_false_and_chunk_size(monkeypatch):
+    from jaxdrake.simulation import _simulate
+
+    def exhausted(*args, **kwargs):
+        raise jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 61.4GiB")
+
+    monkeypatch.setattr(_simulate, "_run_simulation", exhausted)
+    pieces, events = 4097 * (NUM_COEFFICIENTS * 2 + 3), 256 * (2 + 3)  # polynomial, times, mode / state, ...
+    with pytest.raises(MemoryError, match=rf"about {(pieces + events) * 8:,} bytes.*dense=False.*chunk_size"):
+        jd.simulate(Pendulum(), (0.0, 1.0), X0)
+
+
+def test_run_batch_picks_a_chunk_from_free_memory_and_names_out_of_memory(monkeypatch):
+    from jaxdrake import _batch
+
+    def final(x0):
+        return jd.simulate(Pendulum(), (0.0, 1.0), x0).final_state
+
+    member = jax.ShapeDtypeStruct((2,), jnp.float64)
+    # the dense buffers inside the loop dominate, though only the final state is returned
+    assert member_bytes(final, member) >= 3 * 4097 * NUM_COEFFICIENTS * 2 * 8
+    monkeypatch.setattr(_batch, "free_memory", lambda device: 40 * member_bytes(final, member))
+    assert default_chunk_size(final, member, jax.devices()[:1]) == 10
+    x0 = np.random.default_rng(0).uniform(-2, 2, (25, 2))
+    np.testing.assert_allclose(jd.run_batch(final, x0), jax.vmap(final)(x0), atol=1e-12)  # 3 chunks
+
+    def exhausted(*args):
+        raise jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory")
+
+    monkeypatch.setattr(_batch, "_program", lambda fn, devices, gather: (exhausted, _batch.batch_sharding(devices)))
+    with pytest.raises(MemoryError, match="chunk of 10 members.*bytes per member.*chunk_size.*dense=False"):
+        jd.run_batch(final, x0)
