@@ -132,11 +132,23 @@ def scene_transforms(commands, prefix):
     return out
 
 
+def robot_packages():
+    """The `package_map` of example-robot-data's URDFs (`package://example-robot-data/robots/...`)."""
+    import importlib.metadata
+
+    share = importlib.metadata.distribution("example-robot-data").locate_file("cmeel.prefix/share/example-robot-data")
+    return {"example-robot-data": str(share)}
+
+
 def test_meshcat_scene_places_every_link_at_its_frame_pose_with_its_meshes():
     meshcat = pytest.importorskip("meshcat")
     panda = jd.models.Panda()
     recorder = jd.viz.SceneRecorder()
-    vis = jd.viz.MeshcatVisualizer(panda, scene=meshcat.Visualizer(window=recorder))
+    with pytest.raises(jd.multibody.URDFError, match="link 'panda_link0'.*names package 'example-robot-data'; "
+                       "pass package_map="):  # package folders are never searched for
+        jd.viz.MeshcatVisualizer(panda, scene=meshcat.Visualizer(window=jd.viz.SceneRecorder())).draw(
+            jnp.zeros(14))
+    vis = jd.viz.MeshcatVisualizer(panda, scene=meshcat.Visualizer(window=recorder), package_map=robot_packages())
     assert isinstance(visualizer_for(panda), jd.viz.MeshcatVisualizer)
     assert isinstance(visualizer_for(panda, plane="xz"), PlanarRigidBodyVisualizer)
     assert isinstance(visualizer_for(jd.models.Acrobot()), PlanarRigidBodyVisualizer)  # the notes' plants stay planar
@@ -224,7 +236,7 @@ def test_urdf_robot_movies_rendered_by_mujoco_put_links_where_the_camera_sees_th
     direct = vis.images(np.asarray(traj.state(jnp.arange(5) / 10)))
     assert np.mean(np.abs(frames[3][..., :3].astype(float) - direct[3])) < 8  # the GIF's palette
     panda = jd.models.Panda()
-    robot = jd.viz.MeshcatVisualizer(panda, width=160, height=120).images(
+    robot = jd.viz.MeshcatVisualizer(panda, width=160, height=120, package_map=robot_packages()).images(
         jnp.concatenate([panda.tree.neutral_configuration(), jnp.zeros(7)])[None])[0]
     assert robot.std() > 10  # meshes on the floor, not an empty frame
 
@@ -277,3 +289,59 @@ def test_meshcat_draws_each_active_contact_as_an_arrow_of_its_force(tmp_path):
     forces = np.linalg.norm(np.asarray(results.force[:, 0]), axis=1)
     np.testing.assert_array_equal(visible, np.asarray(results.active[:, 0]) & (forces > 0.01))
     np.testing.assert_allclose(np.where(visible, lengths, 0.0), np.where(visible, forces / 50.0, 0.0), rtol=1e-9)
+
+
+def _listening(pid):
+    """The (ip, port) pairs process `pid` listens on (TCP)."""
+    import psutil
+
+    return {(c.laddr.ip, c.laddr.port) for c in psutil.Process(pid).net_connections(kind="inet")
+            if c.status == psutil.CONN_LISTEN}
+
+
+def test_the_live_meshcat_server_listens_on_127_0_0_1_only_and_stops_with_close():
+    pytest.importorskip("meshcat")
+    pytest.importorskip("psutil")
+    vis = jd.viz.MeshcatVisualizer(jd.models.Acrobot())
+    url = vis.url()
+    server = vis._connection["server"]
+    sockets = _listening(server.pid)
+    assert len(sockets) == 2 and {ip for ip, _ in sockets} == {"127.0.0.1"}, sockets  # ZeroMQ and the web page
+    assert url.startswith("http://127.0.0.1:") and int(url.split(":")[2].split("/")[0]) in {p for _, p in sockets}
+    vis.close()
+    assert server.poll() is not None and vis._connection["server"] is None
+
+
+def test_the_meshcat_server_ends_when_its_parent_is_killed():
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    pytest.importorskip("meshcat")
+    psutil = pytest.importorskip("psutil")
+    server_file = pathlib.Path(jd.viz.__file__).parent / "_meshcat_server.py"
+    parent = subprocess.Popen([sys.executable, "-c", f"""
+import importlib.util, time
+spec = importlib.util.spec_from_file_location("server", {str(server_file)!r})
+server = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(server)
+print(server.start()[0].pid, flush=True)
+time.sleep(60)
+"""], stdout=subprocess.PIPE)
+    try:
+        pid = int(parent.stdout.readline())
+        assert {ip for ip, _ in _listening(pid)} == {"127.0.0.1"}
+        parent.send_signal(signal.SIGKILL)  # no atexit, no cleanup: only the pipe's end-of-file
+        parent.wait()
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            if not psutil.pid_exists(pid) or psutil.Process(pid).status() == psutil.STATUS_ZOMBIE:
+                break
+            time.sleep(0.05)
+        else:
+            psutil.Process(pid).kill()
+            pytest.fail("the MeshCat server outlived its killed parent")
+    finally:
+        parent.kill()
+        parent.wait()

@@ -1,9 +1,9 @@
 r"""3-D scenes of URDF robots in MeshCat, the browser viewer Drake uses (meshcat-python: a
-server on 127.0.0.1, the three.js viewer in the browser, no network).
+server on 127.0.0.1 that ends with its parent, `_meshcat_server.py`; the three.js viewer in
+the browser, no network).
 
 The scene holds each URDF link's `<visual>` elements (boxes, cylinders, spheres; meshes sent
-as their files — `.dae`, `.obj`, `.stl` — for the browser to load, `package://` paths
-resolved by yourdfpy's search next to the URDF), or, for a URDF without any visual, a
+as their files — `.dae`, `.obj`, `.stl` — for the browser to load), or, for a URDF without any visual, a
 skeleton: a sphere at each link's origin and a rod to each link attached to it. A state x places every link at its
 world pose $T_\ell(q) = [R_\ell(q), p_\ell(q)]$ (`RigidBodySystem.frame_pose`, all links in one
 vmappable JAX function, `link_transforms`). A trajectory becomes a MeshCat animation: frames at
@@ -19,22 +19,26 @@ negated where that one is fixed to the world, so ground contacts point up), $|f|
 `newtons_per_meter` long; candidates not touching, or whose force is below
 `force_threshold`, are hidden. The arrows are animated with the robot (position,
 orientation, length, visibility per frame). MuJoCo's movies show the robot only.
+
+The URDF is untrusted input: its XML is read without DTD or entities, its mesh files only from
+inside its folder or a `package_map` folder (`jaxdrake.multibody.resolve_model_file`, the
+rule `from_urdf` follows), and its names reach a saved page only escaped or base64-encoded.
 """
 
 from __future__ import annotations
 
 import base64
-import functools
 import html
+import io
 import pathlib
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ..multibody import ContactModel, RigidBodySystem
+from ..multibody import ContactModel, KinematicTree, RigidBodySystem, URDFError, parse_xml, resolve_model_file
 from ..multibody import _algorithms as alg
-from ..multibody._tree import KinematicTree
+from . import _meshcat_server
 from ._visualizer import DRAW_PERIOD, Visualizer, _in_notebook, batched
 
 _GREY, _SKELETON, _FORCE = 0xA0A0A8, 0x4C72B0, 0x2CA02C
@@ -97,8 +101,9 @@ def _material(visual, materials):
     return g.MeshLambertMaterial(color=rgb, opacity=float(color[3]), transparent=bool(color[3] < 1))
 
 
-def _geometry(visual, resolve):
-    """(MeshCat geometry, its 4x4 placement in the link frame) of a URDF <visual>."""
+def _geometry(visual, mesh_file):
+    """(MeshCat geometry, its 4x4 placement in the link frame) of a URDF <visual>; `mesh_file`:
+    its mesh's filename -> the file (checked)."""
     import meshcat.geometry as g
 
     origin = np.eye(4) if visual.origin is None else np.asarray(visual.origin, float)
@@ -111,12 +116,10 @@ def _geometry(visual, resolve):
         along_z = _transform(np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]), np.zeros(3))
         return g.Cylinder(float(shape.cylinder.length), float(shape.cylinder.radius)), origin @ along_z
     if shape.mesh is not None:
-        path = pathlib.Path(resolve(shape.mesh.filename))
+        path = mesh_file(shape.mesh.filename)
         kind = path.suffix.lower().lstrip(".")
-        if kind not in ("dae", "obj", "stl") or not path.exists():
-            raise FileNotFoundError(f"mesh {shape.mesh.filename!r}: found {path} " +
-                                    ("which does not exist" if not path.exists() else f"of an unsupported kind .{kind}") +
-                                    "; MeshCat loads .dae, .obj and .stl files")
+        if kind not in ("dae", "obj", "stl"):
+            raise ValueError(f"mesh {shape.mesh.filename!r} is a .{kind} file; MeshCat loads .dae, .obj and .stl files")
         contents = path.read_bytes() if kind == "stl" else path.read_text()
         scale = np.ones(3) if shape.mesh.scale is None else np.broadcast_to(np.asarray(shape.mesh.scale, float), 3)
         return g.MeshGeometry(contents, kind), origin @ np.diag([*scale, 1.0])
@@ -129,9 +132,12 @@ class MeshcatVisualizer(Visualizer):
     `playback(traj, rate)`, `save(traj, "robot.html")`.
 
     `scene`: the `meshcat.Visualizer` to draw into (for instance one built on a
-    `SceneRecorder` window); by default one that starts its own server on 127.0.0.1 at the
-    first draw (its address: `url()`). `urdf`: the file whose `<visual>` elements to show
-    (default: the one the plant was loaded from). `prefix`: the scene path of this robot.
+    `SceneRecorder` window); by default one that starts its own server at the first draw,
+    listening on `host` (127.0.0.1: this machine only) and ending with this process or at
+    `close()` (its address: `url()`). `urdf`: the file whose `<visual>` elements to show
+    (default: the one the plant was loaded from); its meshes are read from its folder, or
+    for `package://NAME/...` from `package_map[NAME]`, nowhere else (as `from_urdf`'s).
+    `prefix`: the scene path of this robot.
     `save(traj, "robot.gif" or ".mp4")` writes a movie (`width` x `height`) rendered offscreen
     by MuJoCo from the same visuals (`render`, `images`).
 
@@ -151,6 +157,7 @@ class MeshcatVisualizer(Visualizer):
     _connection: dict = eqx.field(static=True)
 
     def __init__(self, plant: RigidBodySystem, *, urdf=None, scene=None, prefix: str | None = None,
+                 package_map=None, host: str = "127.0.0.1",
                  width: int = 640, height: int = 480, draw_period: float = DRAW_PERIOD,
                  contact_forces: bool = False, newtons_per_meter: float = 10.0, force_threshold: float = 0.01):
         if not isinstance(plant, RigidBodySystem):
@@ -171,8 +178,9 @@ class MeshcatVisualizer(Visualizer):
                              f"{newtons_per_meter} and {force_threshold}")
         self.contact = plant.contact if contact_forces else None
         self.newtons_per_meter, self.force_threshold = float(newtons_per_meter), float(force_threshold)
-        self._connection = {"urdf": pathlib.Path(urdf), "scene": scene,
-                            "prefix": prefix or plant.name, "loaded": False, "arrows_loaded": False}
+        self._connection = {"urdf": pathlib.Path(urdf), "scene": scene, "package_map": dict(package_map or {}),
+                            "host": str(host), "server": None, "prefix": prefix or plant.name, "loaded": False,
+                            "arrows_loaded": False}
 
     # ----- kinematics (JAX) -----------------------------------------------------------------
 
@@ -222,7 +230,8 @@ class MeshcatVisualizer(Visualizer):
         connection = self._connection
         if connection["scene"] is None:
             meshcat = _meshcat()
-            connection["scene"] = meshcat.Visualizer()
+            connection["server"], zmq_url, _ = _meshcat_server.start(connection["host"])
+            connection["scene"] = meshcat.Visualizer(zmq_url=zmq_url)
         if not connection["loaded"]:
             self._load(connection["scene"][connection["prefix"]])
             connection["loaded"] = True
@@ -232,16 +241,39 @@ class MeshcatVisualizer(Visualizer):
         """The address of the live viewer (open it in a browser)."""
         return self.scene.url()
 
+    def close(self) -> None:
+        """Stop the server this visualizer started (if any); the next draw starts a new one."""
+        connection = self._connection
+        if connection["server"] is not None:
+            _meshcat_server.stop(connection["server"])
+            connection.update(server=None, scene=None, loaded=False, arrows_loaded=False)
+
     def _urdf_visuals(self):
-        """({link: its <visual> elements}, {material name: material}, the mesh path resolver)
-        of the URDF, read by yourdfpy."""
+        """({link: its <visual> elements}, {material name: material}, `mesh_file(link, filename)`)
+        of the URDF: the text checked by `parse_xml` (no DTD, no entities), then read by
+        yourdfpy from that same text, without touching any file."""
         import yourdfpy
 
         path = self._connection["urdf"]
-        model = yourdfpy.URDF.load(str(path), build_scene_graph=False, load_meshes=False,
-                                   filename_handler=functools.partial(yourdfpy.filename_handler_magic, dir=str(path.parent)))
+        try:
+            data = path.read_bytes()
+        except OSError as e:
+            raise URDFError(f"cannot read URDF {path}: {e}") from None
+        parse_xml(data, path, URDFError)
+        model = yourdfpy.URDF.load(io.BytesIO(data), build_scene_graph=False, load_meshes=False,
+                                   filename_handler=yourdfpy.filename_handler_null)
         return ({link.name: link.visuals for link in model.robot.links}, {m.name: m for m in model.robot.materials},
-                model._filename_handler)
+                self._mesh_file)
+
+    def _mesh_file(self, link: str, filename: str) -> pathlib.Path:
+        """The mesh file a `<visual>` of `link` names, inside the URDF's folder or a `package_map`
+        folder (else a `URDFError` naming the link and the remedy); a `.dae` (XML) also parsed
+        without DTD or entities before a reader sees it."""
+        path = resolve_model_file(filename, self._connection["urdf"], f"link {link!r}: <visual> <mesh>", URDFError,
+                                  package_map=self._connection["package_map"])
+        if path.suffix.lower() == ".dae":
+            parse_xml(path.read_bytes(), path, URDFError)
+        return path
 
     def _arrow_nodes(self, count: int):
         """The scene node of this robot's `count` contact arrows (one per candidate contact,
@@ -266,11 +298,11 @@ class MeshcatVisualizer(Visualizer):
     def _load(self, robot):
         import meshcat.geometry as g
 
-        visuals, materials, resolve = self._urdf_visuals()
+        visuals, materials, mesh_file = self._urdf_visuals()
         if any(visuals.values()):
             for name in self.links:
                 for k, visual in enumerate(visuals.get(name, [])):
-                    geometry, placement = _geometry(visual, resolve)
+                    geometry, placement = _geometry(visual, lambda filename: mesh_file(name, filename))
                     robot[name][f"visual{k}"].set_object(geometry, _material(visual, materials))
                     robot[name][f"visual{k}"].set_transform(placement)
             return
@@ -390,9 +422,9 @@ class MeshcatVisualizer(Visualizer):
 
         connection = self._connection
         if "puppet" not in connection:
-            visuals, materials, resolve = self._urdf_visuals()
+            visuals, materials, mesh_file = self._urdf_visuals()
             skeleton = {} if any(visuals.values()) else self._skeleton()
-            connection["puppet"] = puppet_model(self.links, visuals, materials, resolve, skeleton,
+            connection["puppet"] = puppet_model(self.links, visuals, materials, mesh_file, skeleton,
                                                  self._neutral_transforms(), self.tree.has_floating_base)
         model, camera = connection["puppet"]
         return render_frames(model, camera, self.frame_transforms(xs), self.height, self.width)

@@ -18,8 +18,9 @@ from ._meshcat import urdf_color
 _GREY = (0.63, 0.63, 0.66, 1.0)
 
 
-def _add_visual(mujoco, spec, body, visual, materials, resolve, name):
-    """One URDF <visual> as a geom of `body` (a MuJoCo mesh asset for a mesh)."""
+def _add_visual(mujoco, spec, body, visual, materials, mesh_file, name):
+    """One URDF <visual> as a geom of `body` (a MuJoCo mesh asset for a mesh, the file given by
+    `mesh_file(filename)`)."""
     import trimesh
 
     origin = np.eye(4) if visual.origin is None else np.asarray(visual.origin, float)
@@ -37,7 +38,7 @@ def _add_visual(mujoco, spec, body, visual, materials, resolve, name):
         geom.type = mujoco.mjtGeom.mjGEOM_CYLINDER
         geom.size = [float(shape.cylinder.radius), float(shape.cylinder.length) / 2, 0]
     elif shape.mesh is not None:
-        path = resolve(shape.mesh.filename)
+        path = mesh_file(shape.mesh.filename)
         mesh = trimesh.load(path, force="mesh")  # a scene (.dae, .glb) flattened into one mesh
         scale = np.ones(3) if shape.mesh.scale is None else np.broadcast_to(np.asarray(shape.mesh.scale, float), 3)
         spec.add_mesh(name=name, uservert=(np.asarray(mesh.vertices) * scale).ravel(),
@@ -47,11 +48,11 @@ def _add_visual(mujoco, spec, body, visual, materials, resolve, name):
         raise ValueError(f"a <visual> without geometry ({visual.name})")
 
 
-def puppet_model(links, visuals, materials, resolve, skeleton, neutral, floating: bool):
+def puppet_model(links, visuals, materials, mesh_file, skeleton, neutral, floating: bool):
     """A MuJoCo model with one mocap body per link (in `links` order, the root first), and its
     camera.
 
-    `visuals`: {link: [URDF <visual>]}; when none has any, `skeleton` ({link: offsets in its
+    `visuals`: {link: [URDF <visual>]} (`mesh_file(link, filename)`: a mesh's file); when none has any, `skeleton` ({link: offsets in its
     frame}) gives a sphere per link and a capsule to each attached link. `neutral`: the links'
     4x4 world poses at the neutral configuration. The camera frames the reach of a fixed-base
     robot (the sphere about its root through its farthest link at the neutral pose, above
@@ -79,7 +80,8 @@ def puppet_model(links, visuals, materials, resolve, skeleton, neutral, floating
         body = world.add_body(name=f"link{i}", mocap=True)
         if drawn:
             for k, visual in enumerate(visuals.get(link, [])):
-                _add_visual(mujoco, spec, body, visual, materials, resolve, f"mesh{i}_{k}")
+                _add_visual(mujoco, spec, body, visual, materials, lambda filename: mesh_file(link, filename),
+                            f"mesh{i}_{k}")
             continue
         body.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.03, 0, 0], rgba=[0.3, 0.45, 0.69, 1],
                       contype=0, conaffinity=0)
