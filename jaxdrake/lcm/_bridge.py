@@ -33,6 +33,7 @@ from ..simulation import discrete_step
 from ..systems import System
 from ..systems._system import require_plain_system
 from ._coders import MessageError, SignalCoder
+from ._relay import RELAY_ERROR_CHANNEL
 
 log = logging.getLogger("jaxdrake.lcm")
 
@@ -72,8 +73,13 @@ def restore_signals(previous: dict):
         signal.signal(sig, handler)
 
 
+def _log_relay_error(channel, data):
+    log.error("the LCM relay refused a request: %s", data.decode("utf-8", "replace"))
+
+
 def open_lcm(url):
-    """An `lcm.LCM` on `url` (or `url` itself, an existing instance), TCP_NODELAY on tcpq."""
+    """An `lcm.LCM` on `url` (or `url` itself, an existing instance); on tcpq, TCP_NODELAY set
+    and the relay's refusals (`RELAY_ERROR_CHANNEL`) logged as errors when handled."""
     import lcm
 
     if isinstance(url, lcm.LCM):
@@ -84,6 +90,7 @@ def open_lcm(url):
     connection = lcm.LCM(url)
     if url.startswith("tcpq://"):
         _no_delay(connection)
+        connection.subscribe(RELAY_ERROR_CHANNEL, _log_relay_error)
     return connection
 
 
