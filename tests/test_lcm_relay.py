@@ -18,8 +18,8 @@ import pytest
 from jaxdrake.lcm import LoopbackRelay
 from jaxdrake.lcm._bridge import open_lcm
 from jaxdrake.lcm._channels import ChannelPattern, PatternError
-from jaxdrake.lcm._relay import (MAGIC_CLIENT, MAGIC_SERVER, PUBLISH, RELAY_ERROR_CHANNEL, SUBSCRIBE, UNSUBSCRIBE,
-                                 VERSION)
+from jaxdrake.lcm._relay import (MAGIC_CLIENT, MAGIC_SERVER, MAX_SUBSCRIPTIONS, PUBLISH, RELAY_ERROR_CHANNEL, SUBSCRIBE,
+                                 UNSUBSCRIBE, VERSION)
 
 
 def recv_exactly(sock, size):
@@ -146,6 +146,9 @@ def test_an_invalid_pattern_is_answered_to_that_client_without_a_traceback(capfd
         send(client, PUBLISH, "c" * 256, b"")
         assert "longer than 255" in receive(client)[1].decode()
         subscribed(client, "STILL_HERE", "STILL_HERE")  # the connection lives on
+        for _ in range(MAX_SUBSCRIPTIONS):  # one more than the limit, with STILL_HERE
+            send(client, SUBSCRIBE, "MANY")
+        assert f"more than {MAX_SUBSCRIPTIONS} subscriptions" in receive(client)[1].decode()
     err = capfd.readouterr().err
     assert "Traceback" not in err and "Exception in thread" not in err
 

@@ -13,11 +13,12 @@ Every client is a peer the hub does not trust:
 - each client has its own queue of at most `queue_bytes` and its own writer thread: a client
   that reads slowly loses its own oldest messages (counted in `dropped`, logged once per
   client), never delays the others;
-- a request the hub refuses (a pattern outside the language, a channel name longer than
-  `MAX_LENGTH`, a PUBLISH on `RELAY_ERROR_CHANNEL`) is answered with a PUBLISH frame on
-  `RELAY_ERROR_CHANNEL` whose data is the reason in UTF-8, sent to that client only. Any tcpq
-  client reads it as an ordinary message (LCM's C client drops it unless subscribed; jaxdrake's
-  `open_lcm` subscribes and logs it); only the hub publishes there.
+- a request the hub refuses (a pattern outside the language, more than `MAX_SUBSCRIPTIONS`
+  patterns, a channel name longer than `MAX_LENGTH`, a PUBLISH on `RELAY_ERROR_CHANNEL`) is
+  answered with a PUBLISH frame on `RELAY_ERROR_CHANNEL` whose data is the reason in UTF-8,
+  sent to that client only. Any tcpq client reads it as an ordinary message (LCM's C client
+  drops it unless subscribed; jaxdrake's `open_lcm` subscribes and logs it); only the hub
+  publishes there.
 
 The hub binds 127.0.0.1 unless `host` names another address.
 """
@@ -37,6 +38,7 @@ log = logging.getLogger("jaxdrake.lcm")
 MAGIC_SERVER, MAGIC_CLIENT, VERSION = 0x287617FA, 0x287617FB, 0x0100
 PUBLISH, SUBSCRIBE, UNSUBSCRIBE = 1, 2, 3
 RELAY_ERROR_CHANNEL = "JAXDRAKE_RELAY_ERROR"
+MAX_SUBSCRIPTIONS = 1024  # per client: every PUBLISH is matched against all of them
 HANDSHAKE_TIMEOUT = 5.0  # s; a client silent this long after connecting is dropped
 _CHUNK = 1 << 20  # read at most this much at a time: a length prefix never allocates by itself
 
@@ -250,6 +252,8 @@ class LoopbackRelay:
                 client.refuse(f"channel name longer than {MAX_LENGTH} characters: {channel[:40]!r}...")
             else:
                 self._forward(channel, data)
+        elif kind == SUBSCRIBE and len(client.patterns) >= MAX_SUBSCRIPTIONS:
+            client.refuse(f"subscription {channel[:MAX_LENGTH]!r} refused: more than {MAX_SUBSCRIPTIONS} subscriptions")
         elif kind == SUBSCRIBE:
             try:
                 client.patterns += (ChannelPattern(channel),)
