@@ -1,11 +1,14 @@
 """LCM: coders between message types and vectors (`jaxdrake.lcmtypes` holds the `lcm-gen`
 bindings of the definitions in the top-level `lcmtypes/`), attached to frames with
-`Frame.with_coder`."""
+`Frame.with_coder`; nodes (`LcmNode`, `LcmViewer`) that run systems on an LCM network; and
+`LoopbackRelay`, a tcpq hub on 127.0.0.1 that answers the requests it refuses on
+`RELAY_ERROR_CHANNEL`."""
 
 from ._bridge import LcmNode, NodeStatistics
 from ._viewer import LcmViewer, ViewerStatistics
-from ._relay import LoopbackRelay
+from ._relay import RELAY_ERROR_CHANNEL, LoopbackRelay
 from ._coders import (LcmCoder, MessageError, RobotCommandCoder, RobotStateCoder, SignalCoder,
                       TypeCoder)
 
-__all__ = ["LcmCoder", "LcmNode", "LcmViewer", "LoopbackRelay", "NodeStatistics", "MessageError", "RobotCommandCoder", "RobotStateCoder", "SignalCoder", "TypeCoder", "ViewerStatistics"]
+__all__ = ["LcmCoder", "LcmNode", "LcmViewer", "LoopbackRelay", "NodeStatistics", "MessageError", "RELAY_ERROR_CHANNEL",
+           "RobotCommandCoder", "RobotStateCoder", "SignalCoder", "TypeCoder", "ViewerStatistics"]
