@@ -75,33 +75,36 @@ def resolve_model_file(filename, model, where: str, error: type[Exception], *, p
     """The file that `filename` (as written in the robot file `model`) names, resolved.
 
     A relative path is taken from `base` (default: the model's folder; e.g. MuJoCo's
-    `meshdir` inside it), `package://NAME/rest` from `package_map[NAME]`; the result, every
+    `meshdir` inside it), `package://NAME/rest` from `package_map[NAME]` (`package_map` None:
+    the format has no packages, as MJCF); the result, every
     symbolic link followed, must lie inside the model's folder (or that package folder).
     Absolute paths, other URIs and escapes are refused with `error` naming `model`, `where`
     (the element), the filename and the remedy; so is a missing file when `must_exist`."""
     model = pathlib.Path(model)
-    root = model.resolve().parent
+    root, folder = model.resolve().parent, "the model's folder"
     text = str(filename or "")
+    or_package = "" if package_map is None else ", or pass its package's folder as package_map="
     if not text:
         raise error(f"{model}: {where}: no filename given")
-    if text.startswith("package://"):
+    if text.startswith("package://") and package_map is not None:
         package, _, relative = text[len("package://"):].partition("/")
-        if package not in (package_map or {}):
+        if package not in package_map:
             raise error(f"{model}: {where}: {text!r} names package {package!r}; pass "
                         f"package_map={{{package!r}: '/path/to/{package}'}} to say which folder it is "
                         "(package folders are never searched for)")
         root = start = pathlib.Path(package_map[package]).resolve()
+        folder = f"the folder of package {package!r}"
     elif _SCHEME.match(text) or pathlib.PurePosixPath(text).is_absolute() or pathlib.PureWindowsPath(text).is_absolute():
         raise error(f"{model}: {where}: {text!r} is not a path relative to the model's folder (absolute "
                     "paths and URIs such as file:// or http:// are not read); move the file into the "
-                    f"folder {root} and name it relative to it, or use package://NAME/... with package_map=")
+                    f"folder {root} and name it relative to it{or_package}")
     else:
         relative, start = text, root if base is None else pathlib.Path(base)
     target = (start / relative).resolve()
     if target != root and root not in target.parents:
-        raise error(f"{model}: {where}: {text!r} resolves to {target}, outside the model's folder {root}; "
-                    "only files inside it are read: move the file into the folder (a symbolic link "
-                    "out of it does not count), or pass its package's folder as package_map=")
+        raise error(f"{model}: {where}: {text!r} resolves to {target}, outside {folder} {root}; only files "
+                    f"inside it are read: move the file into the folder (a symbolic link out of it does not "
+                    f"count){or_package}")
     if must_exist and not target.is_file():
         raise error(f"{model}: {where}: {text!r}: the file {target} does not exist")
     return target

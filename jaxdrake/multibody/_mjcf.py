@@ -37,6 +37,9 @@ angles in degrees, meshes); the compiled arrays are read here:
   excepted), of bodies named by `<exclude>`, nor where `contype_a & conaffinity_b` and
   `contype_b & conaffinity_a` are both 0. The plant excludes pairs of bodies, so two bodies
   whose geoms pass MuJoCo's filter for some pairs and not others are refused by name.
+- **Files** (`check_model_files`, before MuJoCo opens anything): the XML of the model and of
+  its includes without DTD or entities, and every file it names (includes, meshes, textures,
+  `<compiler meshdir assetdir texturedir>`) inside the model's folder; refused by name.
 
 Refused, each with a named error and its remedy: ball joints, a second floating body or one
 beside other moving bodies of the worldbody (MuJoCo's compiler itself refuses a free joint
@@ -117,35 +120,33 @@ def check_model_files(path=None, *, text=None, assets=None):
     included ones are checked the same way. Refusals: `MJCFError` naming the file, the element
     and the remedy."""
     assets = assets or {}
-    main = pathlib.Path(path) if path is not None else pathlib.Path.cwd() / "model.xml"
-    label = str(path) if path is not None else "the MJCF text"
-    documents, pending, seen = [], [(label, None if path is None else main, text)], set()
-    while pending:  # the model and the files it includes
-        source, file, data = pending.pop()
-        if file is not None and data is None:
+    main = pathlib.Path(path) if path is not None else pathlib.Path.cwd() / "(MJCF text)"
+    documents, pending, seen = [], [("", None if path is None else main, text)], set()
+    while pending:  # the model and the files it includes; `prefix` names an included one
+        prefix, file, data = pending.pop()
+        if data is None:
             root = read_xml(file, MJCFError)
         else:
-            root = parse_xml(data.encode() if isinstance(data, str) else data, source, MJCFError)
-        documents.append((source, file, root))
+            root = parse_xml(data.encode() if isinstance(data, str) else data, prefix or main, MJCFError)
+        documents.append((prefix, file, root))
         for include in root.iter("include"):
             name = include.get("file")
             if name in assets:
-                pending.append((name, None, assets[name]))
+                pending.append((f"{name}: ", None, assets[name]))
                 continue
-            for target in _model_paths(name, main, file, "", f"{source}: <include>"):
+            for target in _model_paths(name, main, file, "", f"{prefix}<include>"):
                 if target.is_file() and target not in seen:
                     seen.add(target)
-                    pending.append((str(target), target, None))
-    urdf = any(root.tag == "robot" for _, _, root in documents)
-    dirs, strip = {}, urdf  # MuJoCo strips a URDF's mesh paths to their base names by default
-    for source, file, root in documents:
+                    pending.append((f"{name}: ", target, None))
+    dirs, strip = {}, any(root.tag == "robot" for _, _, root in documents)  # MuJoCo strips a URDF's mesh paths
+    for prefix, file, root in documents:
         for compiler in root.iter("compiler"):
             for key in ("meshdir", "texturedir", "assetdir"):
                 if compiler.get(key) is not None:
-                    _model_paths(compiler.get(key), main, file, "", f"{source}: <compiler {key}>")
+                    _model_paths(compiler.get(key), main, file, "", f"{prefix}<compiler {key}>")
                     dirs[key] = compiler.get(key)
             strip = compiler.get("strippath", str(strip)).lower() in ("true", "1")
-    for source, file, root in documents:
+    for prefix, file, root in documents:
         for element in root.iter():
             for attribute, name in element.attrib.items():
                 if not attribute.startswith("file") or element.tag == "include":
@@ -154,10 +155,9 @@ def check_model_files(path=None, *, text=None, assets=None):
                     name = pathlib.PurePosixPath(name.replace("\\", "/")).name
                 if name in assets:
                     continue
-                directory = dirs.get(_DIRECTORY.get(element.tag), dirs.get("assetdir", ""))
-                label = element.get("name")
-                where = f"{source}: <{element.tag}{'' if label is None else f' name={label!r}'} {attribute}>"
-                _model_paths(name, main, file, directory, where)
+                directory = dirs.get(_DIRECTORY[element.tag], dirs.get("assetdir", "")) if element.tag in _DIRECTORY else ""
+                label = "" if element.get("name") is None else f" name={element.get('name')!r}"
+                _model_paths(name, main, file, directory, f"{prefix}<{element.tag}{label} {attribute}>")
 
 
 def _model_paths(name, main, file, directory, where):
