@@ -87,7 +87,8 @@ def solo12():
     robots = pathlib.Path(str(importlib.metadata.distribution("example-robot-data").locate_file(
         "cmeel.prefix/share/example-robot-data/robots")))
     plant = jd.RigidBodySystem.from_urdf(robots / "solo_description/robots/solo12.urdf", floating_base=True,
-                                         joint_limits=False, effort_limits=False)
+                                         joint_limits=False, effort_limits=False,
+                                         package_map={"example-robot-data": robots.parent})  # its meshes
     for i, (link, centre, radius) in enumerate(SPHERES):
         plant = plant.with_collision_geometry(link, jd.geometry.Sphere(radius), translation=centre,
                                               name=f"sphere{i}", material=RUBBER)

@@ -17,9 +17,21 @@ from ._batch import run_batch
 
 __version__ = "0.1.0"
 
+_LAZY_PACKAGES = ("lcm", "trajopt")  # heavier imports (LCM bindings, IPOPT), loaded on first use
+
+
+def __getattr__(name):
+    """`jd.trajopt` and `jd.lcm` without `import jaxdrake.trajopt` first (and without slowing
+    `import jaxdrake`): imported on first access."""
+    if name in _LAZY_PACKAGES:
+        import importlib
+
+        return importlib.import_module(f".{name}", __name__)
+    raise AttributeError(f"module 'jaxdrake' has no attribute {name!r}")
+
 __all__ = ["Diagram", "DiagramBuilder", "Frame", "HybridSystem", "LinearSystem", "SimulationError",
            "CouplerConstraint", "LoopConstraint", "MujocoSystem", "Polynomial", "PolynomialSystem", "RigidBodySystem", "SimulatedTrajectory", "SimulationStatus", "StochasticSystem", "System", "Trajectory", "TrajectorySource", "Transition",
-           "add_frame_conversion", "analysis", "and_guards", "cascade", "control", "feedback", "geometry", "linearize", "models", "multibody", "not_guard",
-           "parallel", "planning", "run_batch", "simulate", "simulation", "systems", "trajectories",
+           "add_frame_conversion", "analysis", "and_guards", "cascade", "control", "feedback", "geometry", "lcm", "linearize", "models", "multibody", "not_guard",
+           "parallel", "planning", "run_batch", "simulate", "simulation", "systems", "trajectories", "trajopt",
            "use_compilation_cache", "viz"]
 

@@ -24,3 +24,9 @@ def _free_compiled_programs():
     jax.clear_caches()
     import gc
     gc.collect()
+
+
+def pytest_collection_modifyitems(config, items):
+    """The example scripts and notebooks (the suite's longest pole: their own processes, run
+    side by side) first, so that they overlap the rest of the suite."""
+    items.sort(key=lambda item: item.module.__name__ != "test_examples")  # a stable sort

@@ -1,6 +1,6 @@
 """Every example script and notebook runs end to end (they are products, not decoration).
 
-Each runs in a process of its own, two at a time (compiling is mostly single-threaded, and a
+Each runs in a process of its own, three at a time (compiling is mostly single-threaded, and a
 2-core machine then does two compilations at once): the selected scripts and notebooks are
 started when the first of these tests runs, and each test waits for its own."""
 
@@ -41,7 +41,7 @@ print("IMAGES", len(images))
 
 @pytest.fixture(scope="module")
 def runs(request, tmp_path_factory):
-    """Start every selected script and notebook (two at a time); {path: future of the
+    """Start every selected script and notebook (`WORKERS` at a time); {path: future of the
     finished process}. Scripts and notebook kernels share JAX's persistent compilation cache
     (a fresh one per run): a notebook that repeats its script's computations loads those
     programs instead of compiling them again, as a user's second session would."""

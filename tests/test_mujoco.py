@@ -312,3 +312,17 @@ def test_rendering_works_when_mujoco_was_imported_before_jaxdrake():
     assert [run.returncode for run in sums] == [0, 0], [run.stderr[-500:] for run in sums]
     values = [float(run.stdout.split()[-1]) for run in sums]
     assert values[0] == values[1] and values[0] > 0
+
+
+def test_mujoco_warnings_become_python_warnings_and_no_log_file_is_written(tmp_path, monkeypatch, capfd):
+    """MuJoCo's own handler writes MUJOCO_LOG.TXT into the working folder; MJX's import
+    prints "Failed to import warp" (an optional backend)."""
+    monkeypatch.chdir(tmp_path)
+    system = jd.MujocoSystem.from_xml('<mujoco><worldbody><body><joint type="hinge"/>'
+                                      '<geom type="sphere" size="0.1"/></body></worldbody></mujoco>')
+    data = mujoco.MjData(system.mj_model)
+    data.qvel[:] = 1e30  # MuJoCo warns of a huge velocity and resets
+    with pytest.warns(RuntimeWarning, match="MuJoCo: Nan, Inf or huge value in QVEL"):
+        mujoco.mj_step(system.mj_model, data)
+    assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
+    assert "Failed to import warp" not in capfd.readouterr().out

@@ -144,11 +144,13 @@ def test_meshcat_scene_places_every_link_at_its_frame_pose_with_its_meshes():
     meshcat = pytest.importorskip("meshcat")
     panda = jd.models.Panda()
     recorder = jd.viz.SceneRecorder()
+    unmapped = jd.RigidBodySystem.from_urdf(panda.source, welded=("panda_finger_joint1", "panda_finger_joint2"))
     with pytest.raises(jd.multibody.URDFError, match="link 'panda_link0'.*names package 'example-robot-data'; "
                        "pass package_map="):  # package folders are never searched for
-        jd.viz.MeshcatVisualizer(panda, scene=meshcat.Visualizer(window=jd.viz.SceneRecorder())).draw(
+        jd.viz.MeshcatVisualizer(unmapped, scene=meshcat.Visualizer(window=jd.viz.SceneRecorder())).draw(
             jnp.zeros(14))
-    vis = jd.viz.MeshcatVisualizer(panda, scene=meshcat.Visualizer(window=recorder), package_map=robot_packages())
+    assert dict(panda.package_map) == robot_packages()  # Panda() gives its own; the visualizer takes it
+    vis = jd.viz.MeshcatVisualizer(panda, scene=meshcat.Visualizer(window=recorder))
     assert isinstance(visualizer_for(panda), jd.viz.MeshcatVisualizer)
     assert isinstance(visualizer_for(panda, plane="xz"), PlanarRigidBodyVisualizer)
     assert isinstance(visualizer_for(jd.models.Acrobot()), PlanarRigidBodyVisualizer)  # the notes' plants stay planar

@@ -84,5 +84,6 @@ def Panda(fingers: bool = False) -> RigidBodySystem:
         raise ImportError("Panda() reads panda.urdf from the example-robot-data package: "
                           "pip install example-robot-data") from None
     welded = () if fingers else ("panda_finger_joint1", "panda_finger_joint2")
-    return RigidBodySystem.from_urdf(pathlib.Path(str(root)) / "panda_description/urdf/panda.urdf",
-                                     welded=welded)
+    root = pathlib.Path(str(root))  # its meshes are package://example-robot-data/robots/...
+    return RigidBodySystem.from_urdf(root / "panda_description/urdf/panda.urdf", welded=welded,
+                                     package_map={"example-robot-data": root.parent})

@@ -28,9 +28,12 @@ them adds about a second to a first compile.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 import pathlib
 import sys
+import warnings
 from typing import Any
 
 import equinox as eqx
@@ -73,13 +76,28 @@ def renderer(model, height: int, width: int):
 
 
 def _mujoco():
+    """mujoco and mjx, imported without MJX's "Failed to import warp" lines (Warp is an optional
+    GPU backend jaxdrake does not use), and with MuJoCo's warnings sent to Python's `warnings`
+    (MuJoCo's own handler writes MUJOCO_LOG.TXT into the working folder) unless the user set
+    a handler."""
     try:
         import mujoco
-        from mujoco import mjx
+        printed = io.StringIO()
+        with contextlib.redirect_stdout(printed):
+            from mujoco import mjx
     except ImportError:
         raise ImportError("MujocoSystem needs MuJoCo and MJX: pip install mujoco==3.17.0 mujoco-mjx==3.17.0 "
                           "(or pip install 'jaxdrake[mujoco]')") from None
+    for line in printed.getvalue().splitlines():
+        if not line.startswith(("Failed to import warp", "Failed to import mujoco_warp")):
+            print(line)
+    if mujoco.get_mju_user_warning() is None:
+        mujoco.set_mju_user_warning(_mujoco_warning)
     return mujoco, mjx
+
+
+def _mujoco_warning(message: str):
+    warnings.warn(f"MuJoCo: {message}", RuntimeWarning, stacklevel=2)
 
 
 class MujocoSystem(System):

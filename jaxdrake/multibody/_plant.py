@@ -108,6 +108,7 @@ class RigidBodySystem(System):
     limited: tuple = _static(default=())   # (q index, v index) of the joints with limits
     constraint_stiffness: float = 20.0
     source: str | None = _static(default=None)  # the URDF file, when loaded from one
+    package_map: tuple = _static(default=())  # (package, folder) pairs for its package:// files
     contact: ContactModel | None = None
     collision: URDFCollisions | None = _static(default=None)  # what `contact` was built from
     stiction_tolerance: float = _static(default=DEFAULT_STICTION_TOLERANCE)  # seeds contact models built later
@@ -115,7 +116,7 @@ class RigidBodySystem(System):
     def __init__(self, tree: KinematicTree, actuated_joints=None, *, loops=(), couplers=(),
                  constraint_stiffness: float = 20.0, effort_limits: bool = True,
                  joint_limits: bool = True, limit_period: float = 0.02, source=None, collision=None,
-                 stiction_tolerance: float = DEFAULT_STICTION_TOLERANCE):
+                 stiction_tolerance: float = DEFAULT_STICTION_TOLERANCE, package_map=None):
         names = tree.joint_names
         if actuated_joints is None:
             actuated_joints = [n for n, k in zip(names, tree.joint_types) if k != "floating"]
@@ -148,6 +149,7 @@ class RigidBodySystem(System):
         self.limit_stiffness, self.limit_damping = _limit_gains(tree, self.limited, limit_period)
         self.constraint_stiffness = constraint_stiffness
         self.source = None if source is None else str(source)
+        self.package_map = tuple(sorted((str(k), str(v)) for k, v in dict(package_map or {}).items()))
         self.collision = collision
         self.stiction_tolerance = float(stiction_tolerance)
         self.contact = None if collision is None else build_contact_model(
@@ -177,7 +179,8 @@ class RigidBodySystem(System):
         (stiffness 1e6 N/m, dissipation 50 s/m, friction 1.0). A mesh collides through its
         convex hull; a non-convex mesh is refused unless `mesh_hulls=True` (Drake's point contact
         uses the hull silently). Mesh files are read only from the
-        URDF's folder, or for `package://NAME/...` from `package_map[NAME]`."""
+        URDF's folder, or for `package://NAME/...` from `package_map[NAME]` (kept on the plant:
+        `MeshcatVisualizer` reads its visual meshes from the same folders)."""
         with jax.ensure_compile_time_eval():  # parsing is host work, also inside jit / vmap
             path = pathlib.Path(path)
             tree, transmitted = tree_from_urdf(path, floating_base=floating_base,
@@ -194,7 +197,7 @@ class RigidBodySystem(System):
             return cls(tree, actuated, loops=loops, couplers=couplers,
                        constraint_stiffness=constraint_stiffness, effort_limits=effort_limits,
                        joint_limits=joint_limits, limit_period=limit_period, source=path.resolve(),
-                       collision=collision, stiction_tolerance=stiction_tolerance)
+                       collision=collision, stiction_tolerance=stiction_tolerance, package_map=package_map)
 
     @classmethod
     def from_pinocchio(cls, model, *, actuated=None, loops=(),

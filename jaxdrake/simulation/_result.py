@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..trajectories import Trajectory
-from ..trajectories._trajectory import check_side, plot_signal, sample_signal, vectorize_in_time
+from ..trajectories._trajectory import check_side, compiled_when_eager, plot_signal, sample_signal, vectorize_in_time
 from ._events import event_transitions
 from ._status import SimulationStatus
 
@@ -116,6 +116,7 @@ class SimulatedTrajectory(eqx.Module):
     def _vectorize(self, fn, t):
         return vectorize_in_time(fn, t, self.t_start.dtype)
 
+    @compiled_when_eager
     def mode(self, t, side: str | None = None):
         """The active mode at time t (for a hybrid system; 0 otherwise)."""
         side = check_side(self.side if side is None else side)
@@ -126,6 +127,7 @@ class SimulatedTrajectory(eqx.Module):
         self._check_dense()
         return self.state_trajectory.eval(t, side)
 
+    @compiled_when_eager
     def input(self, t):
         """The input u(t) applied to the system (after its input limits)."""
         nu = self.system.num_inputs  # without the noise samples of a stochastic system
@@ -139,6 +141,7 @@ class SimulatedTrajectory(eqx.Module):
     def piece_index(self, t, side: str = "right"):
         return self.state_trajectory.piece_index(t, side)
 
+    @compiled_when_eager
     def eval(self, t, side: str | None = None):
         """The output y(t) = g(t, x(t), u(t)) of the simulated system at any time (dense)."""
         self._check_dense()

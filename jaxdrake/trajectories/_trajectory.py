@@ -7,6 +7,7 @@ optimization results, time-varying LQR gains, and the state of a simulation
 
 from __future__ import annotations
 
+import functools
 from math import comb
 
 import equinox as eqx
@@ -43,6 +44,26 @@ def vectorize_in_time(fn, t, dtype):
     if t.ndim == 1:
         return jax.vmap(fn)(t)
     raise ValueError(f"times must be a scalar or a 1-D array, got shape {t.shape}")
+
+
+def compiled_when_eager(method):
+    """Run `method(self, t, *options)` called outside any trace as one compiled program (kept
+    per trajectory structure, shape of t and options), not op by op: eager evaluation compiles
+    every primitive for every new shape of t, ~20 ms each. Under `jit` / `vmap` / `grad` the
+    method is traced as written."""
+
+    @functools.wraps(method)
+    def wrapper(self, t, *options, **named):
+        t = jnp.asarray(t, self.t_start.dtype)
+        if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves((self, t))):
+            return method(self, t, *options, **named)
+        return _compiled_method(method, self, t, options, tuple(sorted(named.items())))
+    return wrapper
+
+
+@eqx.filter_jit
+def _compiled_method(method, self, t, options, named):
+    return method(self, t, *options, **dict(named))
 
 
 def check_side(side):
@@ -153,6 +174,7 @@ class Trajectory(eqx.Module):
         theta = jnp.clip(jnp.where(width > 0, (t - t0) / safe, 0.0), 0.0, 1.0)
         return eval_polynomial(self.coefficients[i], theta)
 
+    @compiled_when_eager
     def eval(self, t, side: str | None = None):
         """The value x(t) (shape (n,), or (len(t), n) for an array of times)."""
         side = check_side(self.side if side is None else side)

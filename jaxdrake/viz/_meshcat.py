@@ -136,7 +136,8 @@ class MeshcatVisualizer(Visualizer):
     listening on `host` (127.0.0.1: this machine only) and ending with this process or at
     `close()` (its address: `url()`). `urdf`: the file whose `<visual>` elements to show
     (default: the one the plant was loaded from); its meshes are read from its folder, or
-    for `package://NAME/...` from `package_map[NAME]`, nowhere else (as `from_urdf`'s).
+    for `package://NAME/...` from `package_map[NAME]` (default: the plant's, given to
+    `from_urdf`), nowhere else.
     `prefix`: the scene path of this robot.
     `save(traj, "robot.gif" or ".mp4")` writes a movie (`width` x `height`) rendered offscreen
     by MuJoCo from the same visuals (`render`, `images`).
@@ -178,7 +179,7 @@ class MeshcatVisualizer(Visualizer):
                              f"{newtons_per_meter} and {force_threshold}")
         self.contact = plant.contact if contact_forces else None
         self.newtons_per_meter, self.force_threshold = float(newtons_per_meter), float(force_threshold)
-        self._connection = {"urdf": pathlib.Path(urdf), "scene": scene, "package_map": dict(package_map or {}),
+        self._connection = {"urdf": pathlib.Path(urdf), "scene": scene, "package_map": dict(plant.package_map if package_map is None else package_map),
                             "host": str(host), "server": None, "prefix": prefix or plant.name, "loaded": False,
                             "arrows_loaded": False}
 
