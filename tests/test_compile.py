@@ -73,7 +73,8 @@ SYSTEMS = {
 
 
 @pytest.mark.parametrize("mode", ["reverse", "forward"])
-@pytest.mark.parametrize("kind", list(SYSTEMS))
+@pytest.mark.parametrize("kind", [pytest.param(k, marks=pytest.mark.slow) if k in ("hybrid events", "input limits") else k
+                                  for k in SYSTEMS])  # those two: 30-40 s each; "plain" and "discrete" run by default
 def test_dopri5_traces_the_vector_field_no_more_than_euler(kind, mode):
     inputs = (lambda t: jnp.sin(3 * t)[None]) if kind == "input limits" else None
     kwargs = {"inputs": inputs} if inputs is not None else {}

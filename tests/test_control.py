@@ -286,6 +286,7 @@ def test_acrobot_swing_up_and_balance_torques_match_drakes_spong_controller():
     assert checked[0] > 30 and checked[1] > 30
 
 
+@pytest.mark.slow  # long; the same property in a cheaper test runs by default
 def test_acrobot_swing_up_switches_to_lqr_where_V_crosses_the_threshold_and_balances():
     acrobot, goal = jd.models.Acrobot(), np.array([np.pi, 0.0, 0.0, 0.0])
     balance = lqr(acrobot, np.diag([10.0, 10.0, 1.0, 1.0]), np.eye(1), x0=goal)
@@ -308,6 +309,7 @@ def test_acrobot_swing_up_switches_to_lqr_where_V_crosses_the_threshold_and_bala
     assert np.max(np.abs(np.asarray(torque))) <= 20.0 + 1e-9
 
 
+@pytest.mark.slow  # long; the same property in a cheaper test runs by default
 def test_cart_pole_swing_up_balances_a_batch():
     cart_pole, goal = jd.models.CartPole(), np.array([0.0, np.pi, 0.0, 0.0])
     balance = lqr(cart_pole, np.diag([10.0, 10.0, 1.0, 1.0]), np.eye(1), x0=goal)
@@ -333,6 +335,7 @@ def test_switch_to_lqr_rejects_mismatched_controllers():
         jd.control.acrobot_spong_controller(jd.models.DoublePendulum())
 
 
+@pytest.mark.slow  # long; the same property in a cheaper test runs by default
 def test_riccati_derivatives_in_both_modes_match_finite_differences():
     """dS/dA by reverse mode (the transposed Lyapunov / Stein solves) equals forward mode and
     central differences, continuous and discrete."""

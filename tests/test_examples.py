@@ -23,7 +23,13 @@ EXAMPLES = sorted(p for p in (ROOT / "examples").glob("*.py") if not p.name.star
 SLOW = {"swing_up.ipynb", "lqr.ipynb", "swing_up.py",  # lqr.ipynb: 45 s, extends lqr.py (run with -m slow)
         "trajectory_optimization.py", "trajectory_optimization.ipynb", "mujoco_models.py", "mujoco_models.ipynb",
         "mujoco_contacts.py", "mujoco_contacts.ipynb",
-        "contact.ipynb"}  # ~40 s, the same computations as contact.py (which runs by default)
+        "contact.ipynb",  # ~40 s, the same computations as contact.py (which runs by default)
+        # the limit cycles' script (~150 s of compiling hybrid Newton solves and their jvp):
+        # tests/test_limit_cycles.py checks its orbits and derivatives by default; and the notebooks
+        # that repeat a script which runs by default (the same computations; executed with -m slow)
+        "limit_cycles.py", "limit_cycles.ipynb", "rimless_wheel.ipynb", "feedback_cancellation.ipynb",
+        "linear_gaussian.ipynb", "bouncing_ball.ipynb", "composition.ipynb", "dynamic_programming.ipynb",
+        "lyapunov.ipynb", "rrt.ipynb", "lcm_pendulum.ipynb"}
 NOTEBOOKS = [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW else p
              for p in sorted((ROOT / "notebooks").glob("*.ipynb"))]
 WORKERS = 3

@@ -141,6 +141,7 @@ def test_second_derivatives_through_an_impact_equal_the_closed_form():
     np.testing.assert_allclose(jax.jacfwd(jax.jacfwd(simulated))(H0), jax.hessian(closed)(H0), rtol=1e-7)
 
 
+@pytest.mark.slow  # long; the same property in a cheaper test runs by default
 def test_gradient_of_the_wheel_speed_after_five_steps_wrt_slope():
     def speed(slope):
         traj = jd.simulate(RimlessWheel(slope=slope), (0.0, T), jnp.array([0.0, 1.5]), **TIGHT)

@@ -136,6 +136,7 @@ def test_the_rimless_wheel_period_and_its_slope_derivative_equal_the_closed_form
     assert abs(dT + 25.107) < 1e-3
 
 
+@pytest.mark.slow  # long; the same property in a cheaper test runs by default
 def test_the_rimless_wheel_period_derivative_in_reverse_mode():
     """The same derivative by reverse mode (autodiff="reverse", jax.jacrev), with that of the
     speed on the orbit against the fixed point's closed form, w = cot(2 alpha) sqrt(4 (g/l)
@@ -153,6 +154,7 @@ def test_the_rimless_wheel_period_derivative_in_reverse_mode():
     np.testing.assert_allclose(np.asarray(derivative), [dT, w / np.tan(0.08) / 2], rtol=1e-7)
 
 
+@pytest.mark.slow  # long; the same property in a cheaper test runs by default
 def test_the_compass_gait_cycle_derivatives_equal_central_differences():
     """d(period, fixed point, Floquet multipliers)/dslope of the passive compass gait by the
     implicit function theorem (jax.jvp) against central differences of the same outputs (from

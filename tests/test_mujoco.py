@@ -36,7 +36,8 @@ def c_mujoco(model, x0, controls, warmstart=True):
     return np.asarray(states)
 
 
-@pytest.mark.parametrize("source", [PENDULUM, DATA / "mj_cartpole.xml"], ids=["pendulum", "cartpole"])
+@pytest.mark.parametrize("source", [PENDULUM, pytest.param(DATA / "mj_cartpole.xml", marks=pytest.mark.slow)],
+                         ids=["pendulum", "cartpole"])  # the cart-pole: 21 s, the same check on a second model
 def test_a_thousand_steps_equal_c_mujoco(source):
     system = jd.MujocoSystem.from_xml(source)
     dt, n = system.sample_time, 1000
@@ -245,6 +246,7 @@ def test_lqr_of_the_linearized_update_balances_the_cart_pole():
     assert sensed.output_frame.coordinates == ("cart_position", "pole_angle")
 
 
+@pytest.mark.slow  # long; the same property in a cheaper test runs by default
 def test_with_the_warm_start_in_the_state_steps_equal_mjxs_own_loop():
     """One solver iteration (MuJoCo Playground's setting): MJX's own loop warm-starts each
     solve from the previous accelerations; `warm_start=True` carries them in the state, and the
@@ -270,6 +272,7 @@ def test_with_the_warm_start_in_the_state_steps_equal_mjxs_own_loop():
     assert np.max(np.abs(np.asarray(final_cold) - expected[:13])) > 1e-3
 
 
+@pytest.mark.slow  # long; the same property in a cheaper test runs by default
 def test_mujoco_renderer_frames_put_the_cart_where_the_camera_sees_it(tmp_path):
     """MuJoCo's own renderer draws the frames (offscreen, EGL): the blue cart's pixel centroid
     lies within 2 px of the pinhole projection of its front face's centre through the model's

@@ -280,6 +280,7 @@ def test_four_bar_linkage_stays_closed():
     assert float(jnp.ptp(xs[:, 0])) > 0.5            # and the linkage does move
 
 
+@pytest.mark.slow  # long; the same property in a cheaper test runs by default
 def test_gradient_of_an_acrobot_simulation_wrt_a_link_mass():
     def loss(m2):
         traj = jd.simulate(jd.models.Acrobot(m2=m2), (0.0, 1.0), jnp.array([0.5, -0.3, 0.0, 0.0]),
@@ -291,6 +292,7 @@ def test_gradient_of_an_acrobot_simulation_wrt_a_link_mass():
     np.testing.assert_allclose(g, fd, rtol=1e-6)
 
 
+@pytest.mark.slow  # long; the same property in a cheaper test runs by default
 def test_vmap_over_states_and_parameters():
     plant = jd.models.CartPole()
     xs = jnp.asarray(np.random.default_rng(2).uniform(-1, 1, (10, 4)))
@@ -305,7 +307,8 @@ def test_vmap_over_states_and_parameters():
 
 
 @pytest.mark.parametrize("relative, floating", [("panda_description/urdf/panda.urdf", False),
-                                                ("solo_description/robots/solo12.urdf", True)])
+                                                pytest.param("solo_description/robots/solo12.urdf", True,
+                                                             marks=pytest.mark.slow)])  # 42 s: the Panda's run checks the same
 def test_a_vmapped_batch_in_lanes_matches_pinocchio_and_differentiates(relative, floating):
     """vmap puts the batch into the algorithms' lanes (a custom batching rule): the branched
     Panda (fingers: empty slots) and the floating quadruped agree with Pinocchio member by
@@ -341,6 +344,7 @@ def test_a_vmapped_batch_in_lanes_matches_pinocchio_and_differentiates(relative,
     np.testing.assert_allclose(dqdd_dtau[5], minv, rtol=1e-8, atol=1e-9)
 
 
+@pytest.mark.slow  # long; the same property in a cheaper test runs by default
 def test_forward_dynamics_derivatives_agree_with_pinocchio_and_finite_differences():
     """ABA is differentiated through inverse dynamics and a Cholesky solve of H (its own rule):
     forward and reverse mode against Pinocchio's `computeABADerivatives`, the second derivative
@@ -380,6 +384,7 @@ def test_forward_dynamics_derivatives_agree_with_pinocchio_and_finite_difference
                                rtol=1e-6, atol=1e-8)
 
 
+@pytest.mark.slow  # long; the same property in a cheaper test runs by default
 def test_a_floating_base_dynamics_jacobian_matches_central_differences_off_the_unit_quaternion():
     """The quaternion's rotation is that of q / |q|, so forward and inverse dynamics stay each
     other's inverse off the unit sphere (a drifted state, a finite-difference probe) and the
@@ -472,7 +477,7 @@ def test_bad_actuator_and_loop_names_are_errors():
         jd.RigidBodySystem.from_urdf(DATA / "fourbar.urdf", loops=[jd.LoopConstraint("nowhere", "rocker_end")])
 
 
-@pytest.mark.parametrize("robot", ["acrobot", "solo12 (floating quadruped)"])
+@pytest.mark.parametrize("robot", ["acrobot", pytest.param("solo12 (floating quadruped)", marks=pytest.mark.slow)])
 def test_a_pinocchio_model_is_a_source_too(robot):
     path, floating = ROBOTS[robot][0](), ROBOTS[robot][1]
     from_urdf = jd.RigidBodySystem.from_urdf(path, floating_base=floating)
@@ -791,6 +796,7 @@ def test_a_joint_limit_stops_a_slider_as_the_critically_damped_closed_form_says(
     np.testing.assert_allclose(free.final_state, [0.6, 1.0], atol=1e-9)
 
 
+@pytest.mark.slow  # long; the same property in a cheaper test runs by default
 def test_the_passive_panda_stays_within_its_joint_limits():
     """examples/manipulator.py's passive arm: without limits it swings far past them; with
     them, no joint goes past a limit by more than 0.1 rad."""

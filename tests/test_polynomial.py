@@ -118,7 +118,7 @@ def test_taylor_system_of_the_pendulum_has_the_sine_series():
             assert np.isclose(c[1], -gml)
 
 
-@pytest.mark.parametrize("name", ["Pendulum", "Acrobot"])
+@pytest.mark.parametrize("name", ["Pendulum", pytest.param("Acrobot", marks=pytest.mark.slow)])  # Acrobot: 24 s
 def test_trig_substitution_reproduces_the_dynamics(name):
     system = getattr(jd.models, name)()
     n = system.num_states

@@ -262,6 +262,7 @@ def test_acrobot_swing_up():
     assert segment_errors(plant, result) < 0.01 * np.max(np.abs(result.knot_states))
 
 
+@pytest.mark.slow  # long; the same property in a cheaper test runs by default
 def test_cart_pole_swing_up_and_simulation_reproduces_it():
     """Defects below 1e-8; simulating the optimized input reproduces the collocated states to
     the collocation's accuracy: the segment-wise error falls at Hermite-Simpson's order (local
@@ -337,6 +338,7 @@ def test_hermite_simpson_structured_derivatives_equal_autodiff_of_the_defect(mod
         assert check["hessian_error"] < 1e-5 * check["hessian_scale"]
 
 
+@pytest.mark.slow  # 22 s; float32 runs are checked by default in test_statuses, test_polynomial, test_stochastic
 def test_a_float32_session_simulates_the_optimized_inputs():
     """The programs run in float64 inside a float32 session; the result comes back in the
     session's precision and the plant keeps working outside them (regression: the rigid-body
