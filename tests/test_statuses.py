@@ -11,7 +11,7 @@ import pytest
 import jaxdrake as jd
 from jaxdrake._batch import default_chunk_size, member_bytes
 from jaxdrake.models import Pendulum
-from jaxdrake.trajectories._trajectory import NUM_COEFFICIENTS
+from jaxdrake.trajectories import NUM_COEFFICIENTS
 
 S = jd.SimulationStatus
 X0 = jnp.array([1.0, 0.0])

@@ -117,18 +117,17 @@ def check_cost_weights(caller: str, Q, R, N=None, Qf=None):
             raise ValueError(f"{caller}: {label} has non-finite entries")
         if not np.allclose(M, M.T, rtol=1e-10, atol=1e-12 * max(1.0, np.abs(M).max())):
             raise ValueError(f"{caller}: {label} must be symmetric (use (M + M.T) / 2)")
-        if label == "Qf" and np.linalg.eigvalsh(M).min() < -1e-10 * max(1.0, np.abs(M).max()):
-            raise ValueError(f"{caller}: Qf must be positive semidefinite (its least eigenvalue is "
-                             f"{np.linalg.eigvalsh(M).min():.3g})")
-    if np.linalg.eigvalsh(R).min() <= 0:
-        raise ValueError(f"{caller}: R must be positive definite (its least eigenvalue is "
-                         f"{np.linalg.eigvalsh(R).min():.3g})")
-    joint = np.block([[Q, N], [N.T, R]])
-    least = np.linalg.eigvalsh(joint).min()
-    if least < -1e-10 * max(1.0, np.abs(joint).max()):
-        what = "Q" if N is None or not N.any() else "[[Q, N], [N^T, R]]"
-        raise ValueError(f"{caller}: {what} must be positive semidefinite (its least eigenvalue is "
-                         f"{least:.3g}): the cost would be unbounded below")
+    least_R = np.linalg.eigvalsh(R).min()
+    if least_R <= 0:
+        raise ValueError(f"{caller}: R must be positive definite (its least eigenvalue is {least_R:.3g})")
+    semidefinite = [("[[Q, N], [N^T, R]]" if N.any() else "Q", np.block([[Q, N], [N.T, R]]))]
+    if Qf is not None:
+        semidefinite.append(("Qf", np.asarray(Qf, float)))
+    for label, M in semidefinite:
+        least = np.linalg.eigvalsh(M).min()
+        if least < -1e-10 * max(1.0, np.abs(M).max()):
+            raise ValueError(f"{caller}: {label} must be positive semidefinite (its least eigenvalue is "
+                             f"{least:.3g}): the cost would be unbounded below")
 
 
 def lqr(system: System, Q, R, x0=None, u0=None, *, N=None, check_equilibrium: bool = True) -> LQRResult:

@@ -33,8 +33,7 @@ import jax
 import jax.numpy as jnp
 
 from ..systems import System
-from ..trajectories import Trajectory
-from ..trajectories._trajectory import NUM_COEFFICIENTS, eval_polynomial
+from ..trajectories import NUM_COEFFICIENTS, Trajectory, eval_polynomial
 from . import _events as ev
 from ._controller import AbstractStepSizeController
 from ._inputs import InputSource

@@ -10,8 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..trajectories import Trajectory
-from ..trajectories._trajectory import check_side, compiled_when_eager, plot_signal, sample_signal, vectorize_in_time
+from ..trajectories import Trajectory, check_side, compiled_when_eager, plot_signal, sample_signal, vectorize_in_time
 from ._events import event_transitions
 from ._status import SimulationStatus
 

@@ -24,7 +24,7 @@ import jax.extend
 import jax.numpy as jnp
 import numpy as np
 
-from ..trajectories._trajectory import NUM_COEFFICIENTS
+from ..trajectories import NUM_COEFFICIENTS
 
 
 class StepResult(eqx.Module):
