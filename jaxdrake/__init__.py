@@ -4,7 +4,7 @@ from ._xla import prefer_fast_cpu_compilation, use_compilation_cache
 
 prefer_fast_cpu_compilation()
 
-from . import analysis, control, geometry, models, multibody, planning, simulation, systems, trajectories, viz  # noqa: E402
+from . import analysis, control, estimation, geometry, models, multibody, planning, simulation, systems, trajectories, viz  # noqa: E402
 from .control import linearize
 from .multibody import CouplerConstraint, LoopConstraint, MujocoSystem, RigidBodySystem
 from .simulation import SimulatedTrajectory, SimulationError, SimulationStatus, simulate
@@ -31,7 +31,7 @@ def __getattr__(name):
 
 __all__ = ["Diagram", "DiagramBuilder", "Frame", "HybridSystem", "LinearSystem", "SimulationError",
            "CouplerConstraint", "LoopConstraint", "MujocoSystem", "Polynomial", "PolynomialSystem", "RigidBodySystem", "SimulatedTrajectory", "SimulationStatus", "StochasticSystem", "System", "Trajectory", "TrajectorySource", "Transition",
-           "add_frame_conversion", "analysis", "and_guards", "cascade", "control", "feedback", "geometry", "lcm", "linearize", "models", "multibody", "not_guard",
+           "add_frame_conversion", "analysis", "and_guards", "cascade", "control", "estimation", "feedback", "geometry", "lcm", "linearize", "models", "multibody", "not_guard",
            "parallel", "planning", "run_batch", "simulate", "simulation", "systems", "trajectories", "trajopt",
            "use_compilation_cache", "viz"]
 
