@@ -58,9 +58,7 @@ class _TrajectoryInput(InputSource):
         return jnp.reshape(y, (self.num_inputs,)).astype(t.dtype)
 
     def next_breakpoint(self, t):
-        ends = self.trajectory.t_end
-        valid = (jnp.arange(ends.shape[0]) < self.trajectory.num_segments) & (ends > t)
-        return jnp.min(jnp.where(valid, ends, jnp.inf)).astype(t.dtype)
+        return self.trajectory.next_breakpoint(t).astype(t.dtype)
 
     def on_step(self, t):
         return _TrajectoryInput(self.trajectory, self.num_inputs, self.trajectory.piece_index(t))

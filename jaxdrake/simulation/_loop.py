@@ -163,6 +163,10 @@ class Loop(eqx.Module):
     def num_transitions(self):
         return len(self.system.transitions)
 
+    def next_breakpoint(self, t):
+        """The input tape's or the system's next breakpoint after t."""
+        return jnp.minimum(self.source.next_breakpoint(t), self.system.next_breakpoint(t).astype(t.dtype))
+
     # ----- the signals the stages read ------------------------------------------------------
 
     def input(self, t, saturation, source):
@@ -243,7 +247,7 @@ class Loop(eqx.Module):
 
     def next_stop(self, s: LoopState):
         """The next time a step must end on: tf, the next breakpoint, the next sample time."""
-        target = jnp.minimum(self.tf, self.source.next_breakpoint(s.t))
+        target = jnp.minimum(self.tf, self.next_breakpoint(s.t))
         if self.periods is not None:
             target = jnp.minimum(target, jnp.min(s.samples * self.periods))
         return target
@@ -385,6 +389,11 @@ class Loop(eqx.Module):
         return h_next, status
 
     def iterate(self, s: LoopState) -> LoopState:
+        if self.system.has_breakpoints:  # the system as this step sees it (its pieces fixed)
+            return dataclasses.replace(self, system=self.system.on_step(s.t)).take_one_step(s)
+        return self.take_one_step(s)
+
+    def take_one_step(self, s: LoopState) -> LoopState:
         s, ready = self.find_ready_transition(s)
         s = self.apply_due_updates(s, ready)
         s = self.refresh_saturation(s)
@@ -428,7 +437,7 @@ class Loop(eqx.Module):
         return LoopState(
             t=t, x=x, mode=mode, saturation=saturation, h=jax.lax.stop_gradient(h_next), k0=k0,
             k0_valid=k0_valid, samples=s.samples,
-            at_breakpoint=jnp.where(accept, ~a.event & (a.t_end >= self.source.next_breakpoint(s.t)), s.at_breakpoint),
+            at_breakpoint=jnp.where(accept, ~a.event & (a.t_end >= self.next_breakpoint(s.t)), s.at_breakpoint),
             status=status, iterations=s.iterations + 1,
             rejected=s.rejected + (~accept & ~ready.fired & ~a.priming), accepted=s.accepted + accept,
             pieces=p, events=e)
@@ -478,7 +487,7 @@ def run_simulation(system, solver, controller, source, t0, tf, x0, h0, dt_max, e
     # can change the vector field between steps (a discrete update, an event, a projection, a
     # new piece of an input tape): a static fact.
     fsal = (solver.fsal and nc > 0 and system.num_discrete_states == 0 and num_guards == 0
-            and not source.has_breakpoints and not (constraint_projection and system.num_state_constraints))
+            and not source.has_breakpoints and not system.has_breakpoints and not (constraint_projection and system.num_state_constraints))
     periods = jnp.asarray(system.sample_times, dtype) if system.sample_times else None
     loop = Loop(system, solver, controller, source, tf, dt_max, event_tol, periods, max_steps, max_events,
                 dense, constraint_projection, fsal)

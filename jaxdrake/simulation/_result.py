@@ -140,6 +140,9 @@ class SimulatedTrajectory(eqx.Module):
     def piece_index(self, t, side: str = "right"):
         return self.state_trajectory.piece_index(t, side)
 
+    def next_breakpoint(self, t):
+        return self.state_trajectory.next_breakpoint(t)
+
     @compiled_when_eager
     def eval(self, t, side: str | None = None):
         """The output y(t) = g(t, x(t), u(t)) of the simulated system at any time (dense)."""

@@ -17,9 +17,11 @@ their parameters are pytree leaves; names, wiring and layout are static.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Callable, Sequence
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
@@ -82,6 +84,21 @@ class Diagram(System):
             num_state_constraints=sum(s.num_state_constraints for s in subs),
             input_limits=input_limits, input_frame=input_frame, state_frame=state,
             output_frame=output_frame, noise_groups=tuple(g for s in subs for g in s.noise_groups))
+
+    # ----- time breakpoints: the subsystems' --------------------------------------------------
+
+    @property
+    def has_breakpoints(self) -> bool:
+        return any(s.has_breakpoints for s in self.subsystems)
+
+    def next_breakpoint(self, t):
+        return functools.reduce(jnp.minimum, [s.next_breakpoint(t) for s in self.subsystems if s.has_breakpoints],
+                                jnp.asarray(jnp.inf, jnp.asarray(t).dtype))
+
+    def on_step(self, t):
+        if not self.has_breakpoints:
+            return self
+        return eqx.tree_at(lambda d: d.subsystems, self, tuple(s.on_step(t) for s in self.subsystems))
 
     # ----- static layout ------------------------------------------------------------------
 

@@ -211,6 +211,21 @@ class System(eqx.Module):
     def transition_guards(self, mode, t, x, u):
         return jnp.zeros(0, jnp.asarray(x).dtype)
 
+    # ----- time breakpoints: instants where the system's functions jump or kink in t ----------
+    # (a `TrajectorySource`'s piece ends). The simulator ends a step on each, and within a step
+    # calls the functions of `on_step(t)`: the system with every time-piecewise part fixed to
+    # the piece the step starts in, so a kink never falls inside a step.
+
+    has_breakpoints = False
+
+    def next_breakpoint(self, t):
+        """The first breakpoint after t (inf: none)."""
+        return jnp.asarray(jnp.inf, jnp.asarray(t).dtype)
+
+    def on_step(self, t) -> "System":
+        """This system as seen by a step starting at t."""
+        return self
+
     def apply_transition(self, mode, k, t, x, u):
         raise NotImplementedError(f"{self.name} has no transitions")
 

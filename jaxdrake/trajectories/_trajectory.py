@@ -166,6 +166,12 @@ class Trajectory(eqx.Module):
         `side="right"`, before it for `"left"`)."""
         return jnp.clip(jnp.searchsorted(self.t_end, t, side=side), 0, self.num_segments - 1)
 
+    def next_breakpoint(self, t):
+        """The first end of a used piece after time t (inf past the last): where a simulation
+        that reads this trajectory as an input must end a step."""
+        valid = (jnp.arange(self.t_end.shape[0]) < self.num_segments) & (self.t_end > t)
+        return jnp.min(jnp.where(valid, self.t_end, jnp.inf))
+
     def eval_piece(self, i, t):
         """The value at time t computed from piece i alone (its one-sided limits at its ends)."""
         t0, t1 = self.t_start[i], self.t_end[i]
