@@ -232,6 +232,79 @@ def test_acrobot_and_cartpole_from_urdf_match_their_closed_forms(model, closed_f
         np.testing.assert_array_equal(B, B_ref)
 
 
+def test_the_rigid_body_models_are_classes_whose_copies_batches_and_programs_keep_them():
+    r"""The notes' rigid-body models are final subclasses of `RigidBodySystem`; copies made by
+    `with_ground` / `equinox.tree_at` keep the class; the file constructors build the base
+    class; acrobots built under vmap are one batched `Acrobot`; a jitted function of a plant
+    traces once for acrobots of different masses (leaves), and every energy, batched or not, is
+    the closed form's $\tfrac12 v^T H v - g (m_1 l_{c1}\cos q_1 + m_2 (l_1\cos q_1 + l_{c2}\cos(q_1 + q_2)))$."""
+    import equinox as eqx
+
+    for model in (jd.models.Acrobot, jd.models.CartPole, jd.models.DoublePendulum):
+        assert type(model()) is model and isinstance(model(), jd.RigidBodySystem)
+    acrobot = jd.models.Acrobot()
+    grounded = acrobot.with_collision_geometry("lower_link", jd.geometry.Sphere(0.1)).with_ground(-4.0)
+    assert type(grounded) is jd.models.Acrobot and grounded.contact is not None
+    heavier = eqx.tree_at(lambda plant: plant.tree.mass, acrobot, jnp.array([1.0, 2.5]))
+    assert type(heavier) is jd.models.Acrobot
+    assert type(jd.models.Acrobot.from_urdf(acrobot.source)) is jd.RigidBodySystem
+
+    x = np.array([0.4, -0.3, 1.0, -2.0])
+
+    def closed_form(m2):
+        H = acrobot_closed_form(x[:2], x[2:], m2=m2)[0]
+        q1, q12 = x[0], x[0] + x[1]
+        return 0.5 * x[2:] @ H @ x[2:] - 9.81 * (0.5 * np.cos(q1) + m2 * (np.cos(q1) + np.cos(q12)))
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def energy(plant):
+        return plant.energy(jnp.asarray(x))
+
+    for plant, m2 in ((acrobot, 1.0), (heavier, 2.5), (jd.models.Acrobot(m2=0.5), 0.5)):
+        np.testing.assert_allclose(energy(plant), closed_form(m2), rtol=1e-13)
+    masses = jnp.array([0.5, 1.0, 2.0])
+    batch = eqx.filter_jit(eqx.filter_vmap(lambda m2: jd.models.Acrobot(m2=m2)))(masses)
+    assert type(batch) is jd.models.Acrobot and batch.tree.mass.shape == (3, 2)
+    lanes = eqx.filter_jit(eqx.filter_vmap(lambda plant: plant.energy(jnp.asarray(x))))(batch)
+    np.testing.assert_allclose(lanes, [closed_form(float(m2)) for m2 in masses], rtol=1e-13)
+
+
+def test_joint_types_own_their_widths_as_the_urdf_spec_and_pinocchio_count_them(tmp_path):
+    """Each `JointType`'s widths: its degrees of freedom (num_velocities) are the URDF spec's
+    (revolute, continuous, prismatic 1; fixed 0; floating 6), and its (num_positions,
+    num_velocities) Pinocchio's (nq, nv) of the same joint; a URDF with one joint of each kind
+    has the summed widths; an unknown kind ('planar', 3 dof in the spec) is refused by name by
+    the enum, the tree and the URDF reader."""
+    J = mb.JointType
+    assert {k: k.num_velocities for k in J} == {J.REVOLUTE: 1, J.PRISMATIC: 1, J.FLOATING: 6, J.FIXED: 0}
+    for kind, joint in ((J.REVOLUTE, pin.JointModelRY()), (J.PRISMATIC, pin.JointModelPX()),
+                        (J.FLOATING, pin.JointModelFreeFlyer())):
+        assert (kind.num_positions, kind.num_velocities) == (joint.nq, joint.nv)
+    link = '<link name="{}"><inertial><mass value="1"/><inertia ixx="1" ixy="0" ixz="0" iyy="1" iyz="0" izz="1"/></inertial></link>'
+    joint = '<joint name="{0}" type="{0}"><parent link="{1}"/><child link="{2}"/><axis xyz="0 1 0"/></joint>'
+    kinds = ("floating", "revolute", "continuous", "prismatic", "fixed")
+    links = ("world", "base", "a", "b", "c", "d")
+    text = ('<robot name="all">' + "".join(link.format(n) for n in links[1:])
+            + "".join(joint.format(k, p, c) for k, p, c in zip(kinds, links, links[1:])) + "</robot>")
+    (tmp_path / "all.urdf").write_text(text)
+    tree, _ = mb.tree_from_urdf(tmp_path / "all.urdf")
+    assert tree.joint_types == (J.FLOATING, J.REVOLUTE, J.REVOLUTE, J.PRISMATIC)  # the fixed one merged
+    assert (tree.nq, tree.nv) == (7 + 1 + 1 + 1, 6 + 1 + 1 + 1)
+    np.testing.assert_array_equal(tree.neutral_configuration(), [0, 0, 0, 0, 0, 0, 1, 0, 0, 0])
+    with pytest.raises(ValueError, match="unknown joint type 'planar'.*revolute, prismatic, floating, fixed"):
+        J("planar")
+    import dataclasses
+
+    with pytest.raises(ValueError, match="unknown joint type 'planar'"):
+        dataclasses.replace(tree, joint_types=("floating", "revolute", "planar", "prismatic"))
+    with pytest.raises(ValueError, match="movable joints only"):
+        dataclasses.replace(tree, joint_types=("floating", "revolute", "fixed", "prismatic"))
+    (tmp_path / "planar.urdf").write_text(text.replace('type="prismatic"', 'type="planar"'))
+    with pytest.raises(mb.URDFError, match="joint 'prismatic' has type 'planar'; supported: revolute, continuous"):
+        mb.tree_from_urdf(tmp_path / "planar.urdf")
+
+
 def test_forward_and_inverse_dynamics_include_urdf_damping():
     plant = jd.models.Acrobot(b1=0.3, b2=0.2)
     q, v, u = jnp.array([0.4, -0.3]), jnp.array([1.0, -2.0]), jnp.array([0.7])

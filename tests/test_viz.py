@@ -120,6 +120,22 @@ def test_a_visualizer_is_a_system_in_a_diagram_and_errors_name_the_remedy():
         vis.save(traj, "movie.avi")
 
 
+def test_visualizer_for_recognises_the_notes_rigid_body_plants_by_their_class():
+    """Not by where their URDF file lives: an `Acrobot` (also one given ground contact) and a
+    `DoublePendulum` are drawn in the x-z plane, a `CartPole` with its cart unless another plane
+    is asked for; the acrobot's own URDF loaded as a plain `RigidBodySystem` is any URDF robot,
+    a 3-D MeshCat scene."""
+    pytest.importorskip("meshcat")
+    acrobot = jd.models.Acrobot()
+    touching = acrobot.with_collision_geometry("lower_link", jd.geometry.Sphere(0.1)).with_ground(-4.0)
+    for plant in (acrobot, touching, jd.models.DoublePendulum()):
+        vis = visualizer_for(plant)
+        assert type(vis) is PlanarRigidBodyVisualizer and vis.plane == (0, 2)
+    assert type(visualizer_for(jd.models.CartPole())) is jd.viz.CartPoleVisualizer
+    assert type(visualizer_for(jd.models.CartPole(), plane="yz")) is PlanarRigidBodyVisualizer
+    assert type(visualizer_for(jd.RigidBodySystem.from_urdf(acrobot.source))) is jd.viz.MeshcatVisualizer
+
+
 # ----- 3-D scenes (MeshCat) -------------------------------------------------------------------
 
 def scene_transforms(commands, prefix):

@@ -59,6 +59,7 @@ import numpy as np
 from ..geometry import SUPPORTED_PAIRS, Box, Capsule, Convex, Cylinder, GeometryError, HalfSpace, Sphere, supported
 from ._contact import CollisionGeometry, ContactMaterial, shape_kind
 from ._files import parse_xml, read_xml, resolve_model_file
+from ._joints import JointType
 from ._tree import KinematicTree, _combine, assemble_tree
 from ._urdf_collision import URDFCollisions
 
@@ -197,6 +198,13 @@ class _Reader:
     def _joint(self, j):
         return f"{self.where}: joint {self.joint_name[j]!r} (body {self.body_name[self.m.jnt_bodyid[j]]!r})"
 
+    def _joint_type(self, j) -> JointType:
+        """Joint j's kind: a free joint floats, a hinge revolves, a slide is prismatic (a ball
+        joint is refused by `check_supported`)."""
+        J = self.mj.mjtJoint
+        return {int(J.mjJNT_FREE): JointType.FLOATING, int(J.mjJNT_HINGE): JointType.REVOLUTE,
+                int(J.mjJNT_SLIDE): JointType.PRISMATIC}[int(self.m.jnt_type[j])]
+
     # ----- what the plant cannot represent ------------------------------------------------------
 
     def check_supported(self, contact, ignore_armature):
@@ -207,7 +215,7 @@ class _Reader:
                 raise MJCFError(f"{self._joint(j)} is a ball joint; the plant has hinge, slide and one free "
                                 "(floating-base) joint. Replace it by three hinges with orthogonal axes in "
                                 "the same body (same pos)")
-            dofs = slice(m.jnt_dofadr[j], m.jnt_dofadr[j] + (6 if kind == J.mjJNT_FREE else 1))
+            dofs = slice(m.jnt_dofadr[j], m.jnt_dofadr[j] + self._joint_type(j).num_velocities)
             if np.any(m.dof_armature[dofs] != 0) and not ignore_armature:
                 raise MJCFError(f"{self._joint(j)} has armature {m.dof_armature[dofs].max():g}, which the "
                                 "plant does not model (a rotor inertia added to H's diagonal). Remove it from "
@@ -241,7 +249,7 @@ class _Reader:
     # ----- bodies and joints ------------------------------------------------------------------
 
     def tree(self) -> KinematicTree:
-        m, J = self.m, self.mj.mjtJoint
+        m = self.m
         bodies, frames = [], [("world", -1, np.eye(3), np.zeros(3))]
         place = {0: (-1, np.eye(3), np.zeros(3))}  # MuJoCo body -> (tree body, R, p of it in the tree body)
         damping_on = not self.disabled("mjDSBL_DAMPER")
@@ -252,7 +260,7 @@ class _Reader:
             R, p = R_p @ R_B, R_p @ m.body_pos[b] + p_p  # body frame before its joints, in `parent`
             joints = range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b])
             for k, j in enumerate(joints):
-                if parent < 0 and bodies and bodies[0]["type"] == "floating":
+                if parent < 0 and bodies and bodies[0]["type"] == JointType.FLOATING:
                     raise MJCFError(f"{self._joint(j)} moves a body of the worldbody beside the floating "
                                     f"body {bodies[0]['link']!r}; the plant floats one body and everything "
                                     "that moves descends from it. Make the body a child of the floating body, "
@@ -261,19 +269,20 @@ class _Reader:
                 common = dict(joint=self.joint_name[j], inertial=(0.0, np.zeros(3), np.zeros((3, 3))),
                               damping=m.dof_damping[dof] if damping_on else 0.0, friction=m.dof_frictionloss[dof],
                               effort=effort.get(j, np.inf), lower=-np.inf, upper=np.inf)
-                if m.jnt_type[j] == J.mjJNT_FREE:
+                kind = self._joint_type(j)
+                if kind == JointType.FLOATING:
                     if bodies:
                         raise MJCFError(f"{self._joint(j)}: the floating body must come first among the "
                                         f"worldbody's moving bodies (body {bodies[0]['link']!r} comes before it) "
                                         "and be the only one; move it to the top of the worldbody")
-                    bodies.append(dict(common, link=self.body_name[b], type="floating", parent=-1, R=np.eye(3),
+                    bodies.append(dict(common, link=self.body_name[b], type=JointType.FLOATING, parent=-1, R=np.eye(3),
                                        p=np.zeros(3), axis=np.zeros(3)))
                     parent, R, p = 0, np.eye(3), np.zeros(3)  # MuJoCo ignores body_pos for a free body
                     continue
                 anchor, axis = m.jnt_pos[j], m.jnt_axis[j] / np.linalg.norm(m.jnt_axis[j])
                 ref = m.qpos0[m.jnt_qposadr[j]]
                 R_o, p_o = R, R @ anchor + p  # the joint frame at the anchor, turned back by ref
-                if m.jnt_type[j] == J.mjJNT_HINGE:
+                if kind == JointType.REVOLUTE:
                     R_o = R_o @ _rotation_about(axis, -ref)
                 else:
                     p_o = p_o - ref * (R_o @ axis)
@@ -281,7 +290,7 @@ class _Reader:
                 last = k == len(joints) - 1
                 bodies.append(dict(
                     common, link=self.body_name[b] if last else f"{self.body_name[b]}_{self.joint_name[j]}",
-                    type="revolute" if m.jnt_type[j] == J.mjJNT_HINGE else "prismatic", parent=parent,
+                    type=kind, parent=parent,
                     R=R_o, p=p_o, axis=axis, lower=m.jnt_range[j, 0] if limited else -np.inf,
                     upper=m.jnt_range[j, 1] if limited else np.inf))
                 if not last:

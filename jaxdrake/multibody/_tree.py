@@ -8,10 +8,10 @@ parent's frame. Links joined by `fixed` joints are merged into one body (their i
 added); every URDF link stays available as a named frame. A joint whose parent is an
 undeclared link named `world` hangs from the world (as Drake reads such files).
 
-Joint coordinates: revolute / continuous (one angle, rad), prismatic (one length, m), and a
-floating base with Pinocchio's parameterization: q = [x, y, z, qx, qy, qz, qw] (position of
-the base in the world, unit quaternion of its orientation), v = [v_base; omega_base], the
-linear and angular velocity of the base expressed in the base frame.
+Joint coordinates (`JointType`): revolute / continuous (one angle, rad), prismatic (one
+length, m), and a floating base with Pinocchio's parameterization: q = [x, y, z, qx, qy, qz,
+qw] (position of the base in the world, unit quaternion of its orientation), v = [v_base;
+omega_base], the linear and angular velocity of the base expressed in the base frame.
 
 Static: names, joint types, parent indices, index layout. Leaves (differentiable): joint
 axes and placements, masses, centres of mass, inertias, damping, friction, limits, gravity.
@@ -30,15 +30,24 @@ import numpy as np
 
 from .._numbers import device_array
 from ._files import read_xml
+from ._joints import JointType
 from ._spatial import rpy
 
-JOINT_DOFS = {"revolute": (1, 1), "prismatic": (1, 1), "floating": (7, 6)}
-_URDF_TYPES = {"revolute": "revolute", "continuous": "revolute", "prismatic": "prismatic",
-               "fixed": "fixed", "floating": "floating"}
+URDF_JOINT_TYPES = {"revolute": JointType.REVOLUTE, "continuous": JointType.REVOLUTE,
+                    "prismatic": JointType.PRISMATIC, "fixed": JointType.FIXED, "floating": JointType.FLOATING}
 
 
 class URDFError(ValueError):
     """A URDF that cannot describe a kinematic tree (named problem, file)."""
+
+
+def _movable_joint_types(kinds) -> tuple:
+    """`kinds` as `JointType`s (an unknown name refused by `JointType`), none of them fixed."""
+    kinds = tuple(JointType(k) for k in kinds)
+    if JointType.FIXED in kinds:
+        raise ValueError("a KinematicTree holds movable joints only: merge a fixed joint's child into its "
+                         "parent body (the URDF and MJCF readers do)")
+    return kinds
 
 
 class KinematicTree(eqx.Module):
@@ -46,7 +55,8 @@ class KinematicTree(eqx.Module):
     velocity-coordinate order, per-q entries in position-coordinate order).
 
     Static: `robot_name`; `body_names[i]` (the URDF link of body i); `joint_names[i]` and
-    `joint_types[i]` ("revolute", "prismatic" or "floating": the joint from body i's parent);
+    `joint_types[i]` (the `JointType` of the joint from body i's parent: revolute, prismatic
+    or floating);
     `parents[i]` (index of the parent body, -1 the world; parents come first);
     `frame_names[k]` (every URDF link) and `frame_bodies[k]` (the body frame k is fixed to).
 
@@ -61,7 +71,7 @@ class KinematicTree(eqx.Module):
     robot_name: str = eqx.field(static=True)
     body_names: tuple = eqx.field(static=True)
     joint_names: tuple = eqx.field(static=True)
-    joint_types: tuple = eqx.field(static=True)
+    joint_types: tuple = eqx.field(static=True, converter=_movable_joint_types)
     parents: tuple = eqx.field(static=True)
     frame_names: tuple = eqx.field(static=True)
     frame_bodies: tuple = eqx.field(static=True)
@@ -86,44 +96,33 @@ class KinematicTree(eqx.Module):
 
     @property
     def q_starts(self) -> tuple:
-        return tuple(np.cumsum([0] + [JOINT_DOFS[t][0] for t in self.joint_types])[:-1].tolist())
+        return tuple(np.cumsum([0] + [k.num_positions for k in self.joint_types])[:-1].tolist())
 
     @property
     def v_starts(self) -> tuple:
-        return tuple(np.cumsum([0] + [JOINT_DOFS[t][1] for t in self.joint_types])[:-1].tolist())
+        return tuple(np.cumsum([0] + [k.num_velocities for k in self.joint_types])[:-1].tolist())
 
     @property
     def nq(self) -> int:
-        return sum(JOINT_DOFS[t][0] for t in self.joint_types)
+        return sum(k.num_positions for k in self.joint_types)
 
     @property
     def nv(self) -> int:
-        return sum(JOINT_DOFS[t][1] for t in self.joint_types)
+        return sum(k.num_velocities for k in self.joint_types)
 
     @property
     def has_floating_base(self) -> bool:
-        return "floating" in self.joint_types
+        return JointType.FLOATING in self.joint_types
 
     def position_names(self) -> tuple:
-        names = []
-        for name, kind in zip(self.joint_names, self.joint_types):
-            names += ([f"{name}_{c}" for c in ("x", "y", "z", "qx", "qy", "qz", "qw")]
-                      if kind == "floating" else [name])
-        return tuple(names)
+        return tuple(n for name, kind in zip(self.joint_names, self.joint_types) for n in kind.position_names(name))
 
     def velocity_names(self) -> tuple:
-        names = []
-        for name, kind in zip(self.joint_names, self.joint_types):
-            names += ([f"{name}_{c}" for c in ("vx", "vy", "vz", "wx", "wy", "wz")]
-                      if kind == "floating" else [f"{name}dot"])
-        return tuple(names)
+        return tuple(n for name, kind in zip(self.joint_names, self.joint_types) for n in kind.velocity_names(name))
 
     def neutral_configuration(self):
         """q with every joint at zero (the identity quaternion for a floating base)."""
-        q = np.zeros(self.nq)
-        if self.has_floating_base:
-            q[6] = 1.0
-        return jnp.asarray(q)
+        return jnp.asarray([c for kind in self.joint_types for c in kind.neutral_position], float)
 
     @property
     def layout(self) -> "TreeLayout":
@@ -163,7 +162,8 @@ class TreeLayout:
 
     def __init__(self, parents, joint_types):
         n = len(parents)
-        if "floating" in joint_types[1:] or (joint_types and joint_types[0] == "floating" and parents[0] != -1):
+        floating = JointType.FLOATING
+        if floating in joint_types[1:] or (joint_types and joint_types[0] == floating and parents[0] != -1):
             raise ValueError("only the root body of a tree may have a floating joint")
         depth = []
         for i, p in enumerate(parents):
@@ -189,12 +189,12 @@ class TreeLayout:
             while j >= 0:
                 self.subtree[self.position[j], self.position[i]] = 1.0
                 j = parents[j]
-        self.floating = bool(n and joint_types[0] == "floating")
+        self.floating = bool(n and joint_types[0] == floating)
         one_dof = self.order[int(self.floating):]
-        dofs = [6 if k == "floating" else 1 for k in joint_types]
+        dofs = [k.num_velocities for k in joint_types]
         v_starts = np.concatenate([[0], np.cumsum(dofs)])[:-1].astype(int)
-        q_starts = np.concatenate([[0], np.cumsum([7 if k == "floating" else 1 for k in joint_types])])[:-1]
-        self.revolute = np.array([joint_types[i] == "revolute" for i in one_dof], float)
+        q_starts = np.concatenate([[0], np.cumsum([k.num_positions for k in joint_types])])[:-1]
+        self.revolute = np.array([joint_types[i] == JointType.REVOLUTE for i in one_dof], float)
         self.q_index = q_starts[one_dof].astype(int)
         nv = int(sum(dofs))
         self.dof_body = np.zeros(nv, int)
@@ -286,15 +286,16 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
     children = set()
     free_joint = None  # a <joint type="floating"> from the world: its child is the floating base
     for joint in root.findall("joint"):
-        name, kind = joint.get("name"), joint.get("type")
+        name, kind = joint.get("name"), URDF_JOINT_TYPES.get(joint.get("type"))
         where = f"joint {name!r}"
-        if kind not in _URDF_TYPES:
-            raise URDFError(f"{path}: joint {name!r} has type {kind!r}; supported: revolute, "
+        if kind is None:
+            raise URDFError(f"{path}: joint {name!r} has type {joint.get('type')!r}; supported: revolute, "
                             "continuous, prismatic, fixed, and floating from the world (a floating base)")
+        unlimited = joint.get("type") == "continuous"  # URDF's revolute joint without limits
         parent, child = joint.find("parent"), joint.find("child")
         parent = parent.get("link") if parent is not None else None
         child = child.get("link") if child is not None else None
-        if kind == "floating":
+        if kind == JointType.FLOATING:
             if parent != "world" or free_joint is not None:
                 raise URDFError(f"{path}: joint {name!r} is floating {'between two links' if parent != 'world' else 'as a second free body'}; "
                                 "jaxdrake's tree has one floating base, joined to the world: give the floating "
@@ -313,15 +314,15 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
                             "declare loops as constraints instead)")
         children.add(child)
         axis = _numbers(joint.find("axis"), "xyz", 3, [1.0, 0.0, 0.0], path, where)
-        if _URDF_TYPES[kind] != "fixed" and not np.linalg.norm(axis) > 0:
+        if kind != JointType.FIXED and not np.linalg.norm(axis) > 0:
             raise URDFError(f"{path}: joint {name!r} has a zero axis")
         limit, dynamics = joint.find("limit"), joint.find("dynamics")
         number = lambda element, attribute, default: _numbers(element, attribute, 1, default, path, where)
         joints.append(dict(
-            name=name, type="fixed" if name in welded else _URDF_TYPES[kind], parent=parent, child=child,
+            name=name, type=JointType.FIXED if name in welded else kind, parent=parent, child=child,
             origin=_origin(joint.find("origin"), path, where), axis=axis / max(np.linalg.norm(axis), 1e-300),
-            lower=number(limit, "lower", -np.inf) if kind != "continuous" else -np.inf,
-            upper=number(limit, "upper", np.inf) if kind != "continuous" else np.inf,
+            lower=-np.inf if unlimited else number(limit, "lower", -np.inf),
+            upper=np.inf if unlimited else number(limit, "upper", np.inf),
             effort=number(limit, "effort", np.inf),
             damping=number(dynamics, "damping", 0.0), friction=number(dynamics, "friction", 0.0)))
     if free_joint is not None:  # as floating_base=True: the world holds only the floating joint
@@ -365,7 +366,7 @@ def urdf_mimic_joints(path, welded=()) -> tuple:
     couplings = []
     for joint in root.findall("joint"):
         mimic, name = joint.find("mimic"), joint.get("name")
-        if mimic is None or name in welded or joint.get("type") == "fixed":
+        if mimic is None or name in welded or URDF_JOINT_TYPES.get(joint.get("type")) == JointType.FIXED:
             continue
         where = f"joint {name!r}"
         leader = mimic.get("joint")
@@ -437,7 +438,7 @@ def _build_tree(robot_name, root, links, joints, floating_base, gravity, path):
     link_body = {}   # link -> (body index, R, p of the link in the body frame)
 
     if floating_base:
-        bodies.append(dict(link=root, joint="floating_base", type="floating", parent=-1,
+        bodies.append(dict(link=root, joint="floating_base", type=JointType.FLOATING, parent=-1,
                            R=np.eye(3), p=np.zeros(3), axis=np.zeros(3), inertial=links[root],
                            lower=-np.inf, upper=np.inf, effort=np.inf, damping=0.0, friction=0.0))
         link_body[root] = (0, np.eye(3), np.zeros(3))
@@ -449,7 +450,7 @@ def _build_tree(robot_name, root, links, joints, floating_base, gravity, path):
         body, R_lb, p_lb = link_body[j["parent"]]
         R_o, p_o = j["origin"]
         R, p = R_lb @ R_o, R_lb @ p_o + p_lb  # the joint frame in the parent body's frame
-        if j["type"] == "fixed":
+        if j["type"] == JointType.FIXED:
             link_body[j["child"]] = (body, R, p)
             if body >= 0:  # merge the child's inertia into the body
                 m, c, I = links[j["child"]]
@@ -480,9 +481,8 @@ def assemble_tree(robot_name, bodies, frames, gravity, path, error=URDFError) ->
     _check_every_joint_moves_mass(bodies, path)
     floats = lambda values: device_array(values, float)  # converted on the host: nothing to compile
     arr = lambda key: floats([b[key] for b in bodies])
-    repeated = lambda key, floating: floats(np.concatenate([[b[key]] * (floating if b["type"] == "floating" else 1)
-                                                            for b in bodies]))
-    per_dof, per_q = (lambda key: repeated(key, 6)), (lambda key: repeated(key, 7))  # a floating base: 6 / 7
+    per_q = lambda key: floats(np.concatenate([[b[key]] * JointType(b["type"]).num_positions for b in bodies]))
+    per_dof = lambda key: floats(np.concatenate([[b[key]] * JointType(b["type"]).num_velocities for b in bodies]))
     return KinematicTree(
         robot_name=robot_name, body_names=tuple(b["link"] for b in bodies), joint_names=tuple(b["joint"] for b in bodies),
         joint_types=tuple(b["type"] for b in bodies), parents=tuple(b["parent"] for b in bodies),
@@ -544,7 +544,7 @@ def tree_from_pinocchio(model) -> KinematicTree:
         joint = model.joints[i]
         kind = joint.shortname()
         if kind == "JointModelFreeFlyer":
-            jtype, axis = "floating", np.zeros(3)
+            jtype, axis = JointType.FLOATING, np.zeros(3)
         else:
             data = joint.createData()
             joint.calc(data, np.asarray(_pin_neutral(model)))
@@ -552,7 +552,8 @@ def tree_from_pinocchio(model) -> KinematicTree:
             if joint.nv != 1 or (np.linalg.norm(S[:3]) > 0) == (np.linalg.norm(S[3:]) > 0):
                 raise ValueError(f"Pinocchio joint {model.names[i]!r} ({kind}) is not supported: "
                                  "revolute, continuous, prismatic and free-flyer joints are")
-            jtype, axis = ("prismatic", S[:3]) if np.linalg.norm(S[:3]) > 0 else ("revolute", S[3:])
+            jtype, axis = ((JointType.PRISMATIC, S[:3]) if np.linalg.norm(S[:3]) > 0
+                           else (JointType.REVOLUTE, S[3:]))
         placement, inertia = model.jointPlacements[i], model.inertias[i]
         bodies.append(dict(
             link=model.names[i], joint=model.names[i], type=jtype, parent=model.parents[i] - 1,
@@ -562,7 +563,7 @@ def tree_from_pinocchio(model) -> KinematicTree:
     lower, upper = np.asarray(model.lowerPositionLimit), np.asarray(model.upperPositionLimit)
     q_lower, q_upper = [], []
     for iq, nq, _, _, jtype in q_index:
-        if jtype != "floating" and nq == 2:  # a continuous joint: (cos, sin) in Pinocchio
+        if jtype != JointType.FLOATING and nq == 2:  # a continuous joint: (cos, sin) in Pinocchio
             q_lower.append([-np.inf]), q_upper.append([np.inf])
         else:
             q_lower.append(lower[iq: iq + nq]), q_upper.append(upper[iq: iq + nq])

@@ -26,7 +26,8 @@ import numpy as np
 from ..geometry import Box, Capsule, Convex, Cylinder, GeometryError, Sphere
 from ._contact import URDF_DEFAULT_FRICTION, CollisionGeometry, ContactMaterial
 from ._files import resolve_model_file
-from ._tree import URDFError, _numbers, _origin, read_urdf
+from ._joints import JointType
+from ._tree import URDF_JOINT_TYPES, URDFError, _numbers, _origin, read_urdf
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,7 +70,8 @@ def read_urdf_collisions(path, *, package_map=None, mesh_hulls: bool = False) ->
     excluded = []
     for joint in root.findall("joint"):
         parent, child = joint.find("parent"), joint.find("child")
-        if joint.get("type") in ("fixed", "floating") or parent is None or child is None:
+        kind = URDF_JOINT_TYPES.get(joint.get("type"))
+        if kind in (JointType.FIXED, JointType.FLOATING) or parent is None or child is None:
             continue
         if parent.get("link") != "world":
             excluded.append((parent.get("link"), child.get("link")))

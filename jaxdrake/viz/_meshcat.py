@@ -36,9 +36,11 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ..multibody import ContactModel, KinematicTree, RigidBodySystem, URDFError, parse_xml, resolve_model_file
-from ..multibody import _algorithms as alg
+from ..multibody import (ContactModel, KinematicTree, RigidBodySystem, URDFError, body_poses, frame_pose, parse_xml,
+                          resolve_model_file)
 from . import _meshcat_server
+from ._puppet import puppet_model, render_frames
+from ._urdf_visuals import urdf_color
 from ._visualizer import DRAW_PERIOD, Visualizer, _in_notebook, batched
 
 _GREY, _SKELETON, _FORCE = 0xA0A0A8, 0x4C72B0, 0x2CA02C
@@ -79,16 +81,6 @@ def _y_onto(d):
     x = np.cross(d, [0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 else np.cross(d, [1.0, 0.0, 0.0])
     x /= np.linalg.norm(x)
     return np.column_stack([x, d, np.cross(x, d)])
-
-
-def urdf_color(visual, materials):
-    """The RGBA colour of a URDF <visual> (its own material's, else the named robot material's),
-    or None."""
-    if visual.material is not None:
-        for source in (visual.material, materials.get(visual.material.name)):
-            if source is not None and source.color is not None:
-                return np.asarray(source.color.rgba, float)
-    return None
 
 
 def _material(visual, materials):
@@ -189,8 +181,8 @@ class MeshcatVisualizer(Visualizer):
         """The world pose of every link (`links` order) in state x: (num_links, 4, 4)."""
         tree = self.tree
         q = x[: tree.nq]
-        poses = alg.body_poses(tree, q)
-        R, p = (jnp.stack(part) for part in zip(*(alg.frame_pose(tree, q, link, poses=poses) for link in self.links)))
+        poses = body_poses(tree, q)
+        R, p = (jnp.stack(part) for part in zip(*(frame_pose(tree, q, link, poses=poses) for link in self.links)))
         bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0], R.dtype), (len(self.links), 1, 4))
         return jnp.concatenate([jnp.concatenate([R, p[:, :, None]], axis=2), bottom], axis=1)
 
@@ -419,8 +411,6 @@ class MeshcatVisualizer(Visualizer):
 
     def images(self, xs) -> np.ndarray:
         """RGB images (n, height, width, 3) of the states xs (n, num_states), rendered by MuJoCo."""
-        from ._puppet import puppet_model, render_frames
-
         connection = self._connection
         if "puppet" not in connection:
             visuals, materials, mesh_file = self._urdf_visuals()

@@ -3,18 +3,15 @@ projection of any `RigidBodySystem` onto a plane; `visualizer_for(system)` picks
 
 from __future__ import annotations
 
-import pathlib
-
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ..models import BouncingBall, CompassGait, Pendulum, PlanarQuadrotor, RimlessWheel
-from ..models._rigid import URDF_DIR
-from ..multibody import RigidBodySystem
-from ..multibody._mujoco import MujocoSystem
-from ..multibody import _algorithms as alg
+from ..models import Acrobot, BouncingBall, CartPole, CompassGait, DoublePendulum, Pendulum, PlanarQuadrotor, RimlessWheel
+from ..multibody import JointType, MujocoSystem, RigidBodySystem, body_poses, frame_pose
 from ..systems import System
+from ._meshcat import MeshcatVisualizer
+from ._mujoco import MujocoVisualizer
 from ._visualizer import DRAW_PERIOD, Visualizer
 
 ROD = dict(kind="line", color="C0", lw=4, solid_capstyle="round")
@@ -90,8 +87,8 @@ class PlanarRigidBodyVisualizer(Visualizer):
         """World positions: every body's joint origin (n, 3) and every frame's origin (f, 3)."""
         tree = self.plant.tree
         q = x[: tree.nq]
-        R, p = alg.body_poses(tree, q)
-        frames = jnp.stack([alg.frame_pose(tree, q, name, poses=(R, p))[1] for name in tree.frame_names])
+        R, p = body_poses(tree, q)
+        frames = jnp.stack([frame_pose(tree, q, name, poses=(R, p))[1] for name in tree.frame_names])
         return p, frames
 
     def shapes(self, x):
@@ -114,7 +111,7 @@ def _link_segments(tree):
     """(start body or -1 for the world origin, end index, end is a frame) for every drawn segment."""
     segments = []
     for i, (parent, kind) in enumerate(zip(tree.parents, tree.joint_types)):
-        if kind == "revolute":
+        if kind == JointType.REVOLUTE:
             segments.append((parent, i, False))
     translation = np.asarray(tree.frame_translation)
     for k, body in enumerate(tree.frame_bodies):
@@ -280,28 +277,30 @@ class PlanarQuadrotorVisualizer(Visualizer):
         return (-2.0, 2.0), (-1.5, 1.5)
 
 
-def visualizer_for(system: System, *, plane: str | None = None, draw_period=DRAW_PERIOD) -> Visualizer:
-    """The planar visualizer for one of the notes' plants (the cart-pole, the acrobot and the
-    double pendulum are `RigidBodySystem`s of the package's own URDFs); for any other URDF robot
-    a 3-D `MeshcatVisualizer`, or its projection onto `plane` ("xz", "yz", "xy") on request (also
-    for a `RigidBodySystem` not loaded from a file); MuJoCo's renderer for a `MujocoSystem`."""
-    simple = {Pendulum: PendulumVisualizer, BouncingBall: BouncingBallVisualizer, RimlessWheel: RimlessWheelVisualizer,
-              CompassGait: CompassGaitVisualizer, PlanarQuadrotor: PlanarQuadrotorVisualizer}
-    for kind, make in simple.items():
-        if isinstance(system, kind):
-            return make(system, draw_period)
-    if isinstance(system, RigidBodySystem):
-        tree = system.tree
-        if plane is None and tree.joint_types[:1] == ("prismatic",) and "pole_tip" in tree.frame_names:
-            return CartPoleVisualizer(system, draw_period=draw_period)
-        if plane is not None or system.source is None or pathlib.Path(system.source).parent == URDF_DIR:
-            return PlanarRigidBodyVisualizer(system, plane or "xz", draw_period)
-        from ._meshcat import MeshcatVisualizer
+# the notes' plants, each drawn from its own parameters (in the x-z plane, the rigid bodies)
+_PLANAR_BY_CLASS = {Pendulum: PendulumVisualizer, BouncingBall: BouncingBallVisualizer,
+                    RimlessWheel: RimlessWheelVisualizer, CompassGait: CompassGaitVisualizer,
+                    PlanarQuadrotor: PlanarQuadrotorVisualizer, CartPole: CartPoleVisualizer,
+                    Acrobot: PlanarRigidBodyVisualizer, DoublePendulum: PlanarRigidBodyVisualizer}
 
+
+def visualizer_for(system: System, *, plane: str | None = None, draw_period=DRAW_PERIOD) -> Visualizer:
+    """The visualizer for a plant, chosen by its class: the planar one drawn from its own
+    parameters for one of the notes' plants (the pendulum, bouncing ball, rimless wheel,
+    compass gait, planar quadrotor, cart-pole, acrobot, double pendulum); for any other
+    `RigidBodySystem` a 3-D `MeshcatVisualizer` of its URDF's visuals, or its projection onto
+    `plane` ("xz", "yz", "xy") on request (also for one not loaded from a file); MuJoCo's
+    renderer for a `MujocoSystem`."""
+    if isinstance(system, RigidBodySystem) and plane is not None:
+        return PlanarRigidBodyVisualizer(system, plane, draw_period)
+    for kind, make in _PLANAR_BY_CLASS.items():
+        if isinstance(system, kind):
+            return make(system, draw_period=draw_period)
+    if isinstance(system, RigidBodySystem):
+        if system.source is None:
+            return PlanarRigidBodyVisualizer(system, draw_period=draw_period)
         return MeshcatVisualizer(system, draw_period=draw_period)
     if isinstance(system, MujocoSystem):
-        from ._mujoco import MujocoVisualizer
-
         return MujocoVisualizer(system, draw_period=draw_period)
     raise TypeError(f"no visualizer for {type(system).__name__} ({system.name}); subclass "
                     "jaxdrake.viz.Visualizer (shapes, STYLES, view) to draw it")

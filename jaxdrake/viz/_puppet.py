@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._meshcat import urdf_color
+from ._urdf_visuals import urdf_color
 
 _GREY = (0.63, 0.63, 0.66, 1.0)
 
