@@ -152,7 +152,7 @@ class JointState(RosMessage):
             if len(values) != len(names):
                 raise MessageError(f"JointState has {len(values)} {field} values for {len(names)} names")
             rows.append([values[i] for i in index])
-        return fields["header"]["stamp"] * 1e-9, _finite(rows, self.type_name)
+        return fields["header"]["stamp"] / 1e9, _finite(rows, self.type_name)
 
 
 class Twist(RosMessage):
@@ -187,7 +187,7 @@ class WrenchStamped(RosMessage):
     def decode(self, fields):
         wrench = fields["wrench"]
         x = _read_vector3(wrench["force"]) + _read_vector3(wrench["torque"])
-        return fields["header"]["stamp"] * 1e-9, _finite(x, self.type_name)
+        return fields["header"]["stamp"] / 1e9, _finite(x, self.type_name)
 
 
 MESSAGE_TYPES = {cls.type_name: cls for cls in (Float64MultiArray, JointState, Twist, WrenchStamped)}

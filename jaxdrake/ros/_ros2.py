@@ -15,7 +15,6 @@ multicast address.) Other ROS 2 processes reach a translator on `LOOPBACK` only 
 configuration (`CYCLONEDDS_URI`, see docs/ros.md).
 """
 
-from __future__ import annotations
 
 import dataclasses
 import logging

@@ -1,0 +1,370 @@
+"""The ROS–LCM translator against a real ROS 1 master (Debian's roscore, rostopic, rosbag) on
+127.0.0.1 at a free port, ROS 2's wire format against `rosbags`' CDR serializer and between two
+processes over Cyclone DDS on the loopback interface (strace shows no DDS traffic to a multicast
+address), and bags read back by `rosbags` and Debian's `rosbag`. LCM runs on a LoopbackRelay.
+
+ROS 1 tests skip only where Debian's ROS packages are not installed (`.ci/run` installs them);
+under CI they fail instead."""
+
+import json
+import os
+import pathlib
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+import xmlrpc.client
+
+import lcm
+import numpy as np
+import pytest
+import yaml
+
+import jaxdrake as jd
+from jaxdrake.lcm import LcmNode, LoopbackRelay, RobotStateCoder, SignalCoder
+from jaxdrake.ros import (TO_LCM, TO_ROS, Float64MultiArray, JointState, Route, RosBag, Twist, WrenchStamped,
+                          lcm_log_to_bag, read_mapping)
+from jaxdrake.systems import Frame
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+DEBIAN_PYTHON = "/usr/bin/python3"
+HAVE_ROS1 = all(shutil.which(tool) for tool in ("roscore", "rostopic", "rosbag")) and os.path.exists(DEBIAN_PYTHON)
+
+
+def require_ros1(tools_present=HAVE_ROS1, what="Debian's ROS 1 is"):
+    if tools_present:
+        return
+    reason = (f"{what} not installed (apt-get install ros-core python3-rospy python3-rostopic python3-std-msgs "
+              "python3-sensor-msgs python3-geometry-msgs python3-rosbag strace; .ci/run does)")
+    if os.environ.get("CI"):
+        pytest.fail(reason)
+    pytest.skip(reason)
+
+
+def free_port():
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def ros_env(port, home):
+    return dict(os.environ, ROS_MASTER_URI=f"http://127.0.0.1:{port}", ROS_IP="127.0.0.1",
+                ROS_HOSTNAME="127.0.0.1", ROS_HOME=str(home), ROS_LOG_DIR=str(home / "log"))
+
+
+def start_roscore(env, port):
+    """roscore in its own process group (roslaunch starts the master and rosout as children)."""
+    process = subprocess.Popen(["roscore", "-p", str(port)], env=env, stdout=subprocess.DEVNULL,
+                               stderr=subprocess.DEVNULL, start_new_session=True)
+    master = xmlrpc.client.ServerProxy(env["ROS_MASTER_URI"])
+    deadline = time.time() + 60
+    while time.time() < deadline:
+        try:
+            master.getPid("/test")
+            return process
+        except OSError:
+            time.sleep(0.1)
+    stop_process_group(process)
+    raise RuntimeError("roscore did not start")
+
+
+def stop_process_group(process, sig=signal.SIGINT):
+    try:
+        os.killpg(process.pid, sig)
+        process.wait(timeout=20)
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        process.wait()
+    except ProcessLookupError:
+        pass
+
+
+def translator(env, *args):
+    """`python -m jaxdrake.ros ARGS` once it has printed its start line (its routes are set up)."""
+    process = subprocess.Popen([sys.executable, "-m", "jaxdrake.ros", *args], cwd=ROOT, env=env,
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines = []
+    while not any(line.startswith("translator between") for line in lines):
+        line = process.stdout.readline()
+        if not line and process.poll() is not None:
+            raise RuntimeError("the translator did not start:\n" + "".join(lines))
+        lines.append(line)
+    return process
+
+
+def route_counts(output):
+    """{route text: {counter: value}} from the translator's 'stopped:' lines."""
+    counts = {}
+    for route, numbers in re.findall(r"^stopped: (.*?): (\d+ received.*)$", output, re.M):
+        counts[route] = {key.replace(" ", "_"): int(value)
+                         for value, key in re.findall(r"(\d+) (received|forwarded|malformed|wrong type)", numbers)}
+    return counts
+
+
+def wait_for(condition, timeout, handle=None):
+    deadline = time.time() + timeout
+    while not condition():
+        if time.time() > deadline:
+            return False
+        handle() if handle else time.sleep(0.05)
+    return True
+
+
+# ----- message types and routes (no network) -------------------------------------------------
+
+def test_joint_state_reads_joints_by_name_not_position():
+    message = JointState(("shoulder", "elbow"), ("position", "velocity"))
+    fields = {"header": {"stamp": 7_250_000_000, "frame_id": ""}, "name": ["elbow", "wrist", "shoulder"],
+              "position": [0.2, 9.0, 0.1], "velocity": [2.0, 9.0, 1.0], "effort": []}
+    t, x = message.decode(fields)
+    assert t == 7.25
+    np.testing.assert_array_equal(x, [0.1, 0.2, 1.0, 2.0])
+    encoded = message.encode(1.5, [0.1, 0.2, 1.0, 2.0])
+    assert encoded["name"] == ["shoulder", "elbow"] and encoded["effort"] == []
+    assert encoded["header"]["stamp"] == 1_500_000_000
+    for bad, reason in (({"name": ["elbow"], "position": [0.2], "velocity": [2.0]}, "lacks joints"),
+                        ({"name": ["elbow", "shoulder"], "position": [0.2], "velocity": [2.0, 1.0]}, "1 position values"),
+                        ({"name": ["elbow", "shoulder", "elbow"], "position": [0, 0, 0], "velocity": [0, 0, 0]}, "twice"),
+                        ({"name": ["elbow", "shoulder"], "position": [0.2, np.nan], "velocity": [2.0, 1.0]}, "non-finite")):
+        with pytest.raises(jd.lcm.MessageError, match=reason):
+            message.decode(dict(header={"stamp": 0, "frame_id": ""}, effort=[], **bad))
+
+
+def test_joint_state_of_a_plant_state_and_of_its_input():
+    acrobot = jd.models.Acrobot()
+    state = JointState.for_coordinates(acrobot.state_frame.coordinates)
+    assert state.joints == ("shoulder", "elbow") and state.fields == ("position", "velocity")
+    command = JointState.for_coordinates(acrobot.input_frame.coordinates, actuated=True)
+    assert command.joints == ("elbow",) and command.fields == ("effort",)
+    robot = JointState.for_coordinates(RobotStateCoder(["a", "b"]).frame.coordinates)
+    assert robot.joints == ("a", "b") and robot.fields == ("position", "velocity")
+
+
+def test_stamps_cross_exactly_on_lcms_microsecond_grid():
+    """An LCM stamp (integer microseconds, epoch-sized) reaches a ROS stamp and comes back equal."""
+    coder = SignalCoder(Frame("W", tuple("abcdef")))
+    message = WrenchStamped("base")
+    for utime in (0, 1, 999_999, 1_795_000_000_123_456):
+        data = coder.encode(utime * 1e-6, np.arange(6.0))
+        fields = message.encode(*coder.decode(data))
+        assert fields["header"]["stamp"] == utime * 1000 and fields["header"]["frame_id"] == "base"
+        assert coder.encode(*message.decode(fields)) == data
+
+
+def test_routes_from_a_mapping_file_and_refusals(tmp_path):
+    mapping = tmp_path / "map.toml"
+    mapping.write_text(textwrap.dedent("""
+        lcm_url = "tcpq://127.0.0.1:7700"
+        [[route]]
+        direction = "to_ros"
+        channel = "PendulumState"
+        topic = "/pendulum/state"
+        type = "sensor_msgs/msg/JointState"
+        lcm = "state_of=jaxdrake.models:Pendulum"
+        [[route]]
+        direction = "to_lcm"
+        topic = "/cmd_vel"
+        channel = "CmdVel"
+        type = "Twist"
+        lcm = "signal=vx,vy,vz,wx,wy,wz"
+        """))
+    routes, url = read_mapping(mapping)
+    assert url == "tcpq://127.0.0.1:7700"
+    assert [str(r) for r in routes] == ["PendulumState -> /pendulum/state (sensor_msgs/JointState)",
+                                       "/cmd_vel -> CmdVel (geometry_msgs/Twist)"]
+    assert routes[0].message.joints == ("theta",) and isinstance(routes[1].message, Twist)
+    with pytest.raises(ValueError, match="carries 6 values here, the LCM side 2"):
+        Route.parse(TO_ROS, "PendulumState", "/x", "Twist", "signal=a,b")
+    with pytest.raises(ValueError, match="unsupported ROS message type"):
+        Route.parse(TO_ROS, "A", "/x", "std_msgs/String", "signal=a")
+    with pytest.raises(ValueError, match="echo or interleave"):
+        jd.ros._routes.check_routes([Route.parse(TO_ROS, "A", "/x", "Float64MultiArray", "signal=a"),
+                                     Route.parse(TO_LCM, "B", "/x", "Float64MultiArray", "signal=a")])
+    mapping.write_text('[[route]]\ndirection = "to_ros"\nchannel = "A"\n')
+    with pytest.raises(ValueError, match="route 1 needs exactly the keys"):
+        read_mapping(mapping)
+
+
+def test_command_line_help_and_bad_arguments(capsys):
+    from jaxdrake.ros.__main__ import main
+
+    with pytest.raises(SystemExit) as done:
+        main(["--help"])
+    assert done.value.code == 0 and "--to-ros CHANNEL TOPIC TYPE LCM" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as done:
+        main(["--to-ros", "A", "/a", "Twist", "nonsense"])
+    assert done.value.code == 2 and "the LCM side is" in capsys.readouterr().err
+
+
+# ----- ROS 2: CDR bytes and DDS between processes ---------------------------------------------
+
+SAMPLES = [(Float64MultiArray(3, "PendulumSetpoint"), 0.0, [1.0, -2.5, 1e-300]),
+           (JointState(("shoulder", "elbow"), ("position", "velocity", "effort")), 12.345678, np.arange(6.0) - 2.5),
+           (JointState(("j",), ("effort",)), 1795000000.25, [3.0]),
+           (Twist(), 0.0, [0.5, 0, 0, 0, 0, -1.25]),
+           (WrenchStamped("tool0"), 3.000001, [1, 2, 3, 4, 5, 6])]
+
+
+@pytest.mark.parametrize("message, t, x", SAMPLES, ids=lambda v: getattr(v, "type_name", None))
+def test_cdr_bytes_equal_rosbags_serialisation(message, t, x):
+    """What the DDS writer sends (Cyclone's serializer of our IDL structs) is byte for byte what
+    rosbags serializes for ROS 2 Humble's definition of the same message."""
+    from rosbags.typesys import Stores, get_typestore
+
+    from jaxdrake.ros import _bags, _ros2
+
+    fields = message.encode(t, x)
+    ours = _ros2.build(_ros2.IDL_TYPES[message.type_name], fields).serialize()
+    typestore = get_typestore(Stores.ROS2_HUMBLE)
+    msgtype = f"{message.package}/msg/{message.name}"
+    theirs = bytes(typestore.serialize_cdr(_bags._build(typestore, msgtype, fields), msgtype))
+    assert ours[:4] == b"\x00\x01\x00\x00" and ours == theirs
+    back = _ros2.read(_ros2.IDL_TYPES[message.type_name].deserialize(theirs))
+    np.testing.assert_array_equal(message.decode(back)[1], np.asarray(x, float))
+    assert "header" not in back or back["header"]["stamp"] == round(t * 1e6) * 1000
+
+
+ROS2_PEER = r'''
+"""A ROS 2 node stand-in: its own IDL structs, Cyclone configured by CYCLONEDDS_URI."""
+import dataclasses, json, sys, time
+from cyclonedds.core import Policy, Qos
+from cyclonedds.domain import DomainParticipant
+from cyclonedds.idl import IdlStruct, types as t
+from cyclonedds.pub import DataWriter
+from cyclonedds.sub import DataReader
+from cyclonedds.topic import Topic
+from cyclonedds.util import duration
+
+@dataclasses.dataclass
+class Time(IdlStruct, typename="builtin_interfaces::msg::dds_::Time_"):
+    sec: t.int32
+    nanosec: t.uint32
+@dataclasses.dataclass
+class Header(IdlStruct, typename="std_msgs::msg::dds_::Header_"):
+    stamp: Time
+    frame_id: str
+@dataclasses.dataclass
+class Vector3(IdlStruct, typename="geometry_msgs::msg::dds_::Vector3_"):
+    x: t.float64
+    y: t.float64
+    z: t.float64
+@dataclasses.dataclass
+class Twist(IdlStruct, typename="geometry_msgs::msg::dds_::Twist_"):
+    linear: Vector3
+    angular: Vector3
+@dataclasses.dataclass
+class Wrench(IdlStruct, typename="geometry_msgs::msg::dds_::Wrench_"):
+    force: Vector3
+    torque: Vector3
+@dataclasses.dataclass
+class WrenchStamped(IdlStruct, typename="geometry_msgs::msg::dds_::WrenchStamped_"):
+    header: Header
+    wrench: Wrench
+@dataclasses.dataclass
+class JointState(IdlStruct, typename="sensor_msgs::msg::dds_::JointState_"):
+    header: Header
+    name: t.sequence[str]
+    position: t.sequence[t.float64]
+    velocity: t.sequence[t.float64]
+    effort: t.sequence[t.float64]
+
+qos = Qos(Policy.Reliability.Reliable(duration(milliseconds=100)), Policy.History.KeepLast(10),
+          Policy.Durability.Volatile, Policy.DataRepresentation(use_cdrv0_representation=True))
+participant = DomainParticipant(int(sys.argv[1]))
+twist = DataWriter(participant, Topic(participant, "rt/cmd_vel", Twist, qos=qos), qos=qos)
+joints = DataWriter(participant, Topic(participant, "rt/joint_states", JointState, qos=qos), qos=qos)
+wrench = DataReader(participant, Topic(participant, "rt/wrench", WrenchStamped, qos=qos), qos=qos)
+print("ready", flush=True)
+end = time.time() + float(sys.argv[2])
+k = 0
+bad = [JointState(Header(Time(0, 0), ""), ["a", "b"], [1.0], [1.0, 1.0], []),                # lengths differ
+       JointState(Header(Time(0, 0), ""), ["a", "b"], [1.0, float("nan")], [1.0, 1.0], []),  # non-finite
+       JointState(Header(Time(0, 0), ""), ["b"], [1.0], [1.0], [])]                           # a joint missing
+while time.time() < end:
+    twist.write(Twist(Vector3(0.5, 0.0, k), Vector3(0.0, 0.0, -1.25)))
+    if k == 40:  # by then the translator's reader has matched
+        for sample in bad:
+            joints.write(sample)
+        joints.write(JointState(Header(Time(5, 250000), ""), ["b", "a"], [2.0, 1.0], [20.0, 10.0], []))
+    for sample in wrench.take(N=10):
+        if isinstance(sample, WrenchStamped):
+            print(json.dumps({"stamp": [sample.header.stamp.sec, sample.header.stamp.nanosec],
+                              "frame_id": sample.header.frame_id,
+                              "force": [sample.wrench.force.x, sample.wrench.force.y, sample.wrench.force.z],
+                              "torque": [sample.wrench.torque.x, sample.wrench.torque.y, sample.wrench.torque.z]}),
+                  flush=True)
+    k += 1
+    time.sleep(0.02)
+'''
+
+
+def test_two_processes_exchange_ros2_messages_over_loopback_dds_without_multicast(tmp_path):
+    """The translator (ROS 2, `--dds loopback`) under strace, and a DDS peer configured with the
+    same loopback XML through CYCLONEDDS_URI: Twist samples reach LCM, LCM wrenches reach the peer
+    with their stamps, malformed JointStates are counted and dropped, and every RTPS datagram the
+    translator sends goes to 127.0.0.1 (the only multicast-addressed one is Cyclone's 16-byte
+    loopback probe, TTL 0, sent before any configuration is read)."""
+    from jaxdrake.ros import LOOPBACK
+
+    require_ros1(shutil.which("strace"), "strace is")
+    domain = 1 + os.getpid() % 200  # away from domain 0 and from other test runs on this machine
+    config = tmp_path / "cyclonedds.xml"
+    config.write_text(LOOPBACK)
+    peer_script = tmp_path / "peer.py"
+    peer_script.write_text(ROS2_PEER)
+    env = dict(os.environ, CYCLONEDDS_URI=config.as_uri())
+    trace = tmp_path / "strace.txt"
+    with LoopbackRelay() as relay:
+        process = subprocess.Popen(
+            ["strace", "-f", "-qq", "-e", "trace=sendto,sendmsg,sendmmsg,setsockopt", "-o", str(trace),
+             sys.executable, "-m", "jaxdrake.ros", "--ros", "2", "--domain-id", str(domain), "--url", relay.url,
+             "--to-ros", "Wrench", "/wrench", "geometry_msgs/WrenchStamped", "signal=fx,fy,fz,tx,ty,tz",
+             "--to-lcm", "/cmd_vel", "CmdVel", "geometry_msgs/Twist", "signal=vx,vy,vz,wx,wy,wz",
+             "--to-lcm", "/joint_states", "Joints", "sensor_msgs/JointState", "robot_state=a,b"],
+            cwd=ROOT, env=dict(os.environ), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        line = ""
+        while not line.startswith("translator between"):
+            line = process.stdout.readline()
+            assert line or process.poll() is None, "the translator did not start"
+        peer = subprocess.Popen([sys.executable, str(peer_script), str(domain), "4"], env=env,
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        assert peer.stdout.readline().startswith("ready")
+        bus = lcm.LCM(relay.url)
+        twists, joints = [], []
+        twist_coder, joint_coder = SignalCoder(Frame("CmdVel", ("vx", "vy", "vz", "wx", "wy", "wz"))), RobotStateCoder(["a", "b"])
+        bus.subscribe("CmdVel", lambda c, d: twists.append(twist_coder.decode(d)))
+        bus.subscribe("Joints", lambda c, d: joints.append(joint_coder.decode(d)))
+        wrench_coder = SignalCoder(Frame("Wrench", ("fx", "fy", "fz", "tx", "ty", "tz")))
+        k = 0
+        while peer.poll() is None:
+            bus.publish("Wrench", wrench_coder.encode(2.0 + k * 1e-6, [1, 2, 3, 4, 5, k]))
+            k += 1
+            bus.handle_timeout(20)
+        peer_out = peer.stdout.read()
+        traced = int(pathlib.Path(f"/proc/{process.pid}/task/{process.pid}/children").read_text().split()[0])
+        os.kill(traced, signal.SIGTERM)  # the translator itself: strace would detach on a signal of its own
+        out, _ = process.communicate(timeout=60)
+    assert process.returncode == 0, out
+    received = [json.loads(line) for line in peer_out.splitlines() if line.startswith("{")]
+    assert len(received) > 10, peer_out
+    last = received[-1]
+    j = int(last["torque"][2])
+    assert last["stamp"] == [2, j * 1000] and last["force"] == [1, 2, 3] and last["torque"] == [4, 5, j]
+    assert len(twists) > 10
+    np.testing.assert_array_equal(twists[-1][1][[0, 1, 3, 4, 5]], [0.5, 0, 0, 0, -1.25])
+    assert len(joints) == 1 and round(joints[0][0] * 1e6) == 5_000_250  # the stamp, to the microsecond
+    # by name: a first, b second
+    np.testing.assert_array_equal(joints[0][1], [1.0, 2.0, 10.0, 20.0])
+    counts = route_counts(out)
+    assert counts["/joint_states -> Joints (sensor_msgs/JointState)"]["malformed"] == 3, out
+    sends = [line for line in trace.read_text().splitlines() if "sendmsg(" in line or "sendto(" in line]
+    rtps = [line for line in sends if '"RTPS' in line]
+    assert len(rtps) > 20 and all('inet_addr("127.0.0.1")' in line for line in rtps)
+    multicast = [line for line in sends if re.search(r'inet_addr\("2(2[4-9]|3\d)\.', line)]
+    assert all('iov_len=16}' in line and '"RTPS' not in line for line in multicast), multicast
+    assert len(multicast) <= 1
