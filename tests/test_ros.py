@@ -368,3 +368,309 @@ def test_two_processes_exchange_ros2_messages_over_loopback_dds_without_multicas
     multicast = [line for line in sends if re.search(r'inet_addr\("2(2[4-9]|3\d)\.', line)]
     assert all('iov_len=16}' in line and '"RTPS' not in line for line in multicast), multicast
     assert len(multicast) <= 1
+
+
+# ----- bags -----------------------------------------------------------------------------------
+
+DEBIAN_ROSBAG_READER = r'''
+import json, sys, rosbag
+with rosbag.Bag(sys.argv[1]) as bag:
+    print(json.dumps([[topic, msg._type, msg.header.stamp.to_nsec(), list(msg.name), list(msg.position),
+                       list(msg.velocity), t.to_nsec()] for topic, msg, t in bag.read_messages()]))
+'''
+
+
+def test_a_nodes_lcm_log_as_a_ros1_bag_and_its_simulation_as_an_mcap_bag(tmp_path):
+    """A simulated plant node's LCM log becomes a ROS 1 bag that rosbags and Debian's rosbag read
+    back to the logged states and times; its states written one by one become a ROS 2 MCAP bag
+    whose CDR payloads are the bytes the DDS writer sends, and which rosbags reads back."""
+    from rosbags.highlevel import AnyReader
+
+    from jaxdrake.ros import _ros2
+
+    pendulum = jd.models.Pendulum()
+    bus = lcm.LCM("memq://")
+    LcmNode(pendulum, bus, rate=100.0, x0=[1.0, 0.0], log_path=tmp_path / "plant.log").run(max_ticks=30)
+    route = Route.parse(TO_ROS, "PendulumState", "/pendulum/state", "sensor_msgs/JointState",
+                        "state_of=jaxdrake.models:Pendulum")
+    logged = [(e.timestamp, *SignalCoder(pendulum.state_frame).decode(e.data))
+              for e in lcm.EventLog(str(tmp_path / "plant.log"), "r") if e.channel == "PendulumState"]
+    counts = lcm_log_to_bag(tmp_path / "plant.log", tmp_path / "plant.bag", [route])
+    assert counts == {"/pendulum/state": 30, "malformed": 0}
+    with AnyReader([tmp_path / "plant.bag"]) as reader:
+        read = [(timestamp, reader.deserialize(raw, connection.msgtype))
+                for connection, timestamp, raw in reader.messages()]
+    assert [r[0] for r in read] == [log_time * 1000 for log_time, _, _ in logged]
+    for (_, msg), (_, t, x) in zip(read, logged):
+        assert list(msg.name) == ["theta"] and msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == round(t * 1e6) * 1000
+        np.testing.assert_array_equal([msg.position[0], msg.velocity[0]], x)
+    if HAVE_ROS1:
+        debian = json.loads(subprocess.run([DEBIAN_PYTHON, "-c", DEBIAN_ROSBAG_READER, str(tmp_path / "plant.bag")],
+                                           capture_output=True, text=True, check=True).stdout)
+        assert [d[:2] for d in debian] == [["/pendulum/state", "sensor_msgs/JointState"]] * 30
+        assert [d[2] for d in debian] == [round(t * 1e6) * 1000 for _, t, _ in logged]
+        np.testing.assert_array_equal([d[4] + d[5] for d in debian], [x for _, _, x in logged])
+        info = yaml.safe_load(subprocess.run(["rosbag", "info", "--yaml", str(tmp_path / "plant.bag")],
+                                             capture_output=True, text=True, check=True).stdout)
+        assert info["messages"] == 30 and info["topics"][0]["type"] == "sensor_msgs/JointState"
+
+    times, states = [t for _, t, _ in logged], [x for _, _, x in logged]  # the simulated plant's states
+    with RosBag(tmp_path / "simulation.mcap") as bag:
+        for t, x in zip(times, states):
+            bag.write_vector("/pendulum/state", route.message, t, x)
+    assert list((tmp_path / "simulation.mcap").glob("*.mcap"))
+    with AnyReader([tmp_path / "simulation.mcap"]) as reader:
+        messages = [(connection.msgtype, timestamp, raw, reader.deserialize(raw, connection.msgtype))
+                    for connection, timestamp, raw in reader.messages()]
+    assert [m[0] for m in messages] == ["sensor_msgs/msg/JointState"] * 30
+    assert [m[1] for m in messages] == [round(t * 1e6) * 1000 for t in times]
+    for (_, _, raw, msg), t, x in zip(messages, times, states):
+        np.testing.assert_array_equal([msg.position[0], msg.velocity[0]], x)
+        assert bytes(raw) == _ros2.build(_ros2.JointState, route.message.encode(t, x)).serialize()
+
+
+# ----- ROS 1: a real roscore on 127.0.0.1 -------------------------------------------------------
+
+MAPPING = """
+[[route]]
+direction = "to_ros"
+channel = "PendulumState"
+topic = "/pendulum/state"
+type = "sensor_msgs/JointState"
+lcm = "state_of=jaxdrake.models:Pendulum"
+
+[[route]]
+direction = "to_lcm"
+topic = "/acrobot/joint_states"
+channel = "AcrobotState"
+type = "sensor_msgs/JointState"
+lcm = "state_of=jaxdrake.models:Acrobot"
+"""
+WRENCH = ("fx", "fy", "fz", "tx", "ty", "tz")
+TWIST = ("vx", "vy", "vz", "wx", "wy", "wz")
+
+
+@pytest.fixture(scope="module")
+def ros1(tmp_path_factory):
+    """A roscore at a free port on 127.0.0.1, an LCM relay, and one translator process carrying
+    five routes (two from a mapping file) and recording a ROS 1 bag."""
+    require_ros1()
+    folder = tmp_path_factory.mktemp("ros1")
+    port = free_port()
+    env = ros_env(port, folder)
+    (folder / "map.toml").write_text(MAPPING)
+    relay = LoopbackRelay().start()
+    ros1_core = []
+    starting = threading.Thread(target=lambda: ros1_core.append(start_roscore(env, port)))
+    starting.start()  # the translator waits for the master (its --master-timeout): both start at once
+    process = translator(env, "--url", relay.url, "--map", str(folder / "map.toml"), "--record", str(folder / "out.bag"),
+                         "--to-ros", "Wrench", "/wrench", "geometry_msgs/WrenchStamped", "signal=" + ",".join(WRENCH),
+                         "--to-lcm", "/pendulum/setpoint", "PendulumSetpoint", "std_msgs/Float64MultiArray", "signal=theta_ref",
+                         "--to-lcm", "/cmd_vel", "CmdVel", "geometry_msgs/Twist", "signal=" + ",".join(TWIST))
+    starting.join()
+    yield {"env": env, "relay": relay, "translator": process, "folder": folder}
+    if process.poll() is None:
+        process.kill()
+        process.communicate()
+    relay.close()
+    stop_process_group(ros1_core[0])
+
+
+def collect(url, channels):
+    """An LCM client on `url` collecting decoded messages {channel: [(t, x)]}, with its coders."""
+    bus, got = lcm.LCM(url), {name: [] for name in channels}
+    for name, coder in channels.items():
+        bus.subscribe(name, lambda channel, data, coder=coder: got[channel].append(coder.decode(data)))
+    return bus, got
+
+
+def test_rostopic_pub_reaches_an_lcm_subscriber_and_joint_states_map_by_name(ros1):
+    acrobot = jd.models.Acrobot()
+    bus, got = collect(ros1["relay"].url, {
+        "PendulumSetpoint": SignalCoder(Frame("PendulumSetpoint", ("theta_ref",))),
+        "CmdVel": SignalCoder(Frame("CmdVel", TWIST)),
+        "AcrobotState": SignalCoder(acrobot.state_frame)})
+    publishers = [subprocess.Popen(["rostopic", "pub", "-r", "20", topic, kind, data], env=ros1["env"],
+                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                  for topic, kind, data in (
+                      ("/pendulum/setpoint", "std_msgs/Float64MultiArray", "{data: [3.25]}"),
+                      ("/cmd_vel", "geometry_msgs/Twist", "{linear: {x: 0.5}, angular: {z: -1.25}}"),
+                      # the acrobot's joints by name, in another order and with a joint it does not have
+                      ("/acrobot/joint_states", "sensor_msgs/JointState",
+                       "{header: {stamp: {secs: 7, nsecs: 250000000}}, name: [elbow, wrist, shoulder], "
+                       "position: [0.2, 9.0, 0.1], velocity: [2.0, 9.0, 1.0]}"))]
+    try:
+        assert wait_for(lambda: all(got.values()), 60, lambda: bus.handle_timeout(50)), got
+    finally:
+        for publisher in publishers:
+            publisher.terminate()
+            publisher.wait()
+    np.testing.assert_array_equal(got["PendulumSetpoint"][-1][1], [3.25])
+    np.testing.assert_array_equal(got["CmdVel"][-1][1], [0.5, 0, 0, 0, 0, -1.25])
+    t, x = got["AcrobotState"][-1]
+    assert t == 7.25 and acrobot.state_frame.coordinates == ("shoulder", "elbow", "shoulderdot", "elbowdot")
+    np.testing.assert_array_equal(x, [0.1, 0.2, 1.0, 2.0])
+
+
+def test_an_lcm_publisher_reaches_rostopic_echo_with_its_stamps(ros1):
+    pendulum = SignalCoder(jd.models.Pendulum().state_frame)
+    wrench = SignalCoder(Frame("Wrench", WRENCH))
+    bus, done = lcm.LCM(ros1["relay"].url), threading.Event()
+
+    def publish():  # x a function of the stamp, so any echoed message can be checked
+        k = 0
+        while not done.is_set():
+            t = 1.5 + k * 0.01
+            bus.publish("PendulumState", pendulum.encode(t, [t, -t]))
+            bus.publish("Wrench", wrench.encode(t, [1, 2, 3, 4, 5, t]))
+            k += 1
+            time.sleep(0.02)
+
+    thread = threading.Thread(target=publish)
+    thread.start()
+    try:
+        echoes = [subprocess.Popen(["rostopic", "echo", "-n", "1", topic], env=ros1["env"], stdout=subprocess.PIPE,
+                                   text=True) for topic in ("/pendulum/state", "/wrench")]
+        state, force = (yaml.safe_load(echo.communicate(timeout=60)[0].split("---")[0]) for echo in echoes)
+    finally:
+        done.set()
+        thread.join()
+    t = state["header"]["stamp"]["secs"] + state["header"]["stamp"]["nsecs"] / 1e9
+    assert state["name"] == ["theta"] and state["effort"] == []
+    np.testing.assert_allclose([state["position"][0], state["velocity"][0]], [t, -t], rtol=0, atol=1e-12)
+    t = force["header"]["stamp"]["secs"] + force["header"]["stamp"]["nsecs"] / 1e9
+    assert force["wrench"]["force"] == {"x": 1.0, "y": 2.0, "z": 3.0}
+    assert force["wrench"]["torque"]["x"] == 4.0 and abs(force["wrench"]["torque"]["z"] - t) < 1e-12
+
+
+BAD_ROS1_NODE = r'''
+"""A ROS 1 node that sends what the translator must drop: another type on a route's topic, and
+JointStates that are truncated, lack a joint, or carry a NaN; then one good JointState."""
+import io, sys, time
+import rospy
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+
+class MaybeTruncated(JointState):  # the same type and md5sum; frame_id "cut" sends half the bytes
+    def serialize(self, buff):
+        whole = io.BytesIO()
+        JointState.serialize(self, whole)
+        data = whole.getvalue()
+        buff.write(data[: len(data) // 2] if self.header.frame_id == "cut" else data)
+
+rospy.init_node("bad_node", anonymous=True)
+strings = rospy.Publisher("/pendulum/setpoint", String, queue_size=100)
+joints = rospy.Publisher("/acrobot/joint_states", MaybeTruncated, queue_size=100)
+deadline = time.time() + 30
+while (strings.get_num_connections() < 1 or joints.get_num_connections() < 1) and time.time() < deadline:
+    time.sleep(0.05)
+def joint_state(frame_id, names, position):
+    msg = MaybeTruncated(name=names, position=position, velocity=[0.0] * len(names))
+    msg.header.frame_id = frame_id
+    return msg
+for k in range(5):
+    strings.publish(String(data="not a Float64MultiArray"))
+    joints.publish(joint_state("cut", ["shoulder", "elbow"], [1.0, 2.0]))
+    joints.publish(joint_state("", ["shoulder"], [1.0]))
+    joints.publish(joint_state("", ["shoulder", "elbow"], [1.0, float("nan")]))
+joints.publish(joint_state("", ["shoulder", "elbow"], [-1.0, -2.0]))
+time.sleep(1.0)
+print("sent", flush=True)
+'''
+
+
+def test_faults_are_counted_and_dropped_and_sigterm_stops_the_translator(ros1):
+    """Last of the module's ROS 1 tests: it stops the shared translator. Wrong-type, truncated,
+    joint-lacking and non-finite ROS messages and garbage or foreign LCM messages are counted
+    per route and dropped; good messages after them still pass; SIGTERM ends the translator
+    with exit code 0, its counters, and a bag of what it carried."""
+    from rosbags.highlevel import AnyReader
+
+    acrobot_coder = SignalCoder(jd.models.Acrobot().state_frame)
+    bus, got = collect(ros1["relay"].url, {"AcrobotState": acrobot_coder})
+    script = ros1["folder"] / "bad_node.py"
+    script.write_text(BAD_ROS1_NODE)
+    bad = subprocess.run([DEBIAN_PYTHON, str(script)], env=ros1["env"], capture_output=True, text=True, timeout=120)
+    assert "sent" in bad.stdout, bad.stderr
+    rng = np.random.default_rng(0)
+    valid = SignalCoder(jd.models.Pendulum().state_frame).encode(9.0, [1.0, 2.0])
+    for k in range(300):  # garbage and truncated copies of a valid message
+        bus.publish("PendulumState", rng.bytes(int(rng.integers(0, 80))) if k % 2 else valid[: int(rng.integers(0, len(valid)))])
+    foreign = RobotStateCoder(["a", "b", "c"]).encode(1.0, np.zeros(6))  # another LCM type: 6 values too
+    for _ in range(7):
+        bus.publish("Wrench", foreign)
+    bus.publish("PendulumState", valid)
+    assert wait_for(lambda: any(np.array_equal(x, [-1, -2, 0, 0]) for _, x in got["AcrobotState"]), 10,
+                    lambda: bus.handle_timeout(50))
+    time.sleep(0.5)  # the last LCM messages reach the translator
+    process = ros1["translator"]
+    process.send_signal(signal.SIGTERM)
+    out, _ = process.communicate(timeout=60)
+    assert process.returncode == 0, out
+    counts = route_counts(out)
+    acrobot = counts["/acrobot/joint_states -> AcrobotState (sensor_msgs/JointState)"]
+    assert acrobot["malformed"] == 15 and acrobot["wrong_type"] == 0, out
+    assert counts["/pendulum/setpoint -> PendulumSetpoint (std_msgs/Float64MultiArray)"]["wrong_type"] == 5, out
+    pendulum = counts["PendulumState -> /pendulum/state (sensor_msgs/JointState)"]
+    assert pendulum["malformed"] == 300 and pendulum["forwarded"] == pendulum["received"] - 300 >= 1, out
+    assert counts["Wrench -> /wrench (geometry_msgs/WrenchStamped)"]["malformed"] == 7, out
+    with AnyReader([ros1["folder"] / "out.bag"]) as reader:
+        recorded = {}
+        for connection, _, _ in reader.messages():
+            recorded[connection.topic] = recorded.get(connection.topic, 0) + 1
+    forwarded = {route.split(" (")[0].split(" -> ")[1 if route.startswith(("Pendulum", "Wrench")) else 0]: c["forwarded"]
+                 for route, c in counts.items()}
+    assert recorded == {topic: n for topic, n in forwarded.items() if n}, (recorded, forwarded)
+
+
+def test_no_master_is_a_named_error_with_exit_code_3(tmp_path, monkeypatch, capsys):
+    """The command line in this process (no second JAX start): the master's absence is found
+    before rospy starts a node."""
+    require_ros1()
+    from jaxdrake.ros.__main__ import main
+
+    monkeypatch.setattr(sys, "path", list(sys.path))  # rospy's folder is appended for this test only
+    for key, value in ros_env(free_port(), tmp_path).items():  # nothing listens at that port
+        monkeypatch.setenv(key, value)
+    code = main(["--master-timeout", "0.5", "--url", "memq://", "--to-lcm", "/a", "A", "Twist", "signal=" + ",".join(TWIST)])
+    assert code == 3
+    assert f"MasterError: no ROS master answers at {os.environ['ROS_MASTER_URI']}" in capsys.readouterr().err
+
+
+@pytest.mark.slow  # ~30 s with a roscore of its own, killed twice; the named error and exit code 3 for an
+# absent master are checked by default (test_no_master_is_a_named_error_with_exit_code_3)
+def test_master_killed_and_restarted_then_gone_for_good(tmp_path):
+    """The master is killed (SIGKILL) and restarted at the same port: a publisher and a subscriber
+    that know only the new master reach the translator's topics. Killed again and not restarted:
+    after --master-timeout the translator exits with a MasterError and code 3."""
+    require_ros1()
+    port = free_port()
+    env = ros_env(port, tmp_path)
+    core = start_roscore(env, port)
+    pendulum = SignalCoder(jd.models.Pendulum().state_frame)
+    with LoopbackRelay() as relay:
+        process = translator(env, "--url", relay.url, "--master-timeout", "8",
+                             "--to-lcm", "/cmd_vel", "CmdVel", "geometry_msgs/Twist", "signal=" + ",".join(TWIST),
+                             "--to-ros", "PendulumState", "/pendulum/state", "sensor_msgs/JointState",
+                             "state_of=jaxdrake.models:Pendulum")
+        stop_process_group(core, signal.SIGKILL)
+        time.sleep(2.0)
+        core = start_roscore(env, port)
+        bus, got = collect(relay.url, {"CmdVel": SignalCoder(Frame("CmdVel", TWIST))})
+        publisher = subprocess.Popen(["rostopic", "pub", "-r", "20", "/cmd_vel", "geometry_msgs/Twist",
+                                      "{linear: {x: 0.25}}"], env=env, stdout=subprocess.DEVNULL)
+        echo = subprocess.Popen(["rostopic", "echo", "-n", "1", "/pendulum/state"], env=env, stdout=subprocess.PIPE,
+                                text=True)
+        deadline = time.time() + 60
+        while (not got["CmdVel"] or echo.poll() is None) and time.time() < deadline:
+            bus.publish("PendulumState", pendulum.encode(4.0, [0.5, 0.25]))
+            bus.handle_timeout(50)
+        publisher.terminate()
+        publisher.wait()
+        echoed = yaml.safe_load(echo.communicate(timeout=10)[0].split("---")[0])
+        stop_process_group(core, signal.SIGKILL)
+        out, _ = process.communicate(timeout=60)
+    assert got["CmdVel"] and got["CmdVel"][-1][1][0] == 0.25
+    assert echoed["position"] == [0.5] and echoed["velocity"] == [0.25]
+    assert "registered anew" in out and process.returncode == 3, out
+    assert f"MasterError: the ROS master at {env['ROS_MASTER_URI']} has been gone for 8 s" in out
