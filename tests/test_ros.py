@@ -6,7 +6,9 @@ address), and bags read back by `rosbags` and Debian's `rosbag`. LCM runs on a L
 ROS 1 tests skip only where Debian's ROS packages are not installed (`.ci/run` installs them);
 under CI they fail instead."""
 
+import copy
 import json
+import logging
 import os
 import pathlib
 import re
@@ -73,9 +75,21 @@ def start_roscore(env, port):
     raise RuntimeError("roscore did not start")
 
 
-def stop_process_group(process, sig=signal.SIGINT):
+def descendants(pid):
     try:
-        os.killpg(process.pid, sig)
+        children = pathlib.Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    except OSError:
+        return []
+    return [int(c) for c in children] + [d for c in children for d in descendants(int(c))]
+
+
+def stop_process_group(process, sig=signal.SIGINT):
+    """Stop roscore: SIGINT lets roslaunch stop its master and rosout; SIGKILL (a crash) kills
+    them one by one, as roslaunch starts each in a session of its own."""
+    pids = [process.pid] + (descendants(process.pid) if sig == signal.SIGKILL else [])
+    try:
+        for pid in pids:
+            os.kill(pid, sig)
         process.wait(timeout=20)
     except subprocess.TimeoutExpired:
         os.killpg(process.pid, signal.SIGKILL)
@@ -630,6 +644,9 @@ def test_no_master_is_a_named_error_with_exit_code_3(tmp_path, monkeypatch, caps
     from jaxdrake.ros.__main__ import main
 
     monkeypatch.setattr(sys, "path", list(sys.path))  # rospy's folder is appended for this test only
+    ours = logging.getLogger("jaxdrake")  # and the command line's stderr handler set up for it only
+    for name in ("handlers", "propagate", "level"):
+        monkeypatch.setattr(ours, name, copy.copy(getattr(ours, name)))
     for key, value in ros_env(free_port(), tmp_path).items():  # nothing listens at that port
         monkeypatch.setenv(key, value)
     code = main(["--master-timeout", "0.5", "--url", "memq://", "--to-lcm", "/a", "A", "Twist", "signal=" + ",".join(TWIST)])

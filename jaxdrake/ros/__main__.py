@@ -65,8 +65,13 @@ def main(argv=None):
     parser.add_argument("--convert", metavar="LCM_LOG", help="write this LCM event log to --record's bag and exit")
     args = parser.parse_args(argv)
     routes, mapped_url = routes_from(args, parser)
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
-    logging.getLogger("jaxdrake").setLevel(logging.INFO)
+    # the translator's own messages on stderr at INFO, whatever rospy does to the root logger
+    handler = logging.StreamHandler()
+    handler.setFormatter(logging.Formatter("%(asctime)s %(name)s: %(message)s"))
+    ours = logging.getLogger("jaxdrake")
+    ours.addHandler(handler)
+    ours.setLevel(logging.INFO)
+    ours.propagate = False
 
     from ..lcm._bridge import HOST_ONLY_URL
     from ._bags import lcm_log_to_bag
