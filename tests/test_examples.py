@@ -29,7 +29,10 @@ SLOW = {"swing_up.ipynb", "lqr.ipynb", "swing_up.py",  # lqr.ipynb: 45 s, extend
         # that repeat a script which runs by default (the same computations; executed with -m slow)
         "limit_cycles.py", "limit_cycles.ipynb", "rimless_wheel.ipynb", "feedback_cancellation.ipynb",
         "linear_gaussian.ipynb", "bouncing_ball.ipynb", "composition.ipynb", "dynamic_programming.ipynb",
-        "lyapunov.ipynb", "rrt.ipynb", "lcm_pendulum.ipynb"}
+        "lyapunov.ipynb", "rrt.ipynb", "lcm_pendulum.ipynb",
+        # ~50 s of a roscore, the translator and two nodes in real time; tests/test_ros.py checks the
+        # translator's paths (rostopic pub -> LCM, LCM -> rostopic echo) by default
+        "ros_pendulum.py"}
 NOTEBOOKS = [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW else p
              for p in sorted((ROOT / "notebooks").glob("*.ipynb"))]
 WORKERS = 3
