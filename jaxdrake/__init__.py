@@ -12,6 +12,9 @@ from .systems import (Diagram, DiagramBuilder, Frame, HybridSystem, LinearSystem
                       PolynomialSystem, StochasticSystem,
                       System, TrajectorySource, Transition, add_frame_conversion, and_guards, cascade, feedback,
                       not_guard, parallel)
+from .systems import (Adder, ConstantVectorSource, Demultiplexer, DiscreteTimeDelay, FirstOrderLowPassFilter, Gain,
+                      Multiplexer, PidController, RandomDistribution, RandomSource, Saturation, Sine, WrapToSystem,
+                      ZeroOrderHold)
 from .trajectories import Trajectory
 from ._batch import run_batch
 
@@ -29,7 +32,10 @@ def __getattr__(name):
         return importlib.import_module(f".{name}", __name__)
     raise AttributeError(f"module 'jaxdrake' has no attribute {name!r}")
 
-__all__ = ["Diagram", "DiagramBuilder", "Frame", "HybridSystem", "LinearSystem", "SimulationError",
+__all__ = ["Adder", "ConstantVectorSource", "Demultiplexer", "DiscreteTimeDelay", "FirstOrderLowPassFilter", "Gain",
+           "Multiplexer", "PidController", "RandomDistribution", "RandomSource", "Saturation", "Sine", "WrapToSystem",
+           "ZeroOrderHold",
+           "Diagram", "DiagramBuilder", "Frame", "HybridSystem", "LinearSystem", "SimulationError",
            "CouplerConstraint", "LoopConstraint", "MujocoSystem", "Polynomial", "PolynomialSystem", "RigidBodySystem", "SimulatedTrajectory", "SimulationStatus", "StochasticSystem", "System", "Trajectory", "TrajectorySource", "Transition",
            "add_frame_conversion", "analysis", "and_guards", "cascade", "control", "estimation", "feedback", "geometry", "lcm", "linearize", "models", "multibody", "not_guard",
            "parallel", "planning", "run_batch", "simulate", "simulation", "systems", "trajectories", "trajopt",
