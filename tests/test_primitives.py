@@ -137,6 +137,25 @@ def test_lti_blocks_stay_linear_when_combined():
     assert type(held) is jd.LinearSystem and held.sample_time == 0.1
 
 
+def test_saturation_before_a_filter_switches_at_located_events_and_matches_drake():
+    """u = 2 sin(3t) -> Saturation(+-1) -> 1/(1 + 0.2 s): one LinearSystem with input limits, whose
+    switching instants (|u| = 1: sin(3t) = +-1/2) simulate locates as events; the output equals
+    Drake's diagram of the two blocks."""
+    builder = framework.DiagramBuilder()
+    sine = builder.AddSystem(primitives.Sine(2.0, 3.0, 0.0, 1))
+    saturation = builder.AddSystem(primitives.Saturation(np.array([-1.0]), np.array([1.0])))
+    low_pass = builder.AddSystem(primitives.FirstOrderLowPassFilter(0.2))
+    builder.Connect(sine.get_output_port(0), saturation.get_input_port())
+    builder.Connect(saturation.get_output_port(), low_pass.get_input_port())
+    ts = np.linspace(0.1, 3.0, 15)
+    expected = drake_values(builder.Build(), low_pass, low_pass.get_output_port().Eval, ts)
+    system = jd.cascade(Saturation(-1.0, 1.0), FirstOrderLowPassFilter(0.2))
+    traj = jd.simulate(system, (0.0, 3.0), inputs=lambda t: 2 * jnp.sin(3 * t), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(traj.eval(jnp.asarray(ts)), expected, rtol=0, atol=1e-9)
+    switches = np.sort(np.concatenate([np.pi / 6 + np.pi * np.arange(3), 5 * np.pi / 6 + np.pi * np.arange(3)])) / 3
+    np.testing.assert_allclose(traj.events["times"], switches, atol=1e-9)  # |2 sin 3t| = 1
+
+
 def test_ports_name_their_coordinates_and_wire_a_diagram():
     """Multi-port blocks: one port's coordinates by index or name, as DiagramBuilder.connect takes them."""
     adder = Adder(2, 2)
@@ -184,12 +203,15 @@ def test_bad_arguments_are_named(make, message):
 # ----- simulation against Drake's Simulator ------------------------------------------------------
 
 
-def drake_values(diagram, subsystem, read, ts):
-    """Drake's Simulator advanced to each of `ts`; `read(context of subsystem)` there."""
+def drake_values(diagram, subsystem, read, ts, x0=None):
+    """Drake's Simulator (RK5, accuracy 1e-13) advanced to each of `ts`; `read(context of
+    subsystem)` there. `x0`: the subsystem's initial continuous state."""
     simulator = analysis.Simulator(diagram)
     analysis.ResetIntegratorFromFlags(simulator, "runge_kutta5", 0.01)
     simulator.get_mutable_integrator().set_target_accuracy(1e-13)
     context = simulator.get_mutable_context()
+    if x0 is not None:
+        subsystem.GetMyMutableContextFromRoot(context).SetContinuousState(x0)
     simulator.Initialize()
     values = []
     for t in ts:
@@ -294,6 +316,10 @@ def multi_rate_loop_drake(kp, h_sensor, h_control):
     return builder.Build(), pendulum
 
 
+def pendulum_state(context):
+    return context.get_continuous_state_vector().CopyToVector()
+
+
 H_SENSOR, H_CONTROL = 1 / 64, 1 / 32  # binary fractions: common instants coincide exactly in both
 TARGET = 0.5  # rad: held by 4.9 sin(0.5) = 2.3 N m, within the saturation; reached saturated
 
@@ -301,8 +327,7 @@ TARGET = 0.5  # rad: held by 4.9 sin(0.5) = 2.3 N m, within the saturation; reac
 def test_multi_rate_pendulum_loop_matches_drakes_simulator():
     ts = np.linspace(0.01, 3.0, 25)
     drake_diagram, pendulum = multi_rate_loop_drake(8.0, H_SENSOR, H_CONTROL)
-    expected = drake_values(drake_diagram, pendulum,
-                            lambda context: context.get_continuous_state_vector().CopyToVector(), ts)
+    expected = drake_values(drake_diagram, pendulum, pendulum_state, ts)
     loop = multi_rate_loop_ours(8.0, H_SENSOR, H_CONTROL)
     assert loop.sample_times == (H_SENSOR, H_CONTROL)
     traj = jd.simulate(loop, (0.0, 3.0), rtol=1e-12, atol=1e-12)
@@ -311,3 +336,159 @@ def test_multi_rate_pendulum_loop_matches_drakes_simulator():
     _, outputs = loop.signals(0, 0.02, traj.state(0.02), jnp.zeros(0))
     assert outputs[loop.names.index("adder")][0] > 3.0 and outputs[loop.names.index("saturation")][0] == 3.0
     assert 0.3 < expected[-1, 0] < 0.7
+
+
+def continuous_loop_start(loop, pendulum_x0):
+    """The loop's state with the pendulum's part set (the filter and the integral at 0)."""
+    return loop.initial_state().at[np.array([loop.state_frame.index("pendulum.theta"),
+                                             loop.state_frame.index("pendulum.thetadot")])].set(pendulum_x0)
+
+
+def continuous_loop_ours(kp=6.0, ki=1.0, kd=1.2):
+    """pendulum -> WrapToSystem(theta into [-pi, pi)) -> FirstOrderLowPassFilter -> PID (to the
+    upright-down rest [0, 0]) -> Gain -> pendulum, all continuous."""
+    builder = jd.DiagramBuilder()
+    builder.add(jd.models.Pendulum(), "pendulum")
+    builder.add(WrapToSystem(2).with_interval(0, -PI, PI), "wrap")
+    builder.add(FirstOrderLowPassFilter(0.05, 2), "filter")
+    builder.add(ConstantVectorSource([0.0, 0.0]), "target")
+    pid = PidController(kp, ki, kd)
+    builder.add(pid, "pid")
+    builder.add(Gain(0.8, 1), "gain")
+    builder.connect("pendulum", "wrap")
+    builder.connect("wrap", "filter")
+    builder.connect("filter", ("pid", pid.input_port("estimated_state")))
+    builder.connect("target", ("pid", pid.input_port("desired_state")))
+    builder.connect("pid", "gain")
+    builder.connect("gain", "pendulum")
+    builder.export_output("pendulum")
+    return builder.build("ContinuousLoop")
+
+
+def test_continuous_loop_with_wrap_filter_pid_and_gain_matches_drakes_simulator():
+    """From theta = 2 pi + 0.6 the wrapped angle is 0.6: the loop brings the pendulum to 2 pi."""
+    examples = pytest.importorskip("pydrake.examples")
+    x0 = np.array([2 * PI + 0.6, 0.0])
+    builder = framework.DiagramBuilder()
+    pendulum = builder.AddSystem(examples.PendulumPlant())
+    wrap = builder.AddSystem(primitives.WrapToSystem(2))
+    wrap.set_interval(0, -PI, PI)
+    low_pass = builder.AddSystem(primitives.FirstOrderLowPassFilter(0.05, 2))
+    target = builder.AddSystem(primitives.ConstantVectorSource(np.zeros(2)))
+    pid = builder.AddSystem(controllers.PidController(np.array([6.0]), np.array([1.0]), np.array([1.2])))
+    gain = builder.AddSystem(primitives.Gain(0.8, 1))
+    builder.Connect(pendulum.get_state_output_port(), wrap.get_input_port())
+    builder.Connect(wrap.get_output_port(), low_pass.get_input_port())
+    builder.Connect(low_pass.get_output_port(), pid.get_input_port_estimated_state())
+    builder.Connect(target.get_output_port(), pid.get_input_port_desired_state())
+    builder.Connect(pid.get_output_port_control(), gain.get_input_port())
+    builder.Connect(gain.get_output_port(), pendulum.get_input_port())
+    drake_diagram = builder.Build()
+    ts = np.linspace(0.05, 4.0, 20)
+    expected = drake_values(drake_diagram, pendulum, pendulum_state, ts, x0)
+
+    loop = continuous_loop_ours()
+    assert loop.num_continuous_states == 2 + 2 + 1 and not loop.has_discrete_state
+    traj = jd.simulate(loop, (0.0, 4.0), continuous_loop_start(loop, x0), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(traj.eval(jnp.asarray(ts)), expected, rtol=0, atol=1e-9)
+    assert abs(expected[-1, 0] - 2 * PI) < 0.1  # regulated to the wrapped rest
+
+
+# ----- RandomSource: statistics and the hold interval ------------------------------------------
+
+MOMENTS = {"uniform": (0.5, 1 / 12, "uniform"), "gaussian": (0.0, 1.0, "norm"), "exponential": (1.0, 1.0, "expon")}
+
+
+def test_random_sources_draw_drakes_distributions_held_over_their_interval():
+    """64 outputs x 100 intervals of each distribution: the hold (constant within [kh, (k+1)h),
+    new at kh), the moments, the distribution (Kolmogorov-Smirnov against the exact CDF and
+    against Drake's samples), no correlation between consecutive samples; the nominal signal is
+    the median. Ours: a gaussian source simulated; the other distributions' outputs at the same
+    held noise samples (every distribution maps the one held w)."""
+    stats = pytest.importorskip("scipy.stats")
+    from pydrake.common import RandomDistribution
+
+    h, n, count = 0.05, 64, 100
+    middles, lates = (np.arange(count) + 0.5) * h, (np.arange(count) + 0.95) * h
+    traj = jd.simulate(RandomSource("gaussian", n, h), (0.0, count * h), key=jax.random.key(7))
+    w_middle, w_late = (traj.eval(jnp.asarray(ts)) for ts in (middles, lates))
+    for name, (mean, variance, scipy_name) in MOMENTS.items():
+        source = RandomSource(name, n, h)
+        ours = tuple(np.asarray(source.mode_output(0, 0.0, jnp.zeros(0), w.ravel())).reshape(w.shape)
+                     for w in (w_middle, w_late))
+        drake_source = primitives.RandomSource(getattr(RandomDistribution, "k" + name.capitalize()), n, h)
+        simulator = analysis.Simulator(drake_source)
+        simulator.Initialize()
+        drake = {}
+        for t in np.sort(np.concatenate([middles, lates])):
+            simulator.AdvanceTo(t)
+            drake[t] = drake_source.get_output_port().Eval(simulator.get_context())
+        drake = tuple(np.array([drake[t] for t in ts]) for ts in (middles, lates))
+        for middle, late in (drake, ours):
+            np.testing.assert_array_equal(middle, late)  # held over each interval
+            assert np.all(middle[1:] != middle[:-1])  # a new sample at each kh
+            samples = middle.ravel()
+            assert abs(samples.mean() - mean) < 5 * np.sqrt(variance / samples.size)
+            assert abs(samples.var() / variance - 1) < 0.1
+            assert stats.kstest(samples, scipy_name).pvalue > 1e-3
+            assert abs(np.corrcoef(middle[1:].ravel(), middle[:-1].ravel())[0, 1]) < 5 / np.sqrt(samples.size)
+        assert stats.ks_2samp(ours[0].ravel(), drake[0].ravel()).pvalue > 1e-3
+        nominal = source.output(0.0, jnp.zeros(0), jnp.zeros(0))
+        np.testing.assert_allclose(nominal, getattr(stats, scipy_name).median(), rtol=1e-12)
+
+
+def test_random_source_into_a_filter_has_the_closed_form_variance_over_a_vmapped_batch_of_keys():
+    r"""Gaussian samples held over h into 1/(1 + tau s): x[k+1] = a x[k] + (1 - a) w[k], a = exp(-h/tau),
+    so x(Nh) has variance (1 - a)^2 (1 - a^(2N)) / (1 - a^2). One key per member, vmapped."""
+    h, tau, steps = 0.1, 0.3, 8
+    system = jd.cascade(RandomSource("gaussian", 1, h), FirstOrderLowPassFilter(tau))
+    assert system.is_stochastic and system.noise_groups == ((1, h, 1.0),)
+    keys = jax.random.split(jax.random.key(3), 2000)
+    finals = jax.jit(jax.vmap(lambda k: jd.simulate(system, (0.0, steps * h), key=k, dense=False).final_state))(keys)
+    a = np.exp(-h / tau)
+    expected = (1 - a) ** 2 * (1 - a ** (2 * steps)) / (1 - a**2)
+    assert float(jnp.var(finals)) == pytest.approx(expected, rel=0.1)
+
+
+# ----- jit, vmap and grad ----------------------------------------------------------------------
+
+
+def test_gradient_through_gain_and_filter_equals_the_closed_form():
+    r"""u = sin(w t) -> Gain(k) -> FirstOrderLowPassFilter(tau) (one LinearSystem), from rest:
+    $y(T) = k\,(\sin wT - \tau w \cos wT + \tau w e^{-T/\tau}) / (1 + \tau^2 w^2)$; its gradient
+    in (k, tau) by reverse mode through simulate equals the closed form's."""
+    w, T = 2.0, 1.5
+
+    def simulated(params):
+        system = jd.cascade(Gain(params[0], 1), FirstOrderLowPassFilter(params[1]))
+        return jd.simulate(system, (0.0, T), inputs=lambda t: jnp.sin(w * t), rtol=1e-11, atol=1e-13,
+                           dense=False).final_state[0]
+
+    def closed_form(params):
+        k, tau = params
+        return k * (jnp.sin(w * T) - tau * w * jnp.cos(w * T) + tau * w * jnp.exp(-T / tau)) / (1 + (tau * w) ** 2)
+
+    params = jnp.array([1.7, 0.4])
+    value, grad = jax.jit(jax.value_and_grad(simulated))(params)
+    assert float(value) == pytest.approx(float(closed_form(params)), abs=1e-9)
+    np.testing.assert_allclose(grad, jax.grad(closed_form)(params), rtol=1e-7)
+
+
+@pytest.mark.slow  # ~40 s of compiles; the default test_multi_rate_... and test_gradients_... cover simulate and grad
+def test_multi_rate_loop_vmaps_over_gains_and_differentiates_in_float64_and_float32():
+    """d J / d kp, J = sum of squared angle errors at the sample instants, against central
+    differences; a vmapped batch of gains equal to one-at-a-time runs; float32 close to float64."""
+    ts = jnp.arange(1, 97) * H_CONTROL
+
+    def cost(kp, dtype=jnp.float64):
+        loop = multi_rate_loop_ours(kp, H_SENSOR, H_CONTROL)
+        traj = jd.simulate(loop, (0.0, 3.0), jnp.zeros(loop.num_states, dtype), rtol=1e-10, atol=1e-10)
+        return jnp.sum((traj.eval(ts)[:, 0] - TARGET) ** 2)
+
+    grad = jax.grad(cost)(8.0)
+    eps = 1e-4
+    assert float(grad) == pytest.approx(float((cost(8.0 + eps) - cost(8.0 - eps)) / (2 * eps)), rel=1e-5)
+    gains = jnp.array([4.0, 8.0, 12.0])
+    batch = jax.vmap(cost)(gains)
+    np.testing.assert_allclose(batch, [cost(k) for k in gains], rtol=1e-10)
+    assert float(cost(8.0, jnp.float32)) == pytest.approx(float(cost(8.0)), rel=1e-3)
