@@ -26,6 +26,7 @@ import numpy as np
 from ..simulation import FIXED_STEP_RULES, discrete_step
 from ..systems import Frame, System
 from ._checks import as_matrix, check_covariance, check_plant
+from ._linalg import cholesky, solve_positive_definite
 from ._observer import estimate_frame, observer_input_frame
 
 
@@ -138,7 +139,7 @@ class ExtendedKalmanFilter(_DiscreteGaussianFilter):
     def correct(self, t, x, P, u, y):
         y_hat, C = _value_and_jacobian(lambda x: self.measurement(t, x, u), x)
         S = C @ P @ C.T + self.V
-        K = jnp.linalg.solve(S, C @ P).T  # P C^T S^-1, S and P symmetric
+        K = solve_positive_definite(S, C @ P).T  # P C^T S^-1, S and P symmetric
         I_KC = jnp.eye(x.shape[0], dtype=x.dtype) - K @ C
         return x + K @ (y - y_hat), I_KC @ P @ I_KC.T + K @ self.V @ K.T
 
@@ -203,7 +204,7 @@ class UnscentedKalmanFilter(_DiscreteGaussianFilter):
     def sigma_points(self, x, P):
         r"""(2n + 1, n): $\hat x$, then $\hat x \pm$ the columns of chol$((n + \lambda) P)$."""
         spread = self.alpha ** 2 * (self.plant.num_states + self.kappa)
-        S = jnp.linalg.cholesky(spread * P)
+        S = cholesky(spread * P)
         return jnp.concatenate([x[None], x + S.T, x - S.T])
 
     def correct(self, t, x, P, u, y):
@@ -213,7 +214,7 @@ class UnscentedKalmanFilter(_DiscreteGaussianFilter):
         y_hat = mean @ Y
         dX, dY = points - x, Y - y_hat
         S = (cov[:, None] * dY).T @ dY + self.V
-        K = jnp.linalg.solve(S, (cov[:, None] * dY).T @ dX).T  # P_xy S^-1, S symmetric
+        K = solve_positive_definite(S, (cov[:, None] * dY).T @ dX).T  # P_xy S^-1, S symmetric
         return x + K @ (y - y_hat), P - K @ S @ K.T
 
     def predict(self, t, x, P, u):
