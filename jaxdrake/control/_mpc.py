@@ -303,3 +303,208 @@ def _constraint_rows(lower, upper, N: int) -> tuple[int, ...]:
     bounded = traced or np.isfinite(np.asarray(lower)).any() or np.isfinite(np.asarray(upper)).any()
     coords = np.arange(size) if traced else np.flatnonzero(np.isfinite(np.asarray(lower)) | np.isfinite(np.asarray(upper)))
     return tuple(int(k * size + i) for k in range(N) for i in coords) if bounded else ()
+
+
+# ----- nonlinear MPC and MPPI: the plant's own (RK4-stepped) model -----------------------------
+
+def _check_costs(system: System, running_cost, final_cost, caller: str):
+    """Named errors for cost functions that do not return a scalar (traced once, on shapes)."""
+    t, x, u = (jax.ShapeDtypeStruct(shape, jnp.zeros(()).dtype) for shape in ((), (system.num_states,),
+                                                                              (system.num_inputs,)))
+    for label, fn, args in (("running_cost(t, x, u)", running_cost, (t, x, u)), ("final_cost(x)", final_cost, (x,))):
+        if fn is None:
+            continue
+        if not callable(fn):
+            raise TypeError(f"{caller}: {label.split('(')[0]} must be a function {label} -> scalar")
+        shape = jax.eval_shape(fn, *args).shape
+        if shape != ():
+            raise ValueError(f"{caller}: {label} must return a scalar, got shape {shape}")
+
+
+def _sampled_controller_setup(system, running_cost, final_cost, horizon, period, input_lower, input_upper,
+                              caller):
+    """(period, N, input bounds) after the checks shared by `nonlinear_mpc` and `mppi`."""
+    require_plain_system(system, caller, "control a deterministic system (one mode of a hybrid one)")
+    if system.num_inputs == 0:
+        raise ValueError(f"{caller}: {system.name} has no inputs to control")
+    dt = _period(system, period, caller)
+    N = _horizon_steps(horizon, dt, caller)
+    _check_costs(system, running_cost, final_cost, caller)
+    bounds = _bounds(input_lower, input_upper, system.num_inputs, _input_limits(system), "input", caller)
+    return dt, N, bounds
+
+
+def _first_and_plan(plan, bounds, x):
+    """The state after a solve: the first input, the status, the plan (a non-finite plan is
+    replaced by zeros clipped into the bounds, with status 3)."""
+    finite = jnp.all(jnp.isfinite(plan))
+    plan = jnp.where(finite, plan, jnp.clip(jnp.zeros_like(plan), *bounds))
+    return finite, plan
+
+
+class NonlinearMPC(RecedingHorizonController):
+    """Nonlinear MPC by iLQR (see `nonlinear_mpc`)."""
+
+    plant: System
+    input_bounds: tuple[jax.Array, jax.Array]
+    running_cost: object = eqx.field(static=True)
+    final_cost: object = eqx.field(static=True)
+    horizon_steps: int = eqx.field(static=True)
+    period: float = eqx.field(static=True)
+    max_iterations: int = eqx.field(static=True)
+    tolerance: float = eqx.field(static=True)
+
+    def __init__(self, plant, running_cost, final_cost, input_bounds, horizon_steps, period, max_iterations,
+                 tolerance):
+        self.plant, self.running_cost, self.final_cost = plant, running_cost, final_cost
+        self.input_bounds, self.horizon_steps, self.period = input_bounds, int(horizon_steps), float(period)
+        self.max_iterations, self.tolerance = int(max_iterations), float(tolerance)
+        m = plant.num_inputs
+        super().__init__(num_discrete_states=m + 1 + self.horizon_steps * m, num_inputs=plant.num_states,
+                         num_outputs=m, sample_time=self.period, direct_feedthrough=False,
+                         **_controller_frames(plant))
+
+    def initial_state(self):
+        m, N = self.num_outputs, self.horizon_steps
+        plan = jnp.broadcast_to(jnp.clip(jnp.zeros(m), *self.input_bounds), (N, m))
+        return jnp.concatenate([plan[0], jnp.zeros(1), plan.reshape(-1)])
+
+    def update(self, t, x, u):
+        from ..trajopt import ilqr  # imported on first use, as `import jaxdrake` keeps trajopt (IPOPT) lazy
+
+        U = self.plan(x)
+        guess = jnp.concatenate([U[1:], U[-1:]])  # the last plan, one step on
+        result = ilqr(self.plant, u, guess, self.period, self.running_cost, self.final_cost,
+                      input_bounds=self.input_bounds, max_iterations=self.max_iterations, tol=self.tolerance)
+        finite, plan = _first_and_plan(result.knot_inputs, self.input_bounds, x)
+        status = jnp.where(finite, jnp.where(result.converged, 0, 1), QPStatus.NONFINITE)
+        return jnp.concatenate([plan[0], status[None].astype(x.dtype), plan.reshape(-1)])
+
+
+def nonlinear_mpc(system: System, running_cost, horizon, *, final_cost=None, period=None, input_lower=None,
+                  input_upper=None, max_iterations: int = 10, tolerance: float = 1e-6) -> NonlinearMPC:
+    r"""Nonlinear model-predictive control by iLQR/DDP (`jd.trajopt.ilqr`): each sample minimizes
+
+    $$\sum_{k=0}^{N-1} \Delta t\, \ell(t_k, x_k, u_k) + \ell_f(x_N), \qquad x_{k+1} = \Phi_{\Delta t}(x_k, u_k),
+      \quad x_0 = x(t), \quad u_{lo} \le u_k \le u_{hi},$$
+
+    over N = horizon / Δt steps of the plant itself (one RK4 step per period, or a discrete
+    plant's update; $t_k = k \Delta t$ on the horizon's own clock), starting from the previous
+    plan shifted by one step, for at most `max_iterations` iLQR iterations (a real-time
+    budget: the plan improves from sample to sample).
+
+    **Arguments:** `system` (a plain, deterministic system), `running_cost(t, x, u)`,
+    `final_cost(x)` (scalars; the same functions each call: they key the compiled program),
+    `horizon` (seconds, a whole number of periods), `period` (required for a continuous
+    system), input bounds (default the system's limits), `tolerance` (relative cost change).
+
+    **Returns:** a `NonlinearMPC` system; its `status` is 0 when iLQR converged, 1 when the
+    iteration budget ran out first (the improved plan is used all the same).
+    """
+    dt, N, bounds = _sampled_controller_setup(system, running_cost, final_cost, horizon, period, input_lower,
+                                              input_upper, "nonlinear_mpc")
+    if not (isinstance(max_iterations, (int, np.integer)) and max_iterations >= 1):
+        raise ValueError(f"nonlinear_mpc: max_iterations must be a positive int, got {max_iterations!r}")
+    return NonlinearMPC(system, running_cost, final_cost, bounds, N, dt, max_iterations, tolerance)
+
+
+def rollout_cost(system: System, running_cost, final_cost, x0, inputs, period):
+    r"""$\sum_k \Delta t\, \ell(t_k, x_k, u_k) + \ell_f(x_N)$ along the plant's own steps from x0
+    under `inputs` (N, m) (one RK4 step per period, or a discrete plant's update), as iLQR
+    counts it."""
+    h = jnp.asarray(period, x0.dtype)
+
+    def step(carry, k_u):
+        x, cost = carry
+        k, u = k_u
+        t = k * h
+        return (discrete_step(system, t, x, u, h, "rk4"), cost + h * running_cost(t, x, u)), None
+
+    steps = jnp.arange(inputs.shape[0], dtype=x0.dtype)
+    (xN, cost), _ = jax.lax.scan(step, (x0, jnp.zeros((), x0.dtype)), (steps, inputs))
+    return cost + (0.0 if final_cost is None else final_cost(xN))
+
+
+class MPPI(RecedingHorizonController):
+    """Sampling MPC, MPPI (see `mppi`)."""
+
+    plant: System
+    input_bounds: tuple[jax.Array, jax.Array]
+    noise_std: jax.Array
+    temperature: jax.Array
+    key_data: jax.Array
+    running_cost: object = eqx.field(static=True)
+    final_cost: object = eqx.field(static=True)
+    horizon_steps: int = eqx.field(static=True)
+    period: float = eqx.field(static=True)
+    num_samples: int = eqx.field(static=True)
+
+    def __init__(self, plant, running_cost, final_cost, input_bounds, noise_std, temperature, key_data,
+                 horizon_steps, period, num_samples):
+        self.plant, self.running_cost, self.final_cost = plant, running_cost, final_cost
+        self.input_bounds, self.noise_std, self.temperature, self.key_data = input_bounds, noise_std, temperature, key_data
+        self.horizon_steps, self.period, self.num_samples = int(horizon_steps), float(period), int(num_samples)
+        m = plant.num_inputs
+        super().__init__(num_discrete_states=m + 1 + self.horizon_steps * m, num_inputs=plant.num_states,
+                         num_outputs=m, sample_time=self.period, direct_feedthrough=False,
+                         **_controller_frames(plant))
+
+    initial_state = NonlinearMPC.initial_state
+
+    def update(self, t, x, u):
+        N, m, K = self.horizon_steps, self.num_outputs, self.num_samples
+        U = self.plan(x)
+        nominal = jnp.concatenate([U[1:], U[-1:]])
+        # sample k's noise is a function of the key and the sample index alone
+        key = jax.random.fold_in(jax.random.wrap_key_data(self.key_data), jnp.round(t / self.period).astype(jnp.int32))
+        noise = self.noise_std * jax.random.normal(key, (K, N, m), x.dtype)
+        candidates = jnp.clip(nominal + noise.at[0].set(0.0), *self.input_bounds)  # the nominal competes too
+        costs = jax.vmap(lambda V: rollout_cost(self.plant, self.running_cost, self.final_cost, u, V,
+                                                self.period))(candidates)
+        costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)
+        best = jnp.min(costs)
+        weights = jax.nn.softmax(-(costs - jnp.where(jnp.isfinite(best), best, 0.0)) / self.temperature)
+        plan = jnp.where(jnp.isfinite(best), jnp.einsum("k,knm->nm", weights, candidates), jnp.nan)
+        finite, plan = _first_and_plan(plan, self.input_bounds, x)
+        status = jnp.where(finite, 0, QPStatus.NONFINITE)
+        return jnp.concatenate([plan[0], status[None].astype(x.dtype), plan.reshape(-1)])
+
+
+def mppi(system: System, running_cost, horizon, *, key, final_cost=None, period=None, num_samples: int = 1024,
+         noise_std=1.0, temperature=1.0, input_lower=None, input_upper=None) -> MPPI:
+    r"""Sampling MPC: model-predictive path integral control (Williams, Aldrich & Theodorou,
+    *Model predictive path integral control*, 2017). Each sample draws K input sequences
+    $V^{(i)} = \mathrm{clip}(\bar U + \varepsilon^{(i)})$, $\varepsilon \sim N(0, \sigma^2)$
+    around the previous plan $\bar U$ shifted by one step (candidate 0 is $\bar U$ itself),
+    rolls them out on the plant (all at once, `vmap`), scores each by the cost $S_i$ that
+    `rollout_cost` (and iLQR) uses, and plans the weighted mean
+
+    $$U = \sum_i w_i V^{(i)}, \qquad w_i \propto \exp(-(S_i - \min_j S_j) / \lambda).$$
+
+    The input cost is that of the running cost on the sampled inputs (no separate
+    $\lambda u^T \Sigma^{-1} \varepsilon$ term). The noise at a sample is a function of `key`
+    and the sample's index $t / \Delta t$ alone, so a simulation is reproducible and a batch
+    over keys is a Monte-Carlo batch.
+
+    **Arguments:** `system`, `running_cost(t, x, u)`, `final_cost(x)`, `horizon`, `period`
+    as for `nonlinear_mpc`; `key` a JAX PRNG key; `num_samples` K; `noise_std` σ (scalar or
+    per input); `temperature` λ > 0 (in cost units); input bounds (default the system's limits).
+
+    **Returns:** an `MPPI` system; its `status` is 3 when every rollout's cost was non-finite
+    (the plan then falls back to zero clipped into the bounds).
+    """
+    dt, N, bounds = _sampled_controller_setup(system, running_cost, final_cost, horizon, period, input_lower,
+                                              input_upper, "mppi")
+    m = system.num_inputs
+    if not (isinstance(num_samples, (int, np.integer)) and num_samples >= 2):
+        raise ValueError(f"mppi: num_samples must be an int >= 2, got {num_samples!r}")
+    noise_std = _bound(noise_std, None, m, "noise_std", "mppi")
+    temperature = jnp.asarray(temperature, float)
+    for label, v in (("noise_std", noise_std), ("temperature", temperature)):
+        if not isinstance(v, jax.core.Tracer) and not np.all(np.asarray(v) > 0):
+            raise ValueError(f"mppi: {label} must be positive, got {v}")
+    key = jnp.asarray(key)
+    key_data = jax.random.key_data(key) if jnp.issubdtype(key.dtype, jax.dtypes.prng_key) else key
+    if key_data.dtype != jnp.uint32:
+        raise TypeError(f"mppi: key must be a JAX PRNG key (jax.random.key(0)), got {key.dtype}")
+    return MPPI(system, running_cost, final_cost, bounds, noise_std, temperature, key_data, N, dt, num_samples)

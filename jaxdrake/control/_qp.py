@@ -24,7 +24,10 @@ $u^T \delta y_+ + l^T \delta y_- < 0$). It then **polishes**: the active set rea
 gives an equality-constrained QP solved exactly (regularized KKT system, two steps of
 iterative refinement); the polished point is kept when it is feasible and its multipliers
 have the right signs, i.e. when it satisfies the KKT conditions, which makes the answer exact
-to rounding instead of to the ADMM tolerance.
+to rounding instead of to the ADMM tolerance. At a degenerate vertex (more active rows than
+free directions, common in MPC when an input bound and a state bound meet) the least-norm
+multipliers may take a wrong sign; a few primal-dual active-set corrections then find the
+right set.
 
 **Derivatives**: the solution satisfies $Px + q + A_a^T y_a = 0$, $A_a x = b_a$ on the
 active rows a ($b$ the bound that is active), $y_i = 0$ elsewhere; differentiating gives one
@@ -55,6 +58,7 @@ import numpy as np
 CHECK_EVERY = 10  # ADMM iterations between residual checks
 _UNROLL = 2  # two iterations per loop trip: ~2x faster than none, and compiles 2x faster than 10
 _RUIZ_ITERATIONS = 15
+_POLISH_PASSES = 4
 RHO_LADDER = 10.0 ** (np.arange(-6, 7) / 2)  # multiples of the first rho, each with its inverse
 _ALPHA = 1.6
 
@@ -131,7 +135,7 @@ def _ruiz(P, A):
 
 
 def _kkt_inverses(P, A, rho, sigma):
-    """$(P + \sigma I + \rho_k A^T A)^{-1}$ for every $\rho_k$ of the ladder."""
+    r"""$(P + \sigma I + \rho_k A^T A)^{-1}$ for every $\rho_k$ of the ladder."""
     eye = jnp.eye(P.shape[0], dtype=P.dtype)
     K = P + sigma * eye + (rho * RHO_LADDER)[:, None, None] * (A.T @ A)
     return jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(K), True), jnp.broadcast_to(eye, K.shape))
@@ -239,32 +243,42 @@ def _admm(ws: QPWorkspace, q, lower, upper, x, y):
     return D * s.x, s.z / E, E * s.y / c, s.status, s.iterations
 
 
-def _polish(P, q, A, lower, upper, x, z, y, tol):
+def _polish(P, q, A, lower, upper, z, y, tol):
     """The exact solution on the active set read from (z, y) (OSQP's rule: a row is at its
-    lower bound when z - l < -y, at its upper when u - z < y), if it is a KKT point:
-    (x, y, at_lower, at_upper, accepted)."""
+    lower bound when z - l < -y, at its upper when u - z < y), if it is a KKT point; when it is
+    not (a degenerate vertex, where the guess holds dependent rows and the least-norm
+    multipliers take a wrong sign), up to `_POLISH_PASSES - 1` primal-dual active-set
+    corrections: rows with a wrong-signed multiplier leave, violated rows enter.
+    Returns (x, y, at_lower, at_upper, accepted)."""
+    n = q.shape[0]
+    delta = _delta(P)
+    equality = lower == upper
+
+    def attempt(state):
+        _, _, at_lower, at_upper, _, passes = state
+        active = at_lower | at_upper
+        K = _active_set_kkt(P, A, active, delta)
+        exact = _active_set_kkt(P, A, active, 0.0)
+        rhs = jnp.concatenate([-q, jnp.where(active, jnp.where(at_lower, lower, upper), 0.0)])
+        lu = jax.scipy.linalg.lu_factor(K)
+        sol = jax.scipy.linalg.lu_solve(lu, rhs)
+        for _ in range(2):  # iterative refinement against the unregularized system
+            sol = sol + jax.scipy.linalg.lu_solve(lu, rhs - exact @ sol)
+        x, y = sol[:n], jnp.where(active, sol[n:], 0.0)
+        Ax = A @ x
+        slack = tol * (1 + jnp.max(jnp.abs(Ax), initial=0.0))
+        sign_slack = tol * (1 + jnp.max(jnp.abs(y), initial=0.0))
+        wrong_sign = ~equality & ((at_upper & (y < -sign_slack)) | (at_lower & (y > sign_slack)))
+        below, above = Ax < lower - slack, Ax > upper + slack
+        ok = jnp.all(jnp.isfinite(sol)) & ~jnp.any(below | above | wrong_sign)
+        return (x, y, jnp.where(ok, at_lower, (at_lower & ~wrong_sign) | below),
+                jnp.where(ok, at_upper, (at_upper & ~wrong_sign) | above), ok, passes + 1)
+
     at_lower = z - lower < -y
     at_upper = (upper - z < y) & ~at_lower
-    active = at_lower | at_upper
-    bound = jnp.where(at_lower, lower, upper)
-    delta = _delta(P)
-    K = _active_set_kkt(P, A, active, delta)
-    exact = _active_set_kkt(P, A, active, 0.0)
-    rhs = jnp.concatenate([-q, jnp.where(active, bound, 0.0)])
-    lu = jax.scipy.linalg.lu_factor(K)
-    sol = jax.scipy.linalg.lu_solve(lu, rhs)
-    for _ in range(2):  # iterative refinement against the unregularized system
-        sol = sol + jax.scipy.linalg.lu_solve(lu, rhs - exact @ sol)
-    n = x.shape[0]
-    xp, yp = sol[:n], jnp.where(active, sol[n:], 0.0)
-    Ax = A @ xp
-    slack = tol * (1 + jnp.max(jnp.abs(Ax), initial=0.0))
-    sign_slack = tol * (1 + jnp.max(jnp.abs(yp), initial=0.0))
-    equality = lower == upper
-    ok = (jnp.all(jnp.isfinite(sol)) & jnp.all((Ax >= lower - slack) & (Ax <= upper + slack))
-          & jnp.all(equality | (jnp.where(at_upper, yp, 0.0) >= -sign_slack))
-          & jnp.all(equality | (jnp.where(at_lower, yp, 0.0) <= sign_slack)))
-    return xp, yp, at_lower, at_upper, ok
+    start = (jnp.zeros_like(q), jnp.zeros_like(y), at_lower, at_upper, jnp.asarray(False), jnp.asarray(0))
+    x, y, at_lower, at_upper, ok, _ = jax.lax.while_loop(lambda s: ~s[4] & (s[5] < _POLISH_PASSES), attempt, start)
+    return x, y, at_lower, at_upper, ok
 
 
 def solve_qp(ws: QPWorkspace, q, lower, upper, warm_x=None, warm_y=None) -> QPSolution:
@@ -281,7 +295,7 @@ def solve_qp(ws: QPWorkspace, q, lower, upper, warm_x=None, warm_y=None) -> QPSo
     stopped = jax.lax.stop_gradient
     data = stopped((q, lower, upper))
     x, z, y, status, iterations = _admm(stopped(ws), *data, stopped(x0), stopped(y0))
-    xp, yp, at_lower, at_upper, polished = _polish(stopped(ws.P), data[0], stopped(ws.A), *data[1:], x, z, y,
+    xp, yp, at_lower, at_upper, polished = _polish(stopped(ws.P), data[0], stopped(ws.A), *data[1:], z, y,
                                                    ws.tolerance)
     polished = polished & (status != QPStatus.PRIMAL_INFEASIBLE) & (status != QPStatus.NONFINITE)
     x, y = jnp.where(polished, xp, x), jnp.where(polished, yp, y)
