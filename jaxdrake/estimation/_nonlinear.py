@@ -130,6 +130,9 @@ class ExtendedKalmanFilter(_DiscreteGaussianFilter):
       over it (`"rk4"`, one step, by default).
     - `x0`, `P0`: the initial estimate and covariance (default: the plant's initial state and
       the identity).
+
+    `estimate(z)` and `covariance(z)` read $\hat x$ and P from the filter's state z (of a
+    simulation: `traj.state(t)`); `correct` and `predict` are the two stages of `update`.
     """
 
     def __init__(self, plant: System, W, V, *, period=None, x0=None, P0=None, rule: str = "rk4",
