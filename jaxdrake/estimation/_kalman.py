@@ -64,19 +64,22 @@ def noise_jacobians(system: System, t, x, u):
     return f(x, u, w) - (x if discrete else 0.0), A, B, G, C, D, H
 
 
-_linearization = eqx.filter_jit(noise_jacobians)  # compiled once per system structure
-
-
 def noise_intensities(G, H, W, V):
     """(W_x, V_y, N) = (G W G^T, H W H^T + V, G W H^T): the process and measurement noise and
     their cross intensity."""
     return G @ W @ G.T, H @ W @ H.T + V, G @ W @ H.T
 
 
-@functools.partial(jax.jit, static_argnums=6)
-def _kalman_gain(A, C, G, H, W, V, discrete: bool):
+@eqx.filter_jit  # compiled once per system structure
+def _linear_noise_model(system, t, x, u, W, V):
+    """(residual, A, B, C, D, W_x, V_y, N) at the operating point."""
+    residual, A, B, G, C, D, H = noise_jacobians(system, t, x, u)
+    return (residual, A, B, C, D) + noise_intensities(G, H, W, V)
+
+
+@functools.partial(jax.jit, static_argnums=5)  # compiled once per (n, p): whatever the noise model
+def _kalman_gain(A, C, Wx, Vy, N, discrete: bool):
     """(L, P) by the dual Riccati equation: LQR's for (A^T, C^T, W_x, V_y, N)."""
-    Wx, Vy, N = noise_intensities(G, H, W, V)
     if discrete:
         P = solve_discrete_are(A.T, C.T, Wx, Vy, N)
         return jnp.linalg.solve(C @ P @ C.T + Vy, C @ P @ A.T + N.T).T, P
@@ -148,7 +151,7 @@ def kalman_filter(system: System, W=None, V=None, x0=None, u0=None, *,
         check_covariance(caller, "V", V, definite=True, meaning="the measurement noise intensity")
     x0 = jnp.zeros(n) if x0 is None else jnp.asarray(x0, float).reshape(n)
     u0 = jnp.zeros(m) if u0 is None else jnp.asarray(u0, float).reshape(m)
-    residual, A, B, G, C, D, H = _linearization(system, device_array(0.0, float), x0, u0)
+    residual, A, B, C, D, Wx, Vy, N = _linear_noise_model(system, device_array(0.0, float), x0, u0, W, V)
     if check_equilibrium and not isinstance(residual, jax.core.Tracer):
         worst = float(np.max(np.abs(np.asarray(residual)))) if residual.size else 0.0
         if worst > tolerance:
@@ -156,12 +159,11 @@ def kalman_filter(system: System, W=None, V=None, x0=None, u0=None, *,
                              f"{'update moves x by' if system.has_discrete_state else 'derivative is'} up to "
                              f"{worst:.3g} (pass check_equilibrium=False to linearize anyway)")
     if stochastic:
-        measurement = H @ W @ H.T + V
-        check_covariance(caller, "H W H^T + V", measurement, definite=True,
-                         meaning=f"the noise on the outputs of {system.name}, H = dg/dw")
         check_covariance(caller, "V", V, definite=False, meaning="the measurement noise intensity")
+        check_covariance(caller, "H W H^T + V", Vy, definite=True,
+                         meaning=f"the noise on the outputs of {system.name}, H = dg/dw")
     discrete = system.has_discrete_state
-    L, P = _kalman_gain(A, C, G, H, W, V, discrete)
+    L, P = _kalman_gain(A, C, Wx, Vy, N, discrete)
     if not isinstance(L, jax.core.Tracer):
         require_stable_estimator(caller, system, A, C, L, P)
     linearization = LinearSystem(A, B.reshape(n, m), C, D.reshape(p, m),
