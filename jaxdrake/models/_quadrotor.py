@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..multibody._spatial import rpy
+from ..multibody import rpy
 from ..systems import Frame, System
 
 

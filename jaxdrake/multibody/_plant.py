@@ -24,7 +24,6 @@ import numpy as np
 from .._numbers import device_array
 from ..geometry import HalfSpace
 from ..systems import Frame, System
-from ..systems._system import _static
 from . import _algorithms as alg
 from ._contact import DEFAULT_STICTION_TOLERANCE, CollisionGeometry, ContactMaterial, ContactModel, build_contact_model
 from ._joints import JointType
@@ -108,15 +107,15 @@ class RigidBodySystem(System):
     B: jax.Array
     limit_stiffness: jax.Array
     limit_damping: jax.Array
-    loops: tuple = _static(default=())
-    couplers: tuple = _static(default=())
-    limited: tuple = _static(default=())   # (q index, v index) of the joints with limits
+    loops: tuple = eqx.field(static=True, default=())
+    couplers: tuple = eqx.field(static=True, default=())
+    limited: tuple = eqx.field(static=True, default=())   # (q index, v index) of the joints with limits
     constraint_stiffness: float = 20.0
-    source: str | None = _static(default=None)  # the URDF file, when loaded from one
-    package_map: tuple = _static(default=())  # (package, folder) pairs for its package:// files
+    source: str | None = eqx.field(static=True, default=None)  # the URDF file, when loaded from one
+    package_map: tuple = eqx.field(static=True, default=())  # (package, folder) pairs for its package:// files
     contact: ContactModel | None = None
-    collision: URDFCollisions | None = _static(default=None)  # what `contact` was built from
-    stiction_tolerance: float = _static(default=DEFAULT_STICTION_TOLERANCE)  # seeds contact models built later
+    collision: URDFCollisions | None = eqx.field(static=True, default=None)  # what `contact` was built from
+    stiction_tolerance: float = eqx.field(static=True, default=DEFAULT_STICTION_TOLERANCE)  # seeds contact models built later
 
     def __init__(self, tree: KinematicTree, actuated_joints=None, *, loops=(), couplers=(),
                  constraint_stiffness: float = 20.0, effort_limits: bool = True,
