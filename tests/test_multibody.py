@@ -240,8 +240,9 @@ def test_the_rigid_body_models_are_classes_whose_copies_batches_and_programs_kee
     the closed form's $\tfrac12 v^T H v - g (m_1 l_{c1}\cos q_1 + m_2 (l_1\cos q_1 + l_{c2}\cos(q_1 + q_2)))$."""
     import equinox as eqx
 
-    for model in (jd.models.Acrobot, jd.models.CartPole, jd.models.DoublePendulum):
-        assert type(model()) is model and isinstance(model(), jd.RigidBodySystem)
+    for model in (jd.models.Acrobot, jd.models.CartPole, jd.models.DoublePendulum, jd.models.Panda):
+        plant = model()
+        assert type(plant) is model and isinstance(plant, jd.RigidBodySystem)
     acrobot = jd.models.Acrobot()
     grounded = acrobot.with_collision_geometry("lower_link", jd.geometry.Sphere(0.1)).with_ground(-4.0)
     assert type(grounded) is jd.models.Acrobot and grounded.contact is not None

@@ -122,7 +122,7 @@ class KinematicTree(eqx.Module):
 
     def neutral_configuration(self):
         """q with every joint at zero (the identity quaternion for a floating base)."""
-        return jnp.asarray([c for kind in self.joint_types for c in kind.neutral_position], float)
+        return jnp.asarray(np.array([c for kind in self.joint_types for c in kind.neutral_position], float))
 
     @property
     def layout(self) -> "TreeLayout":
