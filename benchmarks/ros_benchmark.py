@@ -26,7 +26,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 from test_ros import free_port, ros_env, start_roscore, stop_process_group, translator  # noqa: E402
 
 from jaxdrake.lcm import LoopbackRelay, SignalCoder  # noqa: E402
-from jaxdrake.lcm._bridge import open_lcm  # noqa: E402
+from jaxdrake.lcm import open_lcm  # noqa: E402
 from jaxdrake.systems import Frame  # noqa: E402
 
 

@@ -20,11 +20,11 @@ from ._batch import run_batch
 
 __version__ = "0.1.0"
 
-_LAZY_PACKAGES = ("lcm", "trajopt")  # heavier imports (LCM bindings, IPOPT), loaded on first use
+_LAZY_PACKAGES = ("lcm", "ros", "trajopt")  # heavier imports (LCM bindings, DDS, IPOPT), loaded on first use
 
 
 def __getattr__(name):
-    """`jd.trajopt` and `jd.lcm` without `import jaxdrake.trajopt` first (and without slowing
+    """`jd.trajopt`, `jd.lcm` and `jd.ros` without `import jaxdrake.trajopt` first (and without slowing
     `import jaxdrake`): imported on first access."""
     if name in _LAZY_PACKAGES:
         import importlib
@@ -38,6 +38,6 @@ __all__ = ["Adder", "ConstantVectorSource", "Demultiplexer", "DiscreteTimeDelay"
            "Diagram", "DiagramBuilder", "Frame", "HybridSystem", "LinearSystem", "SimulationError",
            "CouplerConstraint", "LoopConstraint", "MujocoSystem", "Polynomial", "PolynomialSystem", "RigidBodySystem", "SimulatedTrajectory", "SimulationStatus", "StochasticSystem", "System", "Trajectory", "TrajectorySource", "Transition",
            "add_frame_conversion", "analysis", "and_guards", "cascade", "control", "estimation", "feedback", "geometry", "lcm", "linearize", "models", "multibody", "not_guard",
-           "parallel", "planning", "run_batch", "simulate", "simulation", "systems", "trajectories", "trajopt",
+           "parallel", "planning", "ros", "run_batch", "simulate", "simulation", "systems", "trajectories", "trajopt",
            "use_compilation_cache", "viz"]
 

@@ -16,7 +16,7 @@ import lcm
 import pytest
 
 from jaxdrake.lcm import LoopbackRelay
-from jaxdrake.lcm._bridge import open_lcm
+from jaxdrake.lcm import open_lcm
 from jaxdrake.lcm._channels import ChannelPattern, PatternError
 from jaxdrake.lcm._relay import (MAGIC_CLIENT, MAGIC_SERVER, MAX_SUBSCRIPTIONS, PUBLISH, RELAY_ERROR_CHANNEL, SUBSCRIBE,
                                  UNSUBSCRIBE, VERSION)

@@ -17,34 +17,10 @@ SIGINT / SIGTERM stop the node cleanly; it then prints its counters and latencie
 """
 
 import argparse
-import importlib
-import importlib.util
 import logging
-import pathlib
 import sys
 
 import numpy as np
-
-
-def load_system(spec: str):
-    from ..systems import System
-
-    target, _, name = spec.rpartition(":")
-    if not target or not name:
-        raise SystemExit(f"SYSTEM must be 'module:name' or 'file.py:name', got {spec!r}")
-    if target.endswith(".py"):
-        path = pathlib.Path(target)
-        module_spec = importlib.util.spec_from_file_location(path.stem, path)
-        module = importlib.util.module_from_spec(module_spec)
-        sys.path.insert(0, str(path.parent))
-        module_spec.loader.exec_module(module)
-    else:
-        module = importlib.import_module(target)
-    obj = getattr(module, name)
-    system = obj if isinstance(obj, System) else obj()
-    if not isinstance(system, System):
-        raise SystemExit(f"{spec} is not a jaxdrake.System nor a function returning one")
-    return system
 
 
 def main(argv=None):
@@ -73,14 +49,16 @@ def main(argv=None):
 
     if args.x64:
         jax.config.update("jax_enable_x64", True)
-    from . import LcmNode
-
-    from ._bridge import HOST_ONLY_URL
+    from . import HOST_ONLY_URL, LcmNode, load_system
 
     args.url = args.url or HOST_ONLY_URL
+    try:
+        system = load_system(args.system)
+    except ValueError as error:
+        parser.error(str(error))
     if args.view:
-        return view(load_system(args.system), args)
-    node = LcmNode(load_system(args.system), args.url, rate=args.rate, input_channel=args.input_channel,
+        return view(system, args)
+    node = LcmNode(system, args.url, rate=args.rate, input_channel=args.input_channel,
                    output_channel=args.output_channel, lockstep=args.lockstep, input_timeout=args.input_timeout,
                    safe_input=args.safe_input, log_path=args.log, x0=args.x0)
     print(f"node {node.system.name} on {args.url}: in {node.input_channel if node.input_coder else '-'}, "

@@ -22,8 +22,12 @@ log (`lcm-logplayer` replays it).
 from __future__ import annotations
 
 import dataclasses
+import importlib
+import importlib.util
 import logging
+import pathlib
 import signal
+import sys
 import time
 
 import jax
@@ -75,6 +79,28 @@ def restore_signals(previous: dict):
 
 def _log_relay_error(channel, data):
     log.error("the LCM relay refused a request: %s", data.decode("utf-8", "replace"))
+
+
+def load_system(spec: str):
+    """The system named by `spec`: `module:name` (e.g. `jaxdrake.models:Pendulum`) or
+    `path/to/file.py:name`, a `System` or a function returning one (the command lines' SYSTEM)."""
+
+    target, _, name = spec.rpartition(":")
+    if not target or not name:
+        raise ValueError(f"SYSTEM must be 'module:name' or 'file.py:name', got {spec!r}")
+    if target.endswith(".py"):
+        path = pathlib.Path(target)
+        module_spec = importlib.util.spec_from_file_location(path.stem, path)
+        module = importlib.util.module_from_spec(module_spec)
+        sys.path.insert(0, str(path.parent))
+        module_spec.loader.exec_module(module)
+    else:
+        module = importlib.import_module(target)
+    obj = getattr(module, name)
+    system = obj if isinstance(obj, System) else obj()
+    if not isinstance(system, System):
+        raise ValueError(f"{spec} is not a jaxdrake.System nor a function returning one")
+    return system
 
 
 def open_lcm(url):

@@ -73,7 +73,7 @@ def main(argv=None):
     ours.setLevel(logging.INFO)
     ours.propagate = False
 
-    from ..lcm._bridge import HOST_ONLY_URL
+    from ..lcm import HOST_ONLY_URL
     from ._bags import lcm_log_to_bag
     from ._ros1 import MasterError, Ros1Network, RosUnavailableError
     from ._translator import Translator

@@ -81,7 +81,7 @@ def lcm_coder(text: str, channel: str):
         raise ValueError(f"the LCM side is 'signal=A,B', 'robot_state=J1,J2', 'robot_command=J1,J2' or "
                          f"'state_of=module:system' (also input_of, output_of), got {text!r}")
     if kind in _PORTS:
-        from ..lcm.__main__ import load_system
+        from ..lcm import load_system
 
         frame = getattr(load_system(value), _PORTS[kind])
         return (frame.coder if frame.coder is not None else SignalCoder(frame)), kind == "input_of"

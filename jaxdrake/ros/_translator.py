@@ -21,7 +21,7 @@ import threading
 import time
 
 from ..lcm import MessageError
-from ..lcm._bridge import HOST_ONLY_URL, open_lcm, restore_signals, stop_on_signals
+from ..lcm import HOST_ONLY_URL, open_lcm, restore_signals, stop_on_signals
 from ._routes import TO_ROS, check_routes
 
 log = logging.getLogger("jaxdrake.ros")
