@@ -146,24 +146,26 @@ def test_observer_error_decays_at_the_rate_of_its_poles():
 
 
 def test_lqg_closed_loop_has_the_controller_and_estimator_poles():
-    """Separation principle: the plant, its Kalman filter and LQR on the estimate have the
-    closed-loop poles eig(A - B K) and eig(A - L C)."""
+    """Separation principle in one line: feedback(plant, cascade(Kalman filter, LQR)) has the
+    closed-loop poles eig(A - B K) and eig(A - L C); the same loop as a diagram (the plant given
+    input limits it never reaches) has the same linearization and the same motion."""
     A, B, C, D, W, V = lti_example(False)
     plant = jd.LinearSystem(A, B, C, D)
     estimator = kalman_filter(plant, W, V)
     regulator = jd.control.lqr(plant, np.eye(3), np.eye(2))
-    builder = jd.DiagramBuilder()
-    builder.add(plant, "plant")
-    builder.add(jd.cascade(estimator.observer, regulator.controller), "lqg")
-    builder.connect("lqg", "plant")
-    builder.connect("lqg", ("lqg", [0, 1]))  # the observer reads the plant's input u = -K x̂
-    builder.connect("plant", ("lqg", [2, 3]))
-    builder.export_output("plant")
-    closed = builder.build("LQG")
-    poles = np.sort_complex(np.linalg.eigvals(np.asarray(jd.linearize(closed, jnp.zeros(6)).A)))
+    closed = jd.feedback(plant, jd.cascade(estimator.observer, regulator.controller))
+    assert isinstance(closed, jd.LinearSystem) and closed.num_states == 6
+    poles = np.sort_complex(np.linalg.eigvals(np.asarray(closed.A)))
     expected = np.sort_complex(np.concatenate([np.linalg.eigvals(A - B @ np.asarray(regulator.K)),
                                                np.linalg.eigvals(A - np.asarray(estimator.L) @ C)]))
     np.testing.assert_allclose(poles, expected, atol=1e-8)
+    limited = plant.with_input_limits(-1e6 * jnp.ones(2), 1e6 * jnp.ones(2))
+    diagram = jd.feedback(limited, jd.cascade(estimator.observer, regulator.controller))
+    assert isinstance(diagram, jd.Diagram)
+    np.testing.assert_allclose(jd.linearize(diagram, jnp.zeros(6)).A, closed.A, atol=1e-12)
+    x0, ts = jnp.array([1.0, -0.5, 0.3, 0.0, 0.0, 0.0]), np.linspace(0.0, 2.0, 9)
+    run = lambda system: jd.simulate(system, (0.0, 2.0), x0, rtol=1e-10, atol=1e-12).state(ts)
+    np.testing.assert_allclose(run(diagram), run(closed), atol=1e-8)
 
 
 # ----- time-varying -------------------------------------------------------------------------

@@ -63,7 +63,9 @@ def linearize(system: System, x0, u0=None, *, t=0.0, check_equilibrium: bool = T
 
 class LQRResult(NamedTuple):
     """`K` (gain), `S` (cost-to-go $\\tilde x^T S \\tilde x$), the `linearization`, and the
-    `controller` system $u = u_0 - K(x - x_0)$ (input: the plant's state; output: its input)."""
+    `controller` system $u = u_0 - K(x - x_0)$ (input: the plant's state; output: its input):
+    for a `LinearSystem` about the origin a `LinearSystem` $u = -Kx$ (Drake's rule), so that
+    its closed loops stay linear."""
 
     K: jax.Array
     S: jax.Array
@@ -135,6 +137,7 @@ def lqr(system: System, Q, R, x0=None, u0=None, *, N=None, check_equilibrium: bo
     continuous or discrete to match the system; `N` the cross term. Differentiable with
     respect to Q, R and the plant's parameters."""
     n, m = system.num_states, system.num_inputs
+    about_origin = x0 is None and u0 is None
     x0 = jnp.zeros(n) if x0 is None else jnp.asarray(x0, float).reshape(n)
     u0 = jnp.zeros(m) if u0 is None else jnp.asarray(u0, float).reshape(m)
     Q, R = (array_module(M).atleast_2d(M).astype(float) for M in (Q, R))  # numbers stay numpy: nothing compiled
@@ -148,8 +151,12 @@ def lqr(system: System, Q, R, x0=None, u0=None, *, N=None, check_equilibrium: bo
     K, S = _lqr_gain(lin.A, lin.B, Q, R, N, lin.is_discrete)
     if not isinstance(K, jax.core.Tracer):
         _require_stabilising(system, lin, K, S)
-    controller = System.from_functions(
-        output=_affine_gain, num_states=0, num_inputs=n, num_outputs=m, params=(K, x0, u0),
-        input_frame=system.state_frame, output_frame=system.input_frame)
+    if isinstance(system, LinearSystem) and about_origin:  # Drake's rule: u = -K x, a LinearSystem
+        controller = LinearSystem(jnp.zeros((0, 0)), jnp.zeros((0, n)), jnp.zeros((m, 0)), -K,
+                                  input_frame=system.state_frame, output_frame=system.input_frame)
+    else:
+        controller = System.from_functions(
+            output=_affine_gain, num_states=0, num_inputs=n, num_outputs=m, params=(K, x0, u0),
+            input_frame=system.state_frame, output_frame=system.input_frame)
     return LQRResult(K, S, lin, controller)
 

@@ -106,6 +106,8 @@ def feedback(a: System, b: System, sign: float = 1.0) -> System:
     Both direct feedthrough is an algebraic loop: an error.
     """
     _check_systems(a, b)
+    if _reads_input_and_output(b, a):
+        return _output_feedback_through_estimator(a, b, float(sign))
     if a.direct_feedthrough and b.direct_feedthrough:
         raise ValueError(f"algebraic loop: feedback of {a.name} and {b.name}, which are both direct "
                          "feedthrough (each output depends on its input at the same instant). Break it "
@@ -132,6 +134,43 @@ def feedback(a: System, b: System, sign: float = 1.0) -> System:
     builder.connect(na, nb)
     builder.connect(nb, na, gain=s)
     builder.export_input(na)
+    builder.export_output(na)
+    return builder.build("Feedback")
+
+
+def _reads_input_and_output(b: System, a: System) -> bool:
+    """Whether b's input frame is $[u_a; y_a]$ (an estimator of a, or a controller through one):
+    a's input coordinates prefixed `u.`, then its output coordinates prefixed `y.`."""
+    expected = (tuple(f"u.{c}" for c in a.input_frame.coordinates)
+                + tuple(f"y.{c}" for c in a.output_frame.coordinates))
+    return b.input_frame.coordinates == expected
+
+
+def _output_feedback_through_estimator(a: System, b: System, s: float) -> System:
+    r"""`feedback(plant, cascade(estimator, controller))`: b reads the input a receives and a's
+    output, $u_b = [u + s\, y_b;\; y_a]$, $u_a = u + s\, y_b$, $y = y_a$ (LQG in one line).
+    LTI with LTI and $D_b = 0$: with $B_b = [B_u \; B_y]$,
+    $A = \begin{bmatrix} A_a & s B_a C_b \\ B_y C_a & A_b + s (B_u + B_y D_a) C_b \end{bmatrix}$,
+    $B = \begin{bmatrix} B_a \\ B_u + B_y D_a \end{bmatrix}$, $C = [C_a \;\; s D_a C_b]$, $D = D_a$."""
+    if b.direct_feedthrough:
+        raise ValueError(f"algebraic loop: {b.name} reads the input of {a.name}, which its own output "
+                         "sets, at the same instant; an estimator's output (its state) must not depend "
+                         "on its input directly")
+    nu = a.num_inputs
+    if _both_linear(a, b) and a.input_limits is None and b.input_limits is None:
+        b_u, b_y = b.B[:, :nu], b.B[:, nu:]
+        return LinearSystem(
+            _block([[a.A, s * a.B @ b.C], [b_y @ a.C, b.A + s * (b_u + b_y @ a.D) @ b.C]]),
+            _block([[a.B], [b_u + b_y @ a.D]]), _block([[a.C, s * a.D @ b.C]]), a.D,
+            sample_time=a.sample_time, input_frame=a.input_frame,
+            state_frame=_stacked_frame("FeedbackState", a, b, "state"), output_frame=a.output_frame)
+    builder = DiagramBuilder()
+    na, nb = builder.add(a), builder.add(b)
+    u_part, y_part = (nb, tuple(range(nu))), (nb, tuple(range(nu, b.num_inputs)))
+    builder.connect(na, y_part)
+    builder.connect(nb, na, gain=s)
+    builder.connect(nb, u_part, gain=s)
+    builder.connect_input(builder.export_input(na), u_part)
     builder.export_output(na)
     return builder.build("Feedback")
 

@@ -381,6 +381,7 @@ class DiagramBuilder:
         self._names: list[str] = []
         self._wires: list[Wire] = []
         self._inputs: list[tuple[int, tuple[int, ...]]] = []
+        self._fanout: list[tuple[int, int, tuple[int, ...]]] = []  # (export, subsystem, coordinates)
         self._outputs: list[tuple[int, tuple[int, ...]]] = []
 
     def add(self, system: System, name: str | None = None) -> str:
@@ -422,10 +423,23 @@ class DiagramBuilder:
                              f"{self._names[j]!r}: the sizes differ")
         self._wires.append(Wire(i, src, j, dst, conversion, float(gain)))
 
-    def export_input(self, target) -> None:
-        """Make an input port of a subsystem part of the diagram's input (appended)."""
+    def export_input(self, target) -> int:
+        """Make an input port of a subsystem part of the diagram's input (appended); returns
+        the export's index, for `connect_input`."""
         j, dst, _, _ = self._port(target, "input")
         self._inputs.append((j, dst))
+        return len(self._inputs) - 1
+
+    def connect_input(self, export: int, target) -> None:
+        """Feed the diagram input made by export number `export` into another input port too
+        (Drake's `ConnectInput`: one diagram input, several subsystem inputs)."""
+        if not 0 <= export < len(self._inputs):
+            raise IndexError(f"no exported input number {export}: export_input has made {len(self._inputs)}")
+        j, dst, _, _ = self._port(target, "input")
+        if len(dst) != len(self._inputs[export][1]):
+            raise ValueError(f"exported input {export} has {len(self._inputs[export][1])} coordinates, "
+                             f"{target!r} has {len(dst)}")
+        self._fanout.append((export, j, dst))
 
     def export_output(self, source) -> None:
         """Make an output port of a subsystem part of the diagram's output (appended)."""
@@ -438,10 +452,12 @@ class DiagramBuilder:
         (their concatenation, with generic names, when there are several)."""
         if not self._systems:
             raise ValueError("the diagram has no subsystems")
-        wires, offset = list(self._wires), 0
+        wires, offset, exported = list(self._wires), 0, []
         for j, dst in self._inputs:
-            wires.append(Wire(INPUT, tuple(range(offset, offset + len(dst))), j, dst))
+            exported.append(tuple(range(offset, offset + len(dst))))
+            wires.append(Wire(INPUT, exported[-1], j, dst))
             offset += len(dst)
+        wires += [Wire(INPUT, exported[k], j, dst) for k, j, dst in self._fanout]
         fed = {(w.target, c) for w in wires for c in w.target_index}
         for j, s in enumerate(self._systems):
             missing = [s.input_frame.coordinates[c] for c in range(s.num_inputs) if (j, c) not in fed]
