@@ -58,7 +58,7 @@ def main(out: pathlib.Path) -> pathlib.Path:
     axes[2].plot(h0s[::4], fd[::4], "k.", ms=4, label="finite differences")
     axes[2].set(xlabel="drop height h0 (m)", title="gradients through the impacts")
     axes[2].legend(fontsize=8)
-    print(f"d q(3 s) / d h0 at h0 = 5: {float(jax.grad(height)(5.0)):.6f}")
+    print(f"d q(3 s) / d h0 at h0 = 5: {grads[np.argmin(np.abs(h0s - 5.0))]:.6f}")  # h0s holds 5.0
 
     save_movie(ball, traj, out, "bouncing_ball.gif")
     return save(fig, out, "bouncing_ball.png")

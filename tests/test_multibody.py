@@ -778,57 +778,6 @@ def test_mimic_joints_as_coupler_constraints_agree_with_pinocchios_reduced_model
         G[start, model.joints[model.getJointId(source)].idx_v] = ratio
     rng = np.random.default_rng(1)
     lower, upper = np.asarray(tree.position_lower), np.asarray(tree.position_upper)
-    independent = [j for j in range(1, model.njoints) if model.joints[j].nv]
-    for _ in range(3):
-        q = rng.uniform(np.maximum(lower, -1.0), np.minimum(upper, 1.0))
-        for c in ours.couplers:
-            q[tree.q_starts[tree.joint_names.index(c.joint)]] = (
-                c.gear_ratio * q[tree.q_starts[tree.joint_names.index(c.leader)]] + c.offset)
-        q_r = np.zeros(model.nq)
-        for j in independent:
-            value, i = q[tree.q_starts[tree.joint_names.index(model.names[j])]], model.joints[j].idx_q
-            q_r[i: i + model.joints[j].nq] = (np.cos(value), np.sin(value)) if model.joints[j].nq == 2 else value
-        v_r = rng.uniform(-1, 1, model.nv)
-        v, u = G @ v_r, rng.uniform(-1, 1, ours.num_inputs)
-        qdd = np.asarray(ours.forward_dynamics(jnp.asarray(q), jnp.asarray(v), jnp.asarray(u)))
-        np.testing.assert_allclose(qdd, xdot[drake_plant.num_positions():][order], rtol=0, atol=1e-9)
-
-
-def test_effort_limits_become_input_limits_that_saturate_the_inputs():
-    """The Panda's <limit effort> (87 N m for joints 1-4, 12 N m for 5-7) saturates its inputs."""
-    panda = jd.RigidBodySystem.from_urdf(example_robot("panda_description/urdf/panda.urdf"),
-                                         welded=["panda_finger_joint1", "panda_finger_joint2"])
-    np.testing.assert_array_equal(panda.input_limits[1], [87, 87, 87, 87, 12, 12, 12])
-    np.testing.assert_array_equal(panda.input_limits[0], -panda.input_limits[1])
-    assert jd.RigidBodySystem.from_urdf(example_robot("panda_description/urdf/panda.urdf"),
-                                        effort_limits=False).input_limits is None
-    x = panda.initial_state()
-    u = jnp.full(7, 500.0)
-    qdd_limited = panda.forward_dynamics(x[:7], x[7:], panda.saturate(u))
-    np.testing.assert_allclose(qdd_limited, panda.forward_dynamics(x[:7], x[7:], panda.input_limits[1]))
-    assert not np.allclose(qdd_limited, panda.forward_dynamics(x[:7], x[7:], u))
-
-
-@pytest.mark.parametrize("relative", ["panda_description/urdf/panda.urdf",
-                                      pytest.param("baxter_description/urdf/baxter.urdf", marks=pytest.mark.slow)])
-def test_mimic_joints_as_coupler_constraints_agree_with_pinocchios_reduced_model(relative):
-    """`from_urdf(..., mimic=True)` keeps each <mimic> joint as a coordinate coupled to its
-    leader by a constraint; on a consistent state the accelerations equal those of Pinocchio's
-    mimic model (which removes the followers): qdd = G H_r^{-1} (G^T tau - nle_r), G the
-    coupling map from Pinocchio's coordinates to ours. Baxter: 2 gripper followers, ratio -1.
-    (Pinocchio refuses Talos' grippers, whose followers come before their leader; we take them.)"""
-    path = example_robot(relative)
-    ours = jd.RigidBodySystem.from_urdf(path, mimic=True)
-    model = pin.buildModelFromUrdf(str(path), mimic=True)
-    data = model.createData()
-    tree, leader = ours.tree, {c.joint: (c.leader, c.gear_ratio) for c in ours.couplers}
-    assert len(ours.couplers) == tree.nv - model.nv > 0
-    G = np.zeros((tree.nv, model.nv))
-    for name, start in zip(tree.joint_names, tree.v_starts):
-        source, ratio = leader.get(name, (name, 1.0))
-        G[start, model.joints[model.getJointId(source)].idx_v] = ratio
-    rng = np.random.default_rng(1)
-    lower, upper = np.asarray(tree.position_lower), np.asarray(tree.position_upper)
     for _ in range(3):
         q_r = rng.uniform(np.maximum(lower, -1.0), np.minimum(upper, 1.0))[[  # a leader's own range
             tree.joint_names.index(model.names[j]) for j in range(1, model.njoints) if model.joints[j].nv]]
