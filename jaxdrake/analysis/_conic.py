@@ -14,7 +14,7 @@ import time
 import numpy as np
 import scipy.sparse
 
-from ..systems._affine import AffineExpression, DecisionSpace, LinearConstraint
+from ..systems import AffineExpression, DecisionSpace, LinearConstraint
 
 
 class SolveError(RuntimeError):

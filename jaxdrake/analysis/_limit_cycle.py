@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..simulation import SimulatedTrajectory, SimulationStatus, simulate
-from ..simulation._inputs import leaves_to_arrays
+from ..simulation import leaves_to_arrays
 from ..systems import HybridSystem, System
 
 

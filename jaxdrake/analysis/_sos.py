@@ -25,8 +25,7 @@ import numpy as np
 import scipy.sparse
 
 from ..systems import Polynomial, monomial_basis
-from ..systems._polynomial import unique_rows
-from ..systems._affine import AffineExpression
+from ..systems import AffineExpression, unique_rows
 from ._conic import ConicProgram, ConicResult, InfeasibleError
 
 

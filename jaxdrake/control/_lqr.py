@@ -22,7 +22,7 @@ import numpy as np
 
 from .._numbers import array_module, device_array
 from ..systems import LinearSystem, System
-from ..systems._system import require_plain_system
+from ..systems import require_plain_system
 from ._riccati import solve_continuous_are, solve_discrete_are
 
 

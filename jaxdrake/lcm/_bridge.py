@@ -35,7 +35,7 @@ import numpy as np
 
 from ..simulation import discrete_step
 from ..systems import System
-from ..systems._system import require_plain_system
+from ..systems import require_plain_system
 from ._coders import MessageError, SignalCoder
 from ._relay import RELAY_ERROR_CHANNEL
 

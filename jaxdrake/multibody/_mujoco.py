@@ -54,12 +54,12 @@ if sys.platform.startswith("linux") and not os.environ.get("DISPLAY") and "mujoc
     os.environ.setdefault("MUJOCO_GL", "egl")
 
 
-def renderer(model, height: int, width: int):
+def mujoco_renderer(model, height: int, width: int):
     """`mujoco.Renderer(model, height, width)`. Where mujoco was imported before jaxdrake on a
     Linux machine without a display, it chose GLFW, which cannot open a context there: its
     offscreen context is switched to EGL first (GLFW is never tried: a failed GLFW start can
     abort the process)."""
-    mujoco, _ = _mujoco()
+    mujoco, _ = import_mujoco()
     try:
         if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
             from mujoco.rendering.classic import gl_context
@@ -75,7 +75,7 @@ def renderer(model, height: int, width: int):
                            "CPU-only machines)") from error
 
 
-def _mujoco():
+def import_mujoco():
     """mujoco and mjx, imported without MJX's "Failed to import warp" lines (Warp is an optional
     GPU backend jaxdrake does not use), and with MuJoCo's warnings sent to Python's `warnings`
     (MuJoCo's own handler writes MUJOCO_LOG.TXT into the working folder) unless the user set
@@ -118,7 +118,7 @@ class MujocoSystem(System):
     warm_start: bool = eqx.field(static=True)
 
     def __init__(self, mj_model, *, output: str = "state", warm_start: bool = False):
-        mujoco, mjx = _mujoco()
+        mujoco, mjx = import_mujoco()
         if not isinstance(mj_model, mujoco.MjModel):
             raise TypeError(f"MujocoSystem needs a mujoco.MjModel (or use MujocoSystem.from_xml), "
                             f"got {type(mj_model).__name__}")
@@ -159,7 +159,7 @@ class MujocoSystem(System):
         """From MJCF text or a file path (an `.xml` MJCF or a `.urdf`); `assets`: {file name: bytes}.
         The files a model names are read only from inside its folder (the working directory for
         text) or from `assets`; its XML without DTD or entities (`_mjcf.check_model_files`)."""
-        mujoco, _ = _mujoco()
+        mujoco, _ = import_mujoco()
         text = str(text_or_path)
         if text.lstrip().startswith("<"):
             check_model_files(text=text, assets=assets)
@@ -184,7 +184,7 @@ class MujocoSystem(System):
                                 for name in DERIVED_CONSTANTS})
 
     def _data(self, model, t, x, u):
-        _, mjx = _mujoco()
+        _, mjx = import_mujoco()
         nq, nv, na = self.sizes
         data = mjx.make_data(model)
         data = data.replace(time=jnp.asarray(t, x.dtype), qpos=x[:nq], qvel=x[nq: nq + nv],
@@ -192,7 +192,7 @@ class MujocoSystem(System):
         return data.replace(qacc_warmstart=x[nq + nv + na:]) if self.warm_start else data
 
     def update(self, t, x, u):
-        _, mjx = _mujoco()
+        _, mjx = import_mujoco()
         model = self.stepped_model()
         data = mjx.step(model, self._data(model, t, x, u))
         parts = [data.qpos, data.qvel, data.act] + ([data.qacc_warmstart] if self.warm_start else [])
@@ -201,7 +201,7 @@ class MujocoSystem(System):
     def output(self, t, x, u):
         if not self.sensors:
             return x
-        _, mjx = _mujoco()
+        _, mjx = import_mujoco()
         model = self.stepped_model()
         return mjx.forward(model, self._data(model, t, x, u)).sensordata.astype(x.dtype)
 
@@ -213,13 +213,13 @@ class MujocoSystem(System):
     def render(self, x, *, width: int = 640, height: int = 480, camera=-1):
         """An RGB image (height, width, 3) of state x by MuJoCo's own renderer (needs an OpenGL
         context: `MUJOCO_GL=egl` or `osmesa` on a machine without a display)."""
-        mujoco, _ = _mujoco()
+        mujoco, _ = import_mujoco()
         nq, nv, _ = self.sizes
         data = mujoco.MjData(self.mj_model)
         x = np.asarray(x, float)
         data.qpos[:], data.qvel[:], data.act[:] = x[:nq], x[nq: nq + nv], x[nq + nv: nq + nv + self.sizes[2]]
         mujoco.mj_forward(self.mj_model, data)
-        with renderer(self.mj_model, height, width) as scene:
+        with mujoco_renderer(self.mj_model, height, width) as scene:
             scene.update_scene(data, camera)
             return scene.render()
 
@@ -267,7 +267,7 @@ def set_const(model, mj_model):
     the relative pose of marked welds between bodies (`eq_data`). Checked against C to 1e-12
     (tests/test_mujoco.py); `actuator_length0`, `dof_length` and BVHs, which MJX does not
     keep, are not."""
-    _, mjx = _mujoco()
+    _, mjx = import_mujoco()
     # MJX's own kinematic helpers and enums (private modules of the pinned mujoco-mjx 3.17)
     from mujoco.mjx._src.math import quat_inv, quat_mul
     from mujoco.mjx._src.support import local_to_global

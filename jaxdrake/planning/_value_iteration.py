@@ -24,7 +24,7 @@ import numpy as np
 from .._batch import batch_sharding, padded
 from .._progress import progress_bar
 from ..simulation import simulate
-from ..simulation._inputs import leaves_to_arrays
+from ..simulation import leaves_to_arrays
 from ..systems import Frame, System
 
 

@@ -1,6 +1,7 @@
 """Simulation: the jit-compiled loop, its solvers, step-size controllers and status."""
 
 from ._controller import AbstractStepSizeController, ConstantStepSize, IController
+from ._inputs import leaves_to_arrays
 from ._loop import project_to_constraints
 from ._result import SimulatedTrajectory
 from ._simulate import simulate
@@ -10,4 +11,4 @@ from ._status import SimulationError, SimulationStatus
 
 __all__ = ["FIXED_STEP_RULES", "RK4", "AbstractExplicitRungeKutta", "AbstractSolver", "AbstractStepSizeController",
            "ConstantStepSize", "Dopri5", "Euler", "IController", "Midpoint", "Rosenbrock23", "SimulatedTrajectory",
-           "SimulationError", "SimulationStatus", "discrete_step", "project_to_constraints", "simulate"]
+           "SimulationError", "SimulationStatus", "discrete_step", "leaves_to_arrays", "project_to_constraints", "simulate"]

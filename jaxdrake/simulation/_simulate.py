@@ -17,7 +17,7 @@ import numpy as np
 
 from .._numbers import device_array
 from ..systems import Diagram, HybridSystem, System
-from ..systems._system import check_initialised
+from ..systems import check_initialised
 from ..trajectories import NUM_COEFFICIENTS
 from ._controller import ConstantStepSize, IController
 from ._inputs import NoisyInput, leaves_to_arrays, make_source

@@ -6,13 +6,14 @@ from ._diagram import Diagram, DiagramBuilder
 from ._frame import Frame, add_frame_conversion
 from ._hybrid import HybridSystem, Transition, and_guards, not_guard
 from ._linear import LinearSystem
-from ._polynomial import Polynomial, PolynomialSystem, monomial_basis, taylor_polynomial
+from ._polynomial import Polynomial, PolynomialSystem, monomial_basis, taylor_polynomial, unique_rows
 from ._primitives import (Adder, Demultiplexer, DiscreteTimeDelay, FirstOrderLowPassFilter, Gain, Multiplexer,
                           PidController, Saturation, ZeroOrderHold)
 from ._signal_blocks import ConstantVectorSource, RandomDistribution, RandomSource, Sine, WrapToSystem
 from ._source import TrajectorySource
 from ._stochastic import StochasticSystem
-from ._system import FunctionSystem, System
+from ._system import FunctionSystem, System, check_initialised, require_plain_system
+from ._affine import AffineExpression, DecisionSpace, LinearConstraint
 
 __all__ = ["Adder", "ConstantVectorSource", "Demultiplexer", "DiscreteTimeDelay", "FirstOrderLowPassFilter", "Gain",
            "Multiplexer", "PidController", "RandomDistribution", "RandomSource", "Saturation", "Sine", "WrapToSystem",
@@ -20,4 +21,6 @@ __all__ = ["Adder", "ConstantVectorSource", "Demultiplexer", "DiscreteTimeDelay"
            "Diagram", "DiagramBuilder", "Frame", "FunctionSystem", "HybridSystem", "LinearSystem",
            "Polynomial", "PolynomialSystem", "monomial_basis", "taylor_polynomial",
            "StochasticSystem", "System", "TrajectorySource", "Transition", "add_frame_conversion", "and_guards",
-           "cascade", "feedback", "not_guard", "parallel"]
+           "cascade", "feedback", "not_guard", "parallel",
+           "AffineExpression", "DecisionSpace", "LinearConstraint", "check_initialised", "require_plain_system",
+           "unique_rows"]

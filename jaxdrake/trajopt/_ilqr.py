@@ -30,7 +30,7 @@ import numpy as np
 
 from ..simulation import discrete_step
 from ..systems import System
-from ..systems._system import require_plain_system
+from ..systems import require_plain_system
 from ..trajectories import Trajectory
 
 _ALPHAS = 0.5 ** np.arange(10)

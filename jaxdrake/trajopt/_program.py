@@ -31,7 +31,7 @@ import numpy as np
 from .._numbers import device_array
 from ..simulation import FIXED_STEP_RULES, discrete_step, simulate
 from ..systems import System
-from ..systems._system import require_plain_system
+from ..systems import require_plain_system
 from ..trajectories import Trajectory
 from ._nlp import NonlinearProgram, SolverResult, Term, resolve_solver, solve
 

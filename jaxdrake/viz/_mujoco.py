@@ -11,7 +11,7 @@ from __future__ import annotations
 import equinox as eqx
 import numpy as np
 
-from ..multibody._mujoco import MujocoSystem, _mujoco, renderer
+from ..multibody import MujocoSystem, import_mujoco, mujoco_renderer
 from ._visualizer import DRAW_PERIOD, Visualizer
 
 
@@ -35,12 +35,12 @@ class MujocoVisualizer(Visualizer):
 
     def images(self, xs) -> np.ndarray:
         """RGB images (n, height, width, 3) of the states xs (n, num_states)."""
-        mujoco, _ = _mujoco()
+        mujoco, _ = import_mujoco()
         model = self.mj_model
         nq, nv, na = self.sizes
         data = mujoco.MjData(model)
         frames = []
-        with renderer(model, self.height, self.width) as scene:
+        with mujoco_renderer(model, self.height, self.width) as scene:
             for x in np.asarray(xs, float)[:, : self.num_inputs]:  # a diagram's state starts with the plant's
                 data.qpos[:], data.qvel[:], data.act[:] = x[:nq], x[nq: nq + nv], x[nq + nv: nq + nv + na]
                 mujoco.mj_forward(model, data)

@@ -57,9 +57,9 @@ def puppet_model(links, visuals, materials, mesh_file, skeleton, neutral, floati
     4x4 world poses at the neutral configuration. The camera frames the reach of a fixed-base
     robot (the sphere about its root through its farthest link at the neutral pose, above
     the floor), or follows the root of a `floating` one at the distance that frames its pose."""
-    from ..multibody._mujoco import _mujoco
+    from ..multibody import import_mujoco
 
-    mujoco, _ = _mujoco()
+    mujoco, _ = import_mujoco()
     spec = mujoco.MjSpec()
     spec.visual.global_.offwidth, spec.visual.global_.offheight = 1920, 1080
     spec.visual.headlight.ambient, spec.visual.headlight.diffuse = [0.4, 0.4, 0.4], [0.6, 0.6, 0.6]
@@ -107,12 +107,12 @@ def puppet_model(links, visuals, materials, mesh_file, skeleton, neutral, floati
 
 def render_frames(model, camera, transforms, height: int, width: int) -> np.ndarray:
     """RGB images (n, height, width, 3) of the puppet with its links at `transforms` (n, links, 4, 4)."""
-    from ..multibody._mujoco import _mujoco, renderer
+    from ..multibody import import_mujoco, mujoco_renderer
 
-    mujoco, _ = _mujoco()
+    mujoco, _ = import_mujoco()
     data = mujoco.MjData(model)
     frames = []
-    with renderer(model, height, width) as scene:
+    with mujoco_renderer(model, height, width) as scene:
         for poses in np.asarray(transforms, float):
             data.mocap_pos[:] = poses[:, :3, 3]
             for k, pose in enumerate(poses):
