@@ -8,7 +8,8 @@ x = top + (0.5 m, 0.25 rad), 200 steps (the bound active in the first ~37); each
 previous plan shifted, polish), jitted, called from Python — against OSQP 1.x (set up once,
 then per step `update(q, l, u)` and `solve()`, warm-started, eps 1e-6, polished). The plans are
 compared step by step. (2) Batch: 4096 states around the top, one vmapped update. (3) MPPI,
-1024 samples x 50 steps of the nonlinear cart-pole (one RK4 step per 20 ms), one update.
+1024 samples x 50 steps of the nonlinear cart-pole (one RK4 step per 20 ms), one update, with
+the rigid-body model and with the closed-form equations of the same cart-pole.
 Best of repeats for (2) and (3); medians per step for (1); first-call (compile) times printed.
 
     python benchmarks/mpc_benchmark.py [--batch 4096]
@@ -94,6 +95,24 @@ def batch(controller, size, repeats):
     return seconds, compile_s, solved
 
 
+class ClosedFormCartPole(jd.System):
+    """The notes' cart-pole equations (Underactuated ch. 3, mc = 10, mp = 1, l = 0.5), state
+    [x, theta, xdot, thetadot]: the same dynamics as `jd.models.CartPole()` (checked in `main`)
+    in a few dozen operations instead of the rigid-body algorithms, to show what the model
+    costs MPPI's rollouts."""
+
+    def __init__(self):
+        super().__init__(num_continuous_states=4, num_inputs=1, time_invariant=True)
+
+    def dynamics(self, t, x, u):
+        mc, mp, l, g = 10.0, 1.0, 0.5, 9.81
+        s, c = jnp.sin(x[1]), jnp.cos(x[1])
+        d = mc + mp * s ** 2
+        xdd = (u[0] + mp * s * (l * x[3] ** 2 + g * c)) / d
+        tdd = (-u[0] * c - mp * l * x[3] ** 2 * c * s - (mc + mp) * g * s) / (l * d)
+        return jnp.stack([x[2], x[3], xdd, tdd])
+
+
 def mppi_step(plant, repeats, samples=1024, steps=50):
     def cost(t, x, u):
         return 10 * (x[1] - jnp.pi) ** 2 + x[0] ** 2 + 0.1 * (x[2] ** 2 + x[3] ** 2) + 0.001 * u[0] ** 2
@@ -131,9 +150,13 @@ def main():
     seconds, compile_s, solved = batch(controller, args.batch, args.repeats)
     print(f"  batch of {args.batch} (vmap): {seconds * 1e3:.2f} ms = {args.batch / seconds:.3g} solves/s "
           f"({solved} solved; first call {compile_s:.1f} s)")
-    seconds, compile_s = mppi_step(plant, args.repeats)
-    print(f"MPPI, 1024 samples x 50 steps of the cart-pole: {seconds * 1e3:.2f} ms per update = "
-          f"{1 / seconds:.0f} Hz (first call {compile_s:.1f} s)")
+    closed_form = ClosedFormCartPole()
+    x, u = jnp.asarray(TOP) + jnp.array([0.1, 0.3, -0.2, 0.5]), jnp.array([3.0])
+    np.testing.assert_allclose(closed_form.dynamics(0.0, x, u), plant.dynamics(0.0, x, u), rtol=1e-5, atol=1e-5)
+    for label, model in (("jd.models.CartPole (rigid-body algorithms)", plant), ("closed-form cart-pole", closed_form)):
+        seconds, compile_s = mppi_step(model, args.repeats)
+        print(f"MPPI, 1024 samples x 50 steps, {label}: {seconds * 1e3:.2f} ms per update = "
+              f"{1 / seconds:.0f} Hz (first call {compile_s:.1f} s)")
 
 
 if __name__ == "__main__":

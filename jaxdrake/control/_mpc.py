@@ -25,7 +25,7 @@ import numpy as np
 
 from ..simulation import discrete_step
 from ..systems import System
-from ..systems._system import require_plain_system
+from ..systems import require_plain_system
 from ._lqr import check_cost_weights, linearize
 from ._qp import QPSolution, QPStatus, QPWorkspace, qp_workspace, solve_qp
 from ._riccati import solve_discrete_are
@@ -144,6 +144,7 @@ def _condensed(A, B, Q, R, Qf, N: int):
 
 
 @functools.partial(jax.jit, static_argnames=("period", "N", "rows_u", "rows_x", "qp_options"))
+@jax.default_matmul_precision("highest")
 def _linear_mpc_data(A, B, Q, R, Qf, x0, u0, bounds, *, period, N, rows_u, rows_x, qp_options):
     """Everything `LinearMPC` keeps, in one compiled program: the model discretised (when
     `period` is given), the terminal cost (the DARE's when Qf is None), the condensed QP on the
@@ -201,8 +202,9 @@ class LinearMPC(RecedingHorizonController):
         """(P, q, A, lower, upper) of the QP solved at the plant state `state`, over the input
         deviations $U = [u_0 - u^*; \\dots; u_{N-1} - u^*]$ (what the tests give OSQP)."""
         dx = jnp.asarray(state) - self.x0
-        shift = self.bound_shift @ dx
-        return (self.workspace.P, self.linear_term @ dx, self.workspace.A, self.lower - shift, self.upper - shift)
+        with jax.default_matmul_precision("highest"):  # as the QP solver
+            shift, q = self.bound_shift @ dx, self.linear_term @ dx
+        return (self.workspace.P, q, self.workspace.A, self.lower - shift, self.upper - shift)
 
     def solve(self, state, warm_x=None, warm_y=None) -> QPSolution:
         """The `QPSolution` at the plant state `state` (deviation variables, see `qp`)."""

@@ -151,9 +151,11 @@ def qp_workspace(P, A, *, rho: float = 0.1, sigma: float = 1e-6, tolerance: floa
     the slowest); it is also the accuracy of an unpolished answer. `max_iterations` bounds the
     ADMM iterations of one solve."""
     P, A = jnp.asarray(P), jnp.asarray(A)
-    P_scaled, A_scaled, D, E, c = jax.lax.stop_gradient(_ruiz(P, A))
-    return QPWorkspace(P, A, P_scaled, A_scaled, D, E, c, _kkt_inverses(P_scaled, A_scaled, rho, sigma),
-                       float(rho), float(sigma), float(tolerance), int(max_iterations))
+    with jax.default_matmul_precision("highest"):
+        P_scaled, A_scaled, D, E, c = jax.lax.stop_gradient(_ruiz(P, A))
+        inverses = _kkt_inverses(P_scaled, A_scaled, rho, sigma)
+    return QPWorkspace(P, A, P_scaled, A_scaled, D, E, c, inverses, float(rho), float(sigma), float(tolerance),
+                       int(max_iterations))
 
 
 def _active_set_kkt(P, A, active, delta):
@@ -179,10 +181,11 @@ def _kkt_point_jvp(primals, tangents):
     P, q, A, lower, upper, x, y, at_lower, at_upper = primals
     dP, dq, dA, dl, du = tangents[:5]
     active = at_lower | at_upper
-    K = _active_set_kkt(P, A, active, _delta(P))
-    rhs = jnp.concatenate([-(dP @ x + dq + dA.T @ y),
-                           jnp.where(active, jnp.where(at_lower, dl, du) - dA @ x, 0.0)])
-    d = jnp.linalg.solve(K, rhs)
+    with jax.default_matmul_precision("highest"):
+        K = _active_set_kkt(P, A, active, _delta(P))
+        rhs = jnp.concatenate([-(dP @ x + dq + dA.T @ y),
+                               jnp.where(active, jnp.where(at_lower, dl, du) - dA @ x, 0.0)])
+        d = jnp.linalg.solve(K, rhs)
     n = x.shape[0]
     return (x, y), (d[:n], d[n:])
 
@@ -295,10 +298,11 @@ def solve_qp(ws: QPWorkspace, q, lower, upper, warm_x=None, warm_y=None) -> QPSo
     y0 = jnp.zeros_like(lower) if warm_y is None else warm_y
     stopped = jax.lax.stop_gradient
     data = stopped((q, lower, upper))
-    x, z, y, status, iterations = _admm(stopped(ws), *data, stopped(x0), stopped(y0))
-    # a polished point is accepted as a KKT point to rounding, whatever the ADMM tolerance
-    xp, yp, at_lower, at_upper, polished = _polish(stopped(ws.P), data[0], stopped(ws.A), *data[1:], z, y,
-                                                   float(np.sqrt(jnp.finfo(q.dtype).eps)))
+    with jax.default_matmul_precision("highest"):  # float32 on a GPU: TF32 products would stall ADMM
+        x, z, y, status, iterations = _admm(stopped(ws), *data, stopped(x0), stopped(y0))
+        # a polished point is accepted as a KKT point to rounding, whatever the ADMM tolerance
+        xp, yp, at_lower, at_upper, polished = _polish(stopped(ws.P), data[0], stopped(ws.A), *data[1:], z, y,
+                                                       float(np.sqrt(jnp.finfo(q.dtype).eps)))
     polished = polished & (status != QPStatus.PRIMAL_INFEASIBLE) & (status != QPStatus.NONFINITE)
     x, y = jnp.where(polished, xp, x), jnp.where(polished, yp, y)
     status = jnp.where(polished, QPStatus.SOLVED, status).astype(jnp.int32)
