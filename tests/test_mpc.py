@@ -151,7 +151,7 @@ def test_gradient_of_closed_loop_cost_matches_central_differences():
     np.testing.assert_allclose(float(gradient), float(central), rtol=1e-6)
 
 
-@pytest.mark.slow  # ~70 s compiling reverse mode through simulate; the scan version above runs by default
+@pytest.mark.slow  # 35-75 s compiling reverse mode through simulate; the scan version above runs by default
 def test_gradient_through_simulate_matches_central_differences():
     def closed_loop_cost(r):
         traj = _closed_loop(_constrained_mpc(R=r * R_DI), 1.5, 2.0)
@@ -242,7 +242,8 @@ def test_mppi_stabilises_the_pendulum():
     assert np.max(np.abs(states[:, -2] - np.pi)) <= 0.3 + 1e-9  # it never fell further than it started
 
 
-@pytest.mark.slow  # ~15 s compiling iLQR inside the loop; its iLQR is tested in test_trajopt.py by default
+@pytest.mark.slow  # ~15 s compiling iLQR inside the loop; by default test_trajopt.py checks iLQR and
+# test_mppi_stabilises_the_pendulum the receding-horizon machinery (plan shift, discrete update) it shares
 def test_nonlinear_mpc_stabilises_the_pendulum():
     controller = jd.control.nonlinear_mpc(jd.models.Pendulum(), _pendulum_cost, 1.0,
                                           final_cost=_pendulum_final_cost, period=0.05, input_lower=-3,

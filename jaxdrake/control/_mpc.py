@@ -24,8 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..simulation import discrete_step
-from ..systems import System
-from ..systems import require_plain_system
+from ..systems import System, require_plain_system
 from ._lqr import check_cost_weights, linearize
 from ._qp import QPSolution, QPStatus, QPWorkspace, qp_workspace, solve_qp
 from ._riccati import solve_discrete_are
@@ -86,10 +85,11 @@ def _horizon_steps(horizon, period: float, caller: str) -> int:
 
 
 def _bound(value, default, size: int, label: str, caller: str):
-    value = jnp.broadcast_to(jnp.asarray(default if value is None else value, float), (size,)) \
-        if value is None or jnp.size(jnp.asarray(value)) in (1, size) else None
-    if value is None:
+    """`value` (default `default`) as a vector of `size`, from a scalar or `size` entries."""
+    value = jnp.asarray(default if value is None else value, float)
+    if value.size not in (1, size):
         raise ValueError(f"{caller}: {label} must be a scalar or have {size} entries")
+    value = jnp.broadcast_to(value.reshape(()) if value.size == 1 else value.reshape(size), (size,))
     if not isinstance(value, jax.core.Tracer) and np.any(np.isnan(np.asarray(value))):
         raise ValueError(f"{caller}: {label} has NaN entries (use ±inf for no bound)")
     return value
@@ -336,12 +336,16 @@ def _sampled_controller_setup(system, running_cost, final_cost, horizon, period,
     return dt, N, bounds
 
 
-def _first_and_plan(plan, bounds, x):
-    """The state after a solve: the first input, the status, the plan (a non-finite plan is
-    replaced by zeros clipped into the bounds, with status 3)."""
+def _finite_plan(plan, bounds):
+    """(whether `plan` is finite, the plan or, if not, zeros clipped into the bounds)."""
     finite = jnp.all(jnp.isfinite(plan))
-    plan = jnp.where(finite, plan, jnp.clip(jnp.zeros_like(plan), *bounds))
-    return finite, plan
+    return finite, jnp.where(finite, plan, jnp.clip(jnp.zeros_like(plan), *bounds))
+
+
+def _initial_plan_state(num_inputs: int, N: int, bounds):
+    """[u_0; status; plan] for the plan u = 0 clipped into the bounds."""
+    plan = jnp.broadcast_to(jnp.clip(jnp.zeros(num_inputs), *bounds), (N, num_inputs))
+    return jnp.concatenate([plan[0], jnp.zeros(1), plan.reshape(-1)])
 
 
 class NonlinearMPC(RecedingHorizonController):
@@ -367,9 +371,7 @@ class NonlinearMPC(RecedingHorizonController):
                          **_controller_frames(plant))
 
     def initial_state(self):
-        m, N = self.num_outputs, self.horizon_steps
-        plan = jnp.broadcast_to(jnp.clip(jnp.zeros(m), *self.input_bounds), (N, m))
-        return jnp.concatenate([plan[0], jnp.zeros(1), plan.reshape(-1)])
+        return _initial_plan_state(self.num_outputs, self.horizon_steps, self.input_bounds)
 
     def update(self, t, x, u):
         from ..trajopt import ilqr  # imported on first use, as `import jaxdrake` keeps trajopt (IPOPT) lazy
@@ -378,7 +380,7 @@ class NonlinearMPC(RecedingHorizonController):
         guess = jnp.concatenate([U[1:], U[-1:]])  # the last plan, one step on
         result = ilqr(self.plant, u, guess, self.period, self.running_cost, self.final_cost,
                       input_bounds=self.input_bounds, max_iterations=self.max_iterations, tol=self.tolerance)
-        finite, plan = _first_and_plan(result.knot_inputs, self.input_bounds, x)
+        finite, plan = _finite_plan(result.knot_inputs, self.input_bounds)
         status = jnp.where(finite, jnp.where(result.converged, 0, 1), QPStatus.NONFINITE)
         return jnp.concatenate([plan[0], status[None].astype(x.dtype), plan.reshape(-1)])
 
@@ -451,7 +453,8 @@ class MPPI(RecedingHorizonController):
                          num_outputs=m, sample_time=self.period, direct_feedthrough=False,
                          **_controller_frames(plant))
 
-    initial_state = NonlinearMPC.initial_state
+    def initial_state(self):
+        return _initial_plan_state(self.num_outputs, self.horizon_steps, self.input_bounds)
 
     def update(self, t, x, u):
         N, m, K = self.horizon_steps, self.num_outputs, self.num_samples
@@ -467,7 +470,7 @@ class MPPI(RecedingHorizonController):
         best = jnp.min(costs)
         weights = jax.nn.softmax(-(costs - jnp.where(jnp.isfinite(best), best, 0.0)) / self.temperature)
         plan = jnp.where(jnp.isfinite(best), jnp.einsum("k,knm->nm", weights, candidates), jnp.nan)
-        finite, plan = _first_and_plan(plan, self.input_bounds, x)
+        finite, plan = _finite_plan(plan, self.input_bounds)
         status = jnp.where(finite, 0, QPStatus.NONFINITE)
         return jnp.concatenate([plan[0], status[None].astype(x.dtype), plan.reshape(-1)])
 
