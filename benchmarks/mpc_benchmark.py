@@ -75,7 +75,7 @@ def osqp_steps(controller, states):
         _, q, _, l, u = (np.asarray(v) for v in controller.qp(x))
         start = time.perf_counter()
         solver.update(q=q, l=l, u=u)
-        result = solver.solve()
+        result = solver.solve(raise_error=False)
         times.append(time.perf_counter() - start)
         plans.append(result.x)
     return np.array(times), np.array(plans)

@@ -137,7 +137,7 @@ def _ruiz(P, A):
 def _kkt_inverses(P, A, rho, sigma):
     r"""$(P + \sigma I + \rho_k A^T A)^{-1}$ for every $\rho_k$ of the ladder."""
     eye = jnp.eye(P.shape[0], dtype=P.dtype)
-    K = P + sigma * eye + (rho * RHO_LADDER)[:, None, None] * (A.T @ A)
+    K = P + sigma * eye + (rho * jnp.asarray(RHO_LADDER, P.dtype))[:, None, None] * (A.T @ A)
     return jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(K), True), jnp.broadcast_to(eye, K.shape))
 
 
