@@ -50,7 +50,7 @@ def _clarabel(P, q, A, l, u):
     settings.tol_gap_abs = settings.tol_gap_rel = settings.tol_feas = 1e-12
     solver = clarabel.DefaultSolver(sp.csc_matrix(np.triu(P)), q, sp.csc_matrix(G), h,
                                     [clarabel.NonnegativeConeT(len(h))], settings)
-    result = solver.solve(raise_error=False)
+    result = solver.solve()
     assert str(result.status) == "Solved"
     return np.asarray(result.x)
 
