@@ -9,7 +9,8 @@ once; a discrete plant of the same period updates at $t_k$ from the command of $
 discrete semantics: all updates at an instant read the outputs before it), which models one
 period of computation delay. The plan is kept in the controller's discrete state and, shifted
 by one step, starts the next solve (warm start). The discrete state is
-$[u_0;\ \text{status};\ \text{plan}]$; `status` reads it back.
+$[u_0;\ \text{status};\ \text{plan}]$ (linear MPC keeps the QP's multipliers after the
+plan); `status` and `plan` read it back.
 """
 
 from __future__ import annotations
