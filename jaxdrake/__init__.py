@@ -18,7 +18,7 @@ from .systems import (Adder, ConstantVectorSource, Demultiplexer, DiscreteTimeDe
 from .trajectories import Trajectory
 from ._batch import run_batch
 
-__version__ = "0.1.0"
+from ._version import __version__
 
 _LAZY_PACKAGES = ("lcm", "ros", "trajopt")  # heavier imports (LCM bindings, DDS, IPOPT), loaded on first use
 
