@@ -14,6 +14,7 @@ import time
 import numpy as np
 import scipy.sparse
 
+from .._extras import require
 from ..systems import AffineExpression, DecisionSpace, LinearConstraint
 
 
@@ -167,7 +168,7 @@ def _triangle_selection(N: int, order: str):
 
 
 def _clarabel(conic_data, objective, sign, verbose):
-    import clarabel
+    clarabel = require("clarabel", "solving an SOS or conic program")
 
     q, A, b, (zero, nonnegative, psd) = conic_data(objective, sign, "upper")
     cones = (([clarabel.ZeroConeT(zero)] if zero else [])
@@ -185,7 +186,7 @@ def _clarabel(conic_data, objective, sign, verbose):
 
 
 def _scs(conic_data, objective, sign, verbose):
-    import scs
+    scs = require("scs", "solving an SOS or conic program")
 
     q, A, b, (zero, nonnegative, psd) = conic_data(objective, sign, "lower")
     solution = scs.SCS({"A": A, "b": b, "c": q}, {"z": zero, "l": nonnegative, "s": list(psd)},

@@ -33,6 +33,7 @@ import time
 import jax
 import numpy as np
 
+from .._extras import require
 from ..simulation import discrete_step
 from ..systems import System
 from ..systems import require_plain_system
@@ -106,7 +107,7 @@ def load_system(spec: str):
 def open_lcm(url):
     """An `lcm.LCM` on `url` (or `url` itself, an existing instance); on tcpq, TCP_NODELAY set
     and the relay's refusals (`RELAY_ERROR_CHANNEL`) logged as errors when handled."""
-    import lcm
+    lcm = require("lcm", "jaxdrake.lcm")
 
     if isinstance(url, lcm.LCM):
         return url
@@ -154,7 +155,7 @@ class LcmNode:
     def __init__(self, system: System, url=HOST_ONLY_URL, *, input_channel=None, output_channel=None, rate=None,
                  x0=None, t0=0.0, substeps: int = 10, input_timeout: float = 0.5, safe_input=None,
                  lockstep: bool = False, log_path=None):
-        import lcm
+        lcm = require("lcm", "LcmNode")
 
         require_plain_system(system, "LcmNode", "run a deterministic system (one mode of a hybrid one)")
         self._lcm = open_lcm(url)

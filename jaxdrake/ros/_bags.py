@@ -14,6 +14,7 @@ import pathlib
 
 import numpy as np
 
+from .._extras import require
 from ..lcm import MessageError
 from ._messages import RosMessage, stamp_from_seconds
 
@@ -98,7 +99,7 @@ def lcm_log_to_bag(log_path, bag_path, routes) -> dict:
     """Write the messages of an LCM event log on the routes' channels (either direction) to a
     bag on their topics; returns {topic: messages written}. Messages that do not decode are
     skipped and counted under `"malformed"`."""
-    import lcm
+    lcm = require("lcm", "lcm_log_to_bag")
 
     by_channel = {route.channel: route for route in routes}
     counts = dict.fromkeys([route.topic for route in routes], 0)

@@ -16,11 +16,14 @@ from __future__ import annotations
 import concurrent.futures
 import dataclasses
 import time
+import warnings
 from typing import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from .._extras import MissingExtraError, require
 
 
 @dataclasses.dataclass(frozen=True)
@@ -370,7 +373,7 @@ def solve_ipopt(nlp: NonlinearProgram, z0, *, tol=1e-8, max_iterations=3000, hes
                 options=None, progress=False, verbose=False) -> SolverResult:
     """IPOPT (interior point; Wächter & Biegler 2006) through `cyipopt`, fed the sparse
     Jacobian and the exact sparse Lagrangian Hessian (`hessian="limited-memory"` for L-BFGS)."""
-    import cyipopt
+    cyipopt = require("cyipopt", "solver='ipopt'")
 
     monitor = _Progress(progress)
 
@@ -466,18 +469,23 @@ SOLVERS = {"ipopt": solve_ipopt, "scipy": solve_scipy}
 
 
 def resolve_solver(solver: str) -> str:
-    """"ipopt" or "scipy" for `solver`; "auto" is IPOPT when `cyipopt` imports."""
-    if solver == "auto":
-        try:
-            import cyipopt  # noqa: F401
-            return "ipopt"
-        except ImportError:
-            return "scipy"
-    if solver not in SOLVERS:
+    """"ipopt" or "scipy" for `solver`, checked before anything compiles: "ipopt" without IPOPT
+    is a `MissingExtraError`; "auto" is IPOPT where installed, else SciPy with a warning naming
+    the extra."""
+    if solver not in (*SOLVERS, "auto"):
         raise ValueError(f"unknown solver {solver!r}; use 'ipopt', 'scipy' or 'auto'")
-    return solver
+    if solver == "scipy":
+        return solver
+    try:
+        require("cyipopt", "solver='ipopt'")
+    except MissingExtraError as missing:
+        if solver == "ipopt":
+            raise
+        warnings.warn(f"{missing}; solver='auto' falls back to SciPy's trust-constr (slower)", stacklevel=3)
+        return "scipy"
+    return "ipopt"
 
 
 def solve(nlp: NonlinearProgram, z0, solver: str = "auto", **kwargs) -> SolverResult:
-    """Solve with `solver`: "ipopt", "scipy", or "auto" (IPOPT when `cyipopt` imports)."""
+    """Solve with `solver`: "ipopt", "scipy", or "auto" (IPOPT where installed)."""
     return SOLVERS[resolve_solver(solver)](nlp, z0, **kwargs)
