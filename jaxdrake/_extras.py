@@ -10,7 +10,7 @@ EXTRAS = {  # import name -> (what the user needs, the extra that installs it)
     "clarabel": ("the Clarabel conic solver", "solvers"),
     "scs": ("the SCS conic solver", "solvers"),
     "lcm": ("LCM", "lcm"),
-    "mujoco": ("MuJoCo and MJX", "mujoco"),
+    "mujoco": ("MuJoCo (and MJX)", "mujoco"),
     "meshcat": ("meshcat and yourdfpy", "viz"),
     "trimesh": ("trimesh", "viz"),
     "imageio_ffmpeg": ("ffmpeg (the imageio-ffmpeg wheel)", "movies"),

@@ -22,6 +22,8 @@ import pathlib
 
 import numpy as np
 
+from .._extras import require
+
 
 class GeometryError(ValueError):
     """A collision shape that cannot be used (named shape, element and remedy)."""
@@ -111,11 +113,7 @@ class Convex:
         """A `.obj` / `.stl` (or any format trimesh reads) scaled by `scale`, reduced to its hull.
         `require_convex`: refuse a mesh that is far from its hull (its volume below 90% of the
         hull's), since contact would then act where the surface is not."""
-        try:
-            import trimesh
-        except ImportError:
-            raise ImportError("mesh collision shapes are read by trimesh: pip install trimesh "
-                              "(or jaxdrake[viz])") from None
+        trimesh = require("trimesh", "a mesh collision shape")
         path = pathlib.Path(path)
         try:
             mesh = trimesh.load(path, force="mesh", process=True)

@@ -56,6 +56,7 @@ import pathlib
 
 import numpy as np
 
+from .._extras import require
 from ..geometry import SUPPORTED_PAIRS, Box, Capsule, Convex, Cylinder, GeometryError, HalfSpace, Sphere, supported
 from ._contact import CollisionGeometry, ContactMaterial, shape_kind
 from ._files import parse_xml, read_xml, resolve_model_file
@@ -84,12 +85,7 @@ def tree_from_mjcf(source, *, contact: bool = False, actuated=None, ignore_armat
 
 
 def _mujoco():
-    try:
-        import mujoco
-    except ImportError:
-        raise ImportError("from_mjcf compiles the file with MuJoCo: pip install mujoco==3.17.0 "
-                          "(or pip install 'jaxdrake[mujoco]')") from None
-    return mujoco
+    return require("mujoco", "from_mjcf")
 
 
 def _compile(mujoco, source):

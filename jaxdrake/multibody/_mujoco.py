@@ -41,6 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._extras import MissingExtraError
 from ..systems import Frame, System
 from ._mjcf import check_model_files
 
@@ -85,9 +86,8 @@ def import_mujoco():
         printed = io.StringIO()
         with contextlib.redirect_stdout(printed):
             from mujoco import mjx
-    except ImportError:
-        raise ImportError("MujocoSystem needs MuJoCo and MJX: pip install mujoco==3.17.0 mujoco-mjx==3.17.0 "
-                          "(or pip install 'jaxdrake[mujoco]')") from None
+    except ImportError as error:
+        raise MissingExtraError("MujocoSystem", "mujoco") from error
     for line in printed.getvalue().splitlines():
         if not line.startswith(("Failed to import warp", "Failed to import mujoco_warp")):
             print(line)

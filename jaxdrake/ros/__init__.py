@@ -4,6 +4,7 @@ Cyclone DDS) and back along `Route`s; the ROS message types it speaks (`Float64M
 `JointState`, `Twist`, `WrenchStamped`); and ROS bags (`RosBag`, `lcm_log_to_bag`).
 docs/ros.md says how to install ROS 1 and what was tested."""
 
+from .._extras import require
 from ._messages import Float64MultiArray, JointState, RosMessage, Twist, WrenchStamped
 from ._routes import TO_LCM, TO_ROS, Route, read_mapping
 from ._translator import RouteStatistics, Translator
@@ -13,6 +14,7 @@ from ._bags import RosBag, lcm_log_to_bag
 
 def __getattr__(name):  # ROS 2 needs the cyclonedds binding (the `ros` extra): imported on use
     if name in ("Ros2Network", "LOOPBACK"):
+        require("cyclonedds", "Ros2Network")
         from . import _ros2
 
         return getattr(_ros2, name)

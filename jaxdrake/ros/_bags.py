@@ -50,6 +50,7 @@ class RosBag:
     Use as a context manager or call `close()`."""
 
     def __init__(self, path):
+        require("rosbags", "RosBag")
         from rosbags.typesys import Stores, get_typestore
 
         self.path = pathlib.Path(path)

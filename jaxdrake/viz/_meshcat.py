@@ -36,6 +36,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from .._extras import MissingExtraError
 from ..multibody import (ContactModel, KinematicTree, RigidBodySystem, URDFError, body_poses, frame_pose, parse_xml,
                           resolve_model_file)
 from . import _meshcat_server
@@ -64,9 +65,8 @@ def _meshcat():
         import meshcat
         import meshcat.geometry
         import yourdfpy  # noqa: F401
-    except ImportError:
-        raise ImportError("3-D scenes need meshcat and yourdfpy: pip install 'jaxdrake[viz]' "
-                          "(or pip install meshcat yourdfpy)") from None
+    except ImportError as error:
+        raise MissingExtraError("a 3-D scene", "meshcat") from error
     return meshcat
 
 

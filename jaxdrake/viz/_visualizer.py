@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._extras import require
 from ..systems import HybridSystem, System
 
 DRAW_PERIOD = 1 / 32  # exact in binary
@@ -253,11 +254,7 @@ class Visualizer(System):
                 plt.close(animation._fig)
             return path
         if suffix == ".mp4":
-            try:
-                import imageio_ffmpeg
-            except ImportError:
-                raise ImportError("writing .mp4 needs the ffmpeg bundled by imageio-ffmpeg: "
-                                  "pip install imageio-ffmpeg (or save a .gif or .html)") from None
+            imageio_ffmpeg = require("imageio_ffmpeg", "saving .mp4 (not .gif or .html)")
         frames = self.render(traj, fps)
         if suffix == ".gif":
             from PIL import Image
