@@ -64,3 +64,65 @@ def test_no_test_is_defined_twice_in_a_file():
         names = [n.name for n in ast.parse(path.read_text()).body if isinstance(n, ast.FunctionDef | ast.AsyncFunctionDef)]
         twice = [name for name, count in collections.Counter(names).items() if count > 1]
         assert not twice, f"{path.name} defines {twice} twice"
+
+
+def _pyproject() -> dict:
+    import pathlib
+    import tomllib
+
+    return tomllib.loads((pathlib.Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())
+
+
+def test_the_version_has_one_source():
+    """pyproject.toml reads the version from jaxdrake/_version.py, the only file that writes one,
+    and the installed metadata agrees with `jaxdrake.__version__`."""
+    import importlib.metadata
+    import pathlib
+
+    import jaxdrake
+
+    project = _pyproject()
+    assert "version" not in project["project"] and "version" in project["project"]["dynamic"]
+    assert project["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "jaxdrake._version.__version__"}
+    root = pathlib.Path(jaxdrake.__file__).parent
+    writers = [p.name for p in root.rglob("*.py") if "__version__ =" in p.read_text()]
+    assert writers == ["_version.py"]
+    assert importlib.metadata.version("jaxdrake") == jaxdrake.__version__
+    assert (root / "py.typed").is_file() and "py.typed" in project["tool"]["setuptools"]["package-data"]["jaxdrake"]
+
+
+def test_each_optional_dependency_is_named_by_the_extra_that_installs_it(monkeypatch):
+    """The extras table of jaxdrake._extras agrees with pyproject.toml (the extra it names lists
+    the distribution that provides the module; the core does not), and a missing one is a
+    `MissingExtraError` naming that extra, also where jaxdrake reaches for it: IPOPT (refused
+    before anything compiles; "auto" falls back to SciPy with a warning) and LCM."""
+    import importlib.metadata
+    import re
+
+    import jaxdrake as jd
+    from jaxdrake._extras import EXTRAS, MissingExtraError, require
+    from jaxdrake.trajopt._nlp import resolve_solver
+
+    project = _pyproject()["project"]
+    names = lambda requirements: {re.match(r"[A-Za-z0-9_.-]+", r).group().lower() for r in requirements}
+    core, extras = names(project["dependencies"]), project["optional-dependencies"]
+    providers = importlib.metadata.packages_distributions()
+    for module, (_, extra) in EXTRAS.items():
+        distributions = {d.lower() for d in providers[module]}
+        assert distributions & names(extras[extra]), (module, extra)
+        assert not distributions & core, module
+        assert distributions & names(extras["test"]), module
+
+    monkeypatch.setitem(sys.modules, "cyipopt", None)  # as if not installed
+    monkeypatch.setitem(sys.modules, "lcm", None)
+    with pytest.raises(MissingExtraError, match=r"solver='ipopt' needs IPOPT: pip install 'jaxdrake\[solvers\]'") \
+            as missing:
+        jd.trajopt.DirectCollocation(jd.models.Pendulum(), 5, duration=1.0).solve(solver="ipopt")
+    assert missing.value.extra == "solvers" and isinstance(missing.value, ImportError)
+    with pytest.warns(UserWarning, match=r"jaxdrake\[solvers\].*falls back to SciPy"):
+        assert resolve_solver("auto") == "scipy"
+    with pytest.raises(MissingExtraError, match=r"LcmNode needs LCM: pip install 'jaxdrake\[lcm\]'"):
+        jd.lcm.LcmNode(jd.models.Pendulum(), "memq://")
+    with pytest.raises(MissingExtraError, match=r"pip install 'jaxdrake\[lcm\]'") as missing:
+        require("lcm", "this")
+    assert missing.value.extra == "lcm" and missing.value.name == "lcm"
