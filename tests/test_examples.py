@@ -32,7 +32,12 @@ SLOW = {"swing_up.ipynb", "lqr.ipynb", "swing_up.py",  # lqr.ipynb: 45 s, extend
         "lyapunov.ipynb", "rrt.ipynb", "lcm_pendulum.ipynb",
         # ~50 s of a roscore, the translator and two nodes in real time; tests/test_ros.py checks the
         # translator's paths (rostopic pub -> LCM, LCM -> rostopic echo) by default
-        "ros_pendulum.py"}
+        "ros_pendulum.py",
+        # the heaviest scripts (CPU seconds on 2 cores, alone): bouncing_ball.py 50 (the impacts and
+        # their gradients: tests/test_hybrid.py), contact.py 54 (tests/test_contact.py), composition.py
+        # 44 (tests/test_compose.py), lqr.py 43 (tests/test_control.py), manipulator.py 43
+        # (tests/test_multibody.py, test_viz.py), demo.py 37 (README command 1, run before each stop)
+        "bouncing_ball.py", "contact.py", "composition.py", "lqr.py", "manipulator.py", "demo.py"}
 NOTEBOOKS = [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW else p
              for p in sorted((ROOT / "notebooks").glob("*.ipynb"))]
 WORKERS = 3

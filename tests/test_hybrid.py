@@ -100,6 +100,7 @@ def test_gradient_of_the_ball_height_after_three_bounces():
     np.testing.assert_allclose([dh0, dcor], jax.grad(closed, argnums=(0, 1))(H0, COR), rtol=1e-7)
 
 
+@pytest.mark.slow  # ~16 s; the gradient with the saltation term is checked by default against the closed form (three bounces)
 def test_gradient_without_the_saltation_term_would_be_wrong():
     """One bounce. Without the event time's sensitivity the Jacobian is Phi(T - t1) dDelta/dx
     Phi(t1) with Phi(t) = [[1, t], [0, 1]] and dDelta/dx = diag(1, -e): d q(T) / d h0 = 1.

@@ -80,6 +80,7 @@ def test_the_compass_gait_walks_as_drakes_compass_gait_does():
     np.testing.assert_allclose(np.asarray(traj.state(jnp.asarray(ours), side="left")), states, rtol=0, atol=1e-7)
 
 
+@pytest.mark.slow  # ~25 s; the limit-cycle solver and its derivative are checked by default on the rimless wheel's closed form
 def test_the_passive_compass_gait_limit_cycle_and_its_return_map():
     """The fixed point of the heel-strike-to-heel-strike map: residual <= 1e-10 and P(x*) = x*
     by an independent simulation; the return map's eigenvalues against central differences

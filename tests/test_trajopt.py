@@ -249,6 +249,7 @@ def segment_errors(plant, result):
     return np.max(np.abs(np.asarray(simulated) - result.knot_states[1:]))
 
 
+@pytest.mark.slow  # ~30 s of IPOPT on 101 knots; the collocation's optimum is checked by default against closed forms (minimum effort, bang-bang)
 def test_acrobot_swing_up():
     """From the straight line in state space and zero input: defects below 1e-8; each segment
     simulated from its knot with the optimized input lands on the next knot within 1% of the
