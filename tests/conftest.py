@@ -6,7 +6,10 @@ import os
 # (tests/test_hybrid.py: 104 -> 93 CPU-s) and change no result (no fast-math: the same IEEE
 # operations, scheduled with less effort). Set before JAX starts its CPU backend; inherited by
 # the example scripts and node processes the tests start. A user's XLA_FLAGS still wins.
-if "xla_llvm_disable_expensive_passes" not in os.environ.get("XLA_FLAGS", ""):
+# Only on the jaxlib this was measured with (an unknown flag aborts the process).
+from importlib.metadata import version  # noqa: E402
+
+if version("jaxlib").startswith("0.10.") and "xla_llvm_disable_expensive_passes" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_llvm_disable_expensive_passes=true".strip()
 
 import jax  # noqa: E402
