@@ -21,7 +21,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from ._progress import progress_bar
 
 
-def run_batch(fn, inputs, *, chunk_size: int | None = None, devices=None, progress: bool = False,
+def run_batch(fn, inputs, *, chunk_size: int | None = None, devices=None, progress: bool = True,
               gather: bool = True):
     """`jax.vmap(fn)(inputs)`, computed chunk by chunk and sharded across `devices`.
 
@@ -30,7 +30,7 @@ def run_batch(fn, inputs, *, chunk_size: int | None = None, devices=None, progre
     - `chunk_size`: members per chunk (rounded up to a multiple of the number of devices);
       default: as many as fit in a quarter of the devices' free memory (`default_chunk_size`),
       at most the whole batch.
-    - `devices`: default `jax.local_devices()`; `progress`: a progress bar over chunks (tqdm).
+    - `devices`: default `jax.local_devices()`; `progress`: a progress bar over chunks (tqdm; drawn once the work has run 2 s).
     - `gather`: return NumPy arrays on the host (device memory holds one chunk at a time);
       False keeps the results on the devices, sharded along the batch axis.
 

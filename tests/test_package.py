@@ -126,3 +126,25 @@ def test_each_optional_dependency_is_named_by_the_extra_that_installs_it(monkeyp
     with pytest.raises(MissingExtraError, match=r"pip install 'jaxdrake\[lcm\]'") as missing:
         require("lcm", "this")
     assert missing.value.extra == "lcm" and missing.value.name == "lcm"
+
+
+def test_a_progress_bar_appears_only_for_long_work_and_ends_full_when_work_converges_early(capsys, monkeypatch):
+    """Progress is on by default but drawn only after `DELAY` seconds; a search that converges
+    at step 7 of a budget of 1000 closes its bar at 7/7 (100%), not at 1%."""
+    import time
+
+    from jaxdrake import _progress
+
+    monkeypatch.setattr(_progress, "DELAY", 0.0)
+    bar = _progress.progress_bar(True, 1000, "search", "step")
+    for _ in range(7):
+        bar.update(1)
+    _progress.finish(bar, 7)
+    assert "100%" in capsys.readouterr().err.splitlines()[-1].split("\r")[-1]
+    monkeypatch.setattr(_progress, "DELAY", 60.0)
+    quick = _progress.progress_bar(True, 10, "quick", "step")
+    quick.update(10)
+    time.sleep(0.01)
+    _progress.finish(quick, 10)
+    assert capsys.readouterr().err == ""
+    assert _progress.progress_bar(False, 10, "off", "step") is None

@@ -290,7 +290,7 @@ class RegionOfAttractionSearch:
 
 def search_region_of_attraction(system: System, x0, degree: int = 4, *, S=None, u0=None,
                                 taylor_degree: int = 3, iterations: int = 10, tolerance: float = 1e-3,
-                                solver: str | None = None, progress: bool = False) -> RegionOfAttractionSearch:
+                                solver: str | None = None, progress: bool = True) -> RegionOfAttractionSearch:
     r"""Search over V and the multipliers to enlarge a certified region of attraction (the
     notes' "searching for the region of attraction"; the expanding-interior alternation of
     Jarvis-Wloszek et al. 2003). With $p = \bar x^T S \bar x$ (S from the linearization's
@@ -305,7 +305,7 @@ def search_region_of_attraction(system: System, x0, degree: int = 4, *, S=None, 
     its largest certified level, as in `region_of_attraction`); (2) V fixed: s and $\beta$;
     (3) $\lambda$ and s fixed: V and $\beta$. Each step keeps the previous solution feasible,
     so $\beta$ never decreases; stop when it grows by less than `tolerance` (relative).
-    `progress`: a progress bar (tqdm) over the alternations, showing $\beta$.
+    `progress`: a progress bar (tqdm) over the alternations, showing $\beta$ (drawn once the search has run 2 s).
     """
     f = polynomial_dynamics(system, x0, u0, taylor_degree)
     _equilibrium_check(f, x0)

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._batch import batch_sharding, padded
-from .._progress import progress_bar
+from .._progress import finish, progress_bar
 from ..simulation import simulate
 from ..simulation import leaves_to_arrays
 from ..systems import Frame, System
@@ -120,7 +120,7 @@ class ValueIterationResult(eqx.Module):
 
 def fitted_value_iteration(system: System, cost, state_grid, input_grid, dt, *, discount=1.0,
                            periodic=(), tol=1e-4, max_iterations: int = 100_000, solver="rk4",
-                           progress: bool = False, devices=None) -> ValueIterationResult:
+                           progress: bool = True, devices=None) -> ValueIterationResult:
     r"""Fitted value iteration on a barycentric mesh (Drake's `FittedValueIteration`).
 
     - `system`: time-invariant, continuous (a transition is `simulate` over `dt` with u held,
@@ -131,7 +131,8 @@ def fitted_value_iteration(system: System, cost, state_grid, input_grid, dt, *, 
     - `discount` in (0, 1]; `periodic`: `(index, low, high)` triples, the coordinates wrapped
       into [low, high) before interpolation (a pendulum's angle: `(0, 0, 2 pi)`).
     - `tol`: stop when no value changes by more than this in a sweep; `progress`: a progress
-      bar (tqdm) with the largest change.
+      bar (tqdm) with the largest change, drawn once the sweeps have run 2 s; it ends full at
+      the sweep that converged.
     - `devices`: the mesh points are split across these (default: every local device): each
       computes its points' transitions and their updates; J is gathered every sweep.
     """
@@ -174,8 +175,7 @@ def fitted_value_iteration(system: System, cost, state_grid, input_grid, dt, *, 
         if bar is not None:
             bar.update(int(sweeps))
             bar.set_postfix(max_change=f"{float(change):.3g}")
-    if bar is not None:
-        bar.close()
+    finish(bar, done)
     best = jnp.argmin(stage + discount * jnp.einsum("smv,smv->sm", weights, J[indices]), axis=1)
     S = state_mesh.num_points
     table = input_mesh.points()[best[:S]].reshape(state_mesh.shape + (m,))

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._extras import MissingExtraError, require
+from .._progress import finish, progress_bar
 
 
 @dataclasses.dataclass(frozen=True)
@@ -344,20 +345,23 @@ def constraint_violation(nlp: NonlinearProgram, z) -> float:
 
 
 class _Progress:
-    """Per-iteration log, and a line at most every `period` seconds when `progress` is on."""
+    """Per-iteration log, and the shared progress bar (iterations of the budget, with the
+    cost, constraint violation and optimality) when `progress` is on."""
 
-    def __init__(self, progress: bool, period: float = 1.0):
-        self.progress, self.period = progress, period
-        self.log, self._last = [], -np.inf
+    def __init__(self, progress: bool, max_iterations: int, solver: str):
+        self.log = []
+        self.bar = progress_bar(progress, max_iterations, solver, "iteration")
 
     def __call__(self, iteration, cost, violation, optimality):
         self.log.append({"iteration": int(iteration), "cost": float(cost),
                          "constraint_violation": float(violation), "optimality": float(optimality)})
-        now = time.perf_counter()
-        if self.progress and now - self._last >= self.period:
-            self._last = now
-            print(f"  iter {iteration:4d}  cost {cost: .6e}  violation {violation:.2e}  "
-                  f"optimality {optimality:.2e}", flush=True)
+        if self.bar is not None:
+            self.bar.update(1)
+            self.bar.set_postfix(cost=f"{cost:.6e}", violation=f"{violation:.2e}",
+                                 optimality=f"{optimality:.2e}", refresh=False)
+
+    def close(self):
+        finish(self.bar, len(self.log))
 
 
 IPOPT_STATUS = {0: "solved", 1: "solved to acceptable level", 2: "infeasible problem detected",
@@ -375,7 +379,7 @@ def solve_ipopt(nlp: NonlinearProgram, z0, *, tol=1e-8, max_iterations=3000, hes
     Jacobian and the exact sparse Lagrangian Hessian (`hessian="limited-memory"` for L-BFGS)."""
     cyipopt = require("cyipopt", "solver='ipopt'")
 
-    monitor = _Progress(progress)
+    monitor = _Progress(progress, max_iterations, "IPOPT")
 
     class Callbacks:
         def objective(self, z):
@@ -411,7 +415,10 @@ def solve_ipopt(nlp: NonlinearProgram, z0, *, tol=1e-8, max_iterations=3000, hes
     for key, value in settings.items():
         problem.add_option(key, value)
     start = time.perf_counter()
-    z, info = problem.solve(np.asarray(z0, float))
+    try:
+        z, info = problem.solve(np.asarray(z0, float))
+    finally:
+        monitor.close()
     elapsed = time.perf_counter() - start
     status = int(info["status"])
     message = IPOPT_STATUS.get(status, info["status_msg"].decode() if isinstance(info["status_msg"], bytes)
@@ -428,7 +435,7 @@ def solve_scipy(nlp: NonlinearProgram, z0, *, tol=1e-8, max_iterations=3000, opt
     Nocedal 1999) with the same sparse Jacobian and exact Hessians: always available, slower."""
     import scipy.optimize as so
 
-    monitor = _Progress(progress)
+    monitor = _Progress(progress, max_iterations, "SciPy trust-constr")
     constraints = []
     if nlp.num_constraints:
         constraints.append(so.NonlinearConstraint(
@@ -453,9 +460,12 @@ def solve_scipy(nlp: NonlinearProgram, z0, *, tol=1e-8, max_iterations=3000, opt
     settings = {"gtol": tol, "xtol": tol * 1e-4, "maxiter": max_iterations, "verbose": 2 if verbose else 0}
     settings.update(options or {})
     start = time.perf_counter()
-    out = so.minimize(nlp.objective, np.asarray(z0, float), jac=nlp.gradient,
-                      hess=lambda z: nlp.hessian(z, zero, 1.0), method="trust-constr",
-                      bounds=bounds, constraints=constraints, callback=callback, options=settings)
+    try:
+        out = so.minimize(nlp.objective, np.asarray(z0, float), jac=nlp.gradient,
+                          hess=lambda z: nlp.hessian(z, zero, 1.0), method="trust-constr",
+                          bounds=bounds, constraints=constraints, callback=callback, options=settings)
+    finally:
+        monitor.close()
     elapsed = time.perf_counter() - start
     violation = constraint_violation(nlp, out.x)
     ok = bool(out.status in (1, 2)) and np.isfinite(out.fun) and violation <= max(1e-6, 10 * tol)

@@ -356,13 +356,13 @@ class _TrajectoryProgram:
         return values
 
     def solve(self, states=None, inputs=None, duration=None, parameters=None, *, solver="auto",
-              tol=1e-8, max_iterations=3000, hessian=None, progress=False, verbose=False,
+              tol=1e-8, max_iterations=3000, hessian=None, progress=True, verbose=False,
               options=None, initial_guess=None) -> TrajectoryOptimizationResult:
         """Solve from a guess (see `initial_guess`, or pass a decision vector as
         `initial_guess`) with `solver` ("auto": IPOPT if available, else SciPy's trust-constr;
         "ipopt"; "scipy"). `hessian`: "exact" (the sparse autodiff Lagrangian Hessian; default
         for transcription and collocation) or "limited-memory" (IPOPT's L-BFGS, as Drake runs
-        IPOPT; compiles faster, more iterations). `progress` prints a line per second;
+        IPOPT; compiles faster, more iterations). `progress`: a progress bar of the iterations (drawn once the solve has run 2 s);
         `verbose` the solver's own log.
         Never raises on a failed solve: check `result.success` and `result.message`."""
         z0 = (self.initial_guess(states, inputs, duration, parameters) if initial_guess is None
