@@ -70,6 +70,9 @@ def test_a_gif_decodes_to_the_requested_frames_with_the_bob_where_the_axes_put_i
     path = vis.save(traj, tmp_path / "pendulum.gif", fps=8)
     frames = [np.asarray(f.convert("RGB")) for f in ImageSequence.Iterator(Image.open(path))]
     assert len(frames) == round(1.5 * 8) and frames[0].shape == (480, 640, 3)
+    # GIF delays are in 10-ms units: 125-ms frames alternate 130 / 120, and the movie lasts 1.5 s
+    durations = [f.info["duration"] for f in ImageSequence.Iterator(Image.open(path))]
+    assert sum(durations) == 1500 and set(durations) <= {120, 130}
     animation = vis.animate(traj, fps=8)  # the same figure, to read its transform
     fig = animation._fig
     fig.canvas.draw()

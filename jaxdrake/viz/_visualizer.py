@@ -29,6 +29,14 @@ from ..systems import HybridSystem, System
 DRAW_PERIOD = 1 / 32  # exact in binary
 
 
+
+def gif_durations(count: int, fps: float) -> list[int]:
+    """Frame durations in ms for a GIF, which stores them in 10-ms units: frame k ends at
+    1000 (k + 1) / fps rounded to 10 ms, so the movie lasts as long as the trajectory (a
+    constant 30 ms for a 31.25-ms period played it 4% fast)."""
+    ends = 10 * np.round(100 * np.arange(1, count + 1) / fps)
+    return np.diff(ends, prepend=0.0).astype(int).tolist()
+
 class Visualizer(System):
     """A stateless system drawing the plant whose state is its input.
 
@@ -263,7 +271,8 @@ class Visualizer(System):
             sample = Image.fromarray(np.concatenate(frames[:: max(1, len(frames) // 4)], axis=1))
             palette = sample.quantize(colors=128, method=Image.Quantize.MEDIANCUT)
             images = [Image.fromarray(f).quantize(palette=palette, dither=Image.Dither.NONE) for f in frames]
-            images[0].save(path, save_all=True, append_images=images[1:], duration=1000 / fps, loop=0)
+            images[0].save(path, save_all=True, append_images=images[1:], duration=gif_durations(len(images), fps),
+                           loop=0)
         else:
             with warnings.catch_warnings():  # JAX warns of any fork; ffmpeg's process execs at once
                 warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
