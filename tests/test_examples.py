@@ -37,7 +37,11 @@ SLOW = {"swing_up.ipynb", "lqr.ipynb", "swing_up.py",  # lqr.ipynb: 45 s, extend
         # their gradients: tests/test_hybrid.py), contact.py 54 (tests/test_contact.py), composition.py
         # 44 (tests/test_compose.py), lqr.py 43 (tests/test_control.py), manipulator.py 43
         # (tests/test_multibody.py, test_viz.py), demo.py 37 (README command 1, run before each stop)
-        "bouncing_ball.py", "contact.py", "composition.py", "lqr.py", "manipulator.py", "demo.py"}
+        "bouncing_ball.py", "contact.py", "composition.py", "lqr.py", "manipulator.py", "demo.py",
+        # mpc_estimation.py 80 (compiling the UKF/MPC and LQG loops, two LCM node processes; its pieces:
+        # tests/test_mpc.py, each QP against OSQP/Clarabel and the constraints along a closed loop, and
+        # tests/test_estimation.py, the UKF against filterpy and LQG's poles); its notebook repeats it
+        "mpc_estimation.py", "mpc_estimation.ipynb"}
 NOTEBOOKS = [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW else p
              for p in sorted((ROOT / "notebooks").glob("*.ipynb"))]
 WORKERS = 3
