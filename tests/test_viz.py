@@ -366,3 +366,18 @@ time.sleep(60)
     finally:
         parent.kill()
         parent.wait()
+
+
+@pytest.mark.filterwarnings("ignore:Animation was deleted without rendering")
+def test_a_movie_widens_its_view_to_hold_the_whole_trajectory():
+    """A ball dropped from 12 m (the default view reaches 7 r = 7 m) stays inside every frame:
+    the axes hold its apex, the ball's top at 13 m; a pendulum keeps its default view."""
+    ball = jd.models.BouncingBall()
+    traj = jd.simulate(ball, (0.0, 1.0), jnp.array([12.0, 0.0]))
+    animation = visualizer_for(ball).animate(traj, fps=8)
+    low, high = animation._fig.axes[0].get_ylim()
+    assert high >= 13.0 and low <= -0.5 * ball.r
+    pendulum = jd.models.Pendulum()
+    vis = visualizer_for(pendulum)
+    animation = vis.animate(jd.simulate(pendulum, (0.0, 1.0), jnp.array([1.0, 0.0])), fps=8)
+    assert animation._fig.axes[0].get_xlim() == pytest.approx(vis.view()[0])

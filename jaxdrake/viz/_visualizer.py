@@ -30,6 +30,20 @@ DRAW_PERIOD = 1 / 32  # exact in binary
 
 
 
+def _fit_view(ax, shapes):
+    """Widen the axes' limits (the visualizer's `view`) to hold every point the movie draws,
+    with a 5% margin: a ball dropped from above the default view is not clipped at its apex."""
+    points = np.concatenate([np.asarray(v).reshape(-1, 2) for v in shapes.values()])
+    points = points[np.all(np.isfinite(points), axis=1)]
+    if not len(points):
+        return
+    low, high = points.min(axis=0), points.max(axis=0)
+    margin = 0.05 * float(np.max(high - low))
+    (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+    ax.set_xlim(min(x0, low[0] - margin), max(x1, high[0] + margin))
+    ax.set_ylim(min(y0, low[1] - margin), max(y1, high[1] + margin))
+
+
 def gif_durations(count: int, fps: float) -> list[int]:
     """Frame durations in ms for a GIF, which stores them in 10-ms units: frame k ends at
     1000 (k + 1) / fps rounded to 10 ms, so the movie lasts as long as the trajectory (a
@@ -194,6 +208,7 @@ class Visualizer(System):
         members = xs.shape[1] if xs.ndim == 3 else 1
         states = xs.reshape(len(times) * members, -1)
         shapes = {k: v.reshape(len(times), members, *v.shape[1:]) for k, v in self.frame_shapes(states).items()}
+        _fit_view(ax, shapes)
         travel = self.travel(traj, times) if members == 1 else np.zeros((len(times), 2))
         grounds = [self.ground(step) for step in travel]
         ground = {name: np.stack([g[name] for g in grounds]) for name in grounds[0]}
