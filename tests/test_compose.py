@@ -457,3 +457,79 @@ def test_a_cascaded_tape_stops_steps_at_its_breakpoints_like_inputs():
     assert set(np.round(np.linspace(0.5, 2.5, 5), 12)) <= set(np.round(cascaded.breakpoints(), 12))
     np.testing.assert_allclose(cascaded.state(ts), taped.state(ts), atol=1e-9)
     np.testing.assert_allclose(cascaded.eval(ts)[:, 0], taped.state(ts)[:, 0], atol=1e-9)
+
+
+def _held_pendulum():
+    """A sub-diagram whose discrete part (the hold) and continuous part (the pendulum) lie apart
+    in any diagram's stacked state [x_d...; x_c...]."""
+    builder = jd.DiagramBuilder()
+    builder.add(jd.ZeroOrderHold(0.1, 1), "hold")
+    builder.add(Pendulum(), "plant")
+    builder.connect("hold", "plant")
+    builder.export_input("hold")
+    builder.export_output("plant")
+    return builder.build("HeldPendulum")
+
+
+def test_a_diagram_state_is_set_and_read_per_subsystem_by_name_object_index_or_path():
+    """state_with / subsystem_state / initial_state_with (Drake's GetMutableSubsystemState) put
+    each subsystem's state where the diagram's state frame names its coordinates, whether the
+    subsystem is given by name, object, index or dotted path into a sub-diagram; a hybrid
+    subsystem takes its initial mode's own state (padded with zeros); simulate takes the mapping."""
+    held = _held_pendulum()
+    controller = jd.System.from_functions(lambda t, x, u: -x + u[:1], output=lambda t, x, u: -x,
+                                          num_states=1, num_inputs=2, direct_feedthrough=False)
+    ramp = jd.System.from_functions(lambda t, x, u: jnp.ones(1), num_states=1)
+    decay = jd.System.from_functions(lambda t, x, u: -x, num_states=2, output=lambda t, x, u: x[:1])
+    growing = jd.HybridSystem([ramp, decay], [jd.Transition(0, lambda s, t, x, u: 1.0 - x[0],
+                                                            lambda s, t, x, u: jnp.append(x, 0.0), 1)])
+    builder = jd.DiagramBuilder()
+    builder.add(held, "held"), builder.add(controller, "controller"), builder.add(growing, "growing")
+    builder.connect("held", "controller")
+    builder.connect("controller", "held")
+    builder.export_output("held")
+    loop = builder.build("Loop")
+    at = lambda *names: np.array([loop.state_frame.index(n) for n in names])  # noqa: E731
+    x = jnp.arange(1.0, loop.num_states + 1.0)
+    parts = [("held.plant", at("held.plant.theta", "held.plant.thetadot"), [0.3, -0.2]),
+             ("held.hold", at("held.hold.x0"), [5.0]), (controller, at("controller.x0"), [-7.0]),
+             (2, at("growing.x0", "growing.x1"), [8.0, 9.0]), (held, at("held.hold.x0", "held.plant.theta",
+                                                                     "held.plant.thetadot"), [1.5, 2.5, 3.5])]
+    for which, coordinates, value in parts:
+        y = loop.state_with(x, which, jnp.asarray(value))
+        np.testing.assert_array_equal(y[coordinates], value)
+        np.testing.assert_array_equal(np.delete(y, coordinates), np.delete(x, coordinates))
+        np.testing.assert_array_equal(loop.subsystem_state(which, y), value)
+    assert loop.subsystem("held.plant") is held.subsystems[1] and loop.subsystem(held) is held
+    np.testing.assert_array_equal(loop.state_with(x, "growing", 0.25)[at("growing.x0", "growing.x1")], [0.25, 0.0])
+    X = jax.random.normal(jax.random.key(0), (5, loop.num_states))  # a trajectory's states, stacked
+    np.testing.assert_array_equal(loop.subsystem_state("held.plant", X), X[:, at("held.plant.theta",
+                                                                                 "held.plant.thetadot")])
+    expected = loop.initial_state().at[at("held.plant.theta", "held.plant.thetadot")].set([0.3, -0.2])
+    expected = expected.at[at("controller.x0")].set(2.0)
+    mapping = {held: {"plant": [0.3, -0.2]}, "controller": 2.0}
+    np.testing.assert_array_equal(loop.initial_state_with(mapping), expected)
+    traj = jd.simulate(loop, (0.0, 0.05), mapping, solver="rk4", dt=0.05)
+    np.testing.assert_array_equal(traj.state(0.0), expected)
+
+
+def test_subsystem_state_errors_name_the_subsystem_and_the_remedy():
+    held = _held_pendulum()
+    x = held.initial_state()
+    with pytest.raises(KeyError, match="HeldPendulum has no subsystem named 'plnat'.*'hold', 'plant'"):
+        held.subsystem_state("plnat", x)
+    with pytest.raises(KeyError, match="Pendulum is not a subsystem of HeldPendulum.*identity"):
+        held.state_with(x, Pendulum(), jnp.zeros(2))
+    with pytest.raises(IndexError, match="2 subsystems, no number 2"):
+        held.subsystem_state(2, x)
+    with pytest.raises(ValueError, match=r"subsystem 'plant': x0 has shape \(3,\).*PendulumState\(theta, "
+                                         r"thetadot\) needs shape \(2,\)"):
+        held.initial_state_with({"plant": [1.0, 2.0, 3.0]})
+    with pytest.raises(ValueError, match=r"x0 has shape \(2,\).*HeldPendulumState.*needs shape \(3,\)"):
+        held.state_with(x[:2], "plant", jnp.zeros(2))
+    pendulum = Pendulum()
+    twice = jd.parallel(pendulum, pendulum)
+    with pytest.raises(ValueError, match=r"added to Parallel 2 times, as \['Pendulum', 'Pendulum2'\]"):
+        twice.subsystem_state(pendulum, twice.initial_state())
+    second = np.array([twice.state_frame.index(f"Pendulum2.{c}") for c in ("theta", "thetadot")])
+    np.testing.assert_array_equal(twice.subsystem_state("Pendulum2", jnp.arange(4.0)), jnp.arange(4.0)[second])

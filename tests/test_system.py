@@ -140,3 +140,19 @@ def test_jax_transformations_of_a_systems_methods_work_for_array_holding_systems
     linear = jd.LinearSystem([[0.0, 1.0], [-2.0, -0.5]], [[0.0], [1.0]])
     np.testing.assert_allclose(jax.jit(linear.dynamics)(0.0, jnp.array([1.0, 2.0]), jnp.array([3.0])),
                                [2.0, -2.0 - 1.0 + 3.0])
+
+
+def test_full_state_and_check_shapes_are_the_contract_simulate_asks():
+    """`full_state` takes a scalar for one state and names the frame for a wrong shape;
+    `check_shapes` names a method that returns the wrong size, from shapes alone (a hybrid
+    system's modes and a diagram's subsystems are checked as systems of their own)."""
+    np.testing.assert_array_equal(SimpleCTExample().full_state(0.5), [0.5])
+    with pytest.raises(ValueError, match=r"x0 has shape \(3,\), but Pendulum's state frame "
+                                         r"PendulumState\(theta, thetadot\) needs shape \(2,\)"):
+        Pendulum().full_state(jnp.zeros(3))
+    t = jnp.zeros(())
+    Pendulum().check_shapes(t, jnp.zeros(2))
+    wrong = jd.System.from_functions(lambda t, x, u: jnp.zeros(3), num_states=2, num_inputs=2)
+    for system in (wrong, jd.HybridSystem([wrong], []), jd.cascade(Pendulum(), wrong)):
+        with pytest.raises(ValueError, match=r"FunctionSystem.dynamics returned shape \(3,\), expected \(2,\)"):
+            system.check_shapes(t, jnp.zeros(system.num_states))

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._numbers import device_array
-from ..systems import Diagram, HybridSystem, System
+from ..systems import System
 from ..systems import check_initialised
 from ..trajectories import NUM_COEFFICIENTS
 from ._controller import ConstantStepSize, IController
@@ -32,7 +32,7 @@ from ._status import SimulationError, SimulationStatus
 def _run_simulation(system, solver, controller, source, t0, tf, x0, *args):
     # Shapes are checked while tracing, so a wrong shape is a named Python error before any
     # compilation, and a second call (the compiled program kept) checks and traces nothing.
-    _check_system_shapes(system, t0, x0, source)
+    system.check_shapes(t0, x0)
     return run_simulation(system, solver, controller, source, t0, tf, x0, *args)
 
 
@@ -47,8 +47,10 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
 
     - `system`: a `jaxdrake.System`.
     - `tspan`: `(t0, tf)` with t0 < tf.
-    - `x0`: initial state, shape (num_states,) (a scalar for one state); None takes
-      `system.initial_state()`. With state constraints it is first projected onto phi(x) = 0.
+    - `x0`: initial state, shape (num_states,), or as `system.full_state` takes it (a scalar
+      for one state, a hybrid system's initial-mode state, a diagram's mapping from subsystems
+      to their states); None takes `system.initial_state()`. With state constraints it is
+      first projected onto phi(x) = 0.
     - `inputs`: a `Trajectory` (input tape) or a function of time returning u(t); None means
       u = 0, as in the notes. Input limits of the system saturate it.
     - `key`: a JAX PRNG key, for a stochastic system (required then, refused otherwise): the
@@ -78,25 +80,13 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
         t0, tf = tspan
     except (TypeError, ValueError):
         raise ValueError(f"tspan must be a pair (t0, tf), got {tspan!r}") from None
-    dtype = jnp.result_type(float)
     if x0 is None:
         x0 = system.initial_state()
-    x0 = device_array(x0)
+    x0 = system.full_state(x0)
     # float16 / bfloat16 states are promoted: the step-size control needs float32 at least
-    dtype = jnp.promote_types(x0.dtype, jnp.float32) if jnp.issubdtype(x0.dtype, jnp.floating) else dtype
+    dtype = (jnp.promote_types(x0.dtype, jnp.float32) if jnp.issubdtype(x0.dtype, jnp.floating)
+             else jnp.result_type(float))
     x0 = x0.astype(dtype)
-    nx = system.num_states
-    if x0.shape == () and nx == 1:
-        x0 = x0.reshape(1)
-    if isinstance(system, HybridSystem):  # x0 may be given in the initial mode's own layout
-        n_initial = system.modes[system.initial_mode].num_states
-        if x0.shape == () and n_initial == 1:
-            x0 = x0.reshape(1)
-        if x0.shape == (n_initial,) and n_initial != nx:
-            x0 = system.pad_state(system.initial_mode, x0)
-    if x0.shape != (nx,):
-        raise ValueError(f"x0 has shape {x0.shape}, but {system.name}'s state frame "
-                         f"{system.state_frame} needs shape ({nx},)")
     if _concrete(t0, tf) and not (np.isfinite(float(t0)) and np.isfinite(float(tf)) and float(tf) > float(t0)):
         raise ValueError(f"tspan must be finite with t0 < tf, got ({float(t0)}, {float(tf)})")
     t0, tf = device_array(t0, dtype), device_array(tf, dtype)
@@ -138,7 +128,7 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     except jax.errors.JaxRuntimeError as error:
         if "RESOURCE_EXHAUSTED" not in str(error):
             raise
-        member = trajectory_bytes(nx, max_steps, max_events, dense, np.dtype(dtype).itemsize)
+        member = trajectory_bytes(system.num_states, max_steps, max_events, dense, np.dtype(dtype).itemsize)
         raise MemoryError(f"simulate: out of device memory; each simulated trajectory holds about {member:,} "
                           f"bytes (dense={dense}, max_steps={max_steps}). For a large batch: "
                           "simulate(..., dense=False) keeps only the final state, and "
@@ -192,74 +182,3 @@ def _check_no_nan_parameters(system):
 
 def _concrete(*values) -> bool:
     return not any(isinstance(v, jax.core.Tracer) for v in jax.tree.leaves(values))
-
-
-def _check_system_shapes(system, t0, x0, source):
-    """Trace each method once (shapes only) so that a wrong shape is a named Python error."""
-    if isinstance(system, HybridSystem):
-        _check_hybrid_shapes(system, t0, x0, source)
-        return
-    if isinstance(system, Diagram):
-        _check_diagram_shapes(system, t0, x0, source)
-        return
-    u = jax.ShapeDtypeStruct((system.num_inputs,), x0.dtype)
-    expected = [("output", system.output, system.num_outputs, (t0, x0, u))]
-    if system.num_continuous_states:
-        expected.append(("dynamics", system.dynamics, system.num_continuous_states, (t0, x0, u)))
-    if system.num_discrete_states:
-        expected.append(("update", system.update, system.num_discrete_states, (t0, x0, u)))
-    if system.num_state_constraints:
-        expected.append(("state_constraints", system.state_constraints,
-                         system.num_state_constraints, (x0,)))
-    for name, method, size, args in expected:
-        try:
-            out = jax.eval_shape(method, *args)
-        except NotImplementedError:
-            raise
-        except Exception as e:
-            raise ValueError(f"{system.name}.{name} failed on a state of shape {x0.shape} and an "
-                             f"input of shape ({system.num_inputs},): {type(e).__name__}: {e}") from e
-        if getattr(out, "shape", None) != (size,):
-            raise ValueError(f"{system.name}.{name} returned shape {getattr(out, 'shape', type(out))}, "
-                             f"expected ({size},)")
-
-
-def _check_diagram_shapes(system, t0, x0, source):
-    """Each subsystem as a system of its own, then the wiring (frame conversions)."""
-    for i, sub in enumerate(system.subsystems):
-        _check_system_shapes(sub, t0, system.subsystem_state(i, x0), source)
-    u = jax.ShapeDtypeStruct((system.num_inputs + system.num_noise_inputs,), x0.dtype)
-    mode = jnp.asarray(system.initial_mode, jnp.int32)
-    try:
-        out = jax.eval_shape(lambda x, u: system.mode_output(mode, t0, x, u), x0, u)
-    except Exception as e:
-        raise ValueError(f"evaluating the signals of diagram {system.name} failed (a frame "
-                         f"conversion returning the wrong shape?): {type(e).__name__}: {e}") from e
-    if out.shape != (system.num_outputs,):
-        raise ValueError(f"diagram {system.name}'s output has shape {out.shape}, expected "
-                         f"({system.num_outputs},)")
-
-
-def _check_hybrid_shapes(system, t0, x0, source):
-    """Each mode as a system of its own, then every guard (a scalar) and reset (the target
-    mode's state, or a pair (state, stop))."""
-    u = jax.ShapeDtypeStruct((system.num_inputs,), x0.dtype)
-    for i, mode in enumerate(system.modes):
-        _check_system_shapes(mode, t0, system.mode_state(i, x0), source)
-    for k, tr in enumerate(system.transitions):
-        label = f"{system.name} transition {k}" + (f" ({tr.name})" if tr.name else "")
-        x_src = jax.ShapeDtypeStruct((system.modes[tr.source].num_states,), x0.dtype)
-        try:
-            g = jax.eval_shape(lambda x, u: tr.guard(system, t0, x, u), x_src, u)
-            out = jax.eval_shape(lambda x, u: tr.reset(system, t0, x, u), x_src, u)
-        except Exception as e:
-            raise ValueError(f"{label}: the guard or reset failed on a state of shape "
-                             f"{x_src.shape}: {type(e).__name__}: {e}") from e
-        if getattr(g, "shape", None) not in ((), (1,)):
-            raise ValueError(f"{label}: the guard must return a scalar, got shape "
-                             f"{getattr(g, 'shape', type(g))}")
-        x_plus = out[0] if isinstance(out, tuple) else out
-        n_target = system.modes[tr.target].num_states
-        if getattr(x_plus, "shape", None) != (n_target,):
-            raise ValueError(f"{label}: the reset must return the target mode's state, shape "
-                             f"({n_target},), got {getattr(x_plus, 'shape', type(x_plus))}")

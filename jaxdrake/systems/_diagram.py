@@ -19,9 +19,10 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -112,15 +113,80 @@ class Diagram(System):
         c = self.num_discrete_states + self._offsets([t.num_continuous_states for t in self.subsystems])[i]
         return slice(d, d + s.num_discrete_states), slice(c, c + s.num_continuous_states)
 
-    def subsystem_state(self, i: int, x):
-        """Subsystem i's own state [x_d; x_c] from the diagram's state."""
-        d, c = self._state_slices(i)
-        return jnp.concatenate([x[d], x[c]])
+    def _locate(self, which):
+        """(i, rest): subsystem i is `which` -- its index, its name, or the system object itself
+        (the one added) -- or, for a dotted name `"a.b"` as in the state frame's coordinates,
+        holds it: `a` is a sub-diagram and `rest` (`"b"`) names the subsystem inside."""
+        if isinstance(which, str):
+            if which in self.names:
+                return self.names.index(which), None
+            for k in (k for k, ch in enumerate(which) if ch == "."):
+                head = which[:k]
+                if head in self.names and isinstance(self.subsystems[self.names.index(head)], Diagram):
+                    return self.names.index(head), which[k + 1:]
+            raise KeyError(f"{self.name} has no subsystem named {which!r}; its subsystems are {list(self.names)}")
+        if isinstance(which, System):
+            found = [i for i, s in enumerate(self.subsystems) if s is which]
+            if not found:
+                raise KeyError(f"{which.name} is not a subsystem of {self.name} (a system object is found "
+                               f"by identity: pass the one that was added, or its name, one of {list(self.names)})")
+            if len(found) > 1:
+                raise ValueError(f"{which.name} was added to {self.name} {len(found)} times, as "
+                                 f"{[self.names[i] for i in found]}: name the one you mean")
+            return found[0], None
+        if isinstance(which, (int, np.integer)) and not isinstance(which, bool):
+            if not 0 <= which < len(self.subsystems):
+                raise IndexError(f"{self.name} has {len(self.subsystems)} subsystems, no number {which}")
+            return int(which), None
+        raise TypeError(f"a subsystem of {self.name} is given by its index, its name or the system "
+                        f"object, got {type(which).__name__}")
 
-    def _with_subsystem_state(self, i: int, x, x_i):
+    def subsystem(self, which) -> System:
+        """A subsystem, by its index, its name (dotted, `"a.b"`, for subsystem `b` of the
+        sub-diagram `a`) or the system object itself."""
+        i, rest = self._locate(which)
+        return self.subsystems[i] if rest is None else self.subsystems[i].subsystem(rest)
+
+    def subsystem_state(self, which, x):
+        """The own state [x_d; x_c] of subsystem `which` (as for `subsystem`) from the diagram's
+        state x, or from states stacked along leading axes (`traj.state(ts)`)."""
+        i, rest = self._locate(which)
         d, c = self._state_slices(i)
-        nd = self.subsystems[i].num_discrete_states
+        x_i = jnp.concatenate([x[..., d], x[..., c]], axis=-1)
+        return x_i if rest is None else self.subsystems[i].subsystem_state(rest, x_i)
+
+    def state_with(self, x, which, x_i):
+        """The diagram's state x with subsystem `which`'s part (as for `subsystem`) set to
+        x_i, as the subsystem's `full_state` takes it (a hybrid subsystem's initial-mode state,
+        a sub-diagram's mapping: see `initial_state_with`). Drake's
+        `GetMutableSubsystemState`, as a pure function: x itself is not changed."""
+        x = self.full_state(x)
+        i, rest = self._locate(which)
+        sub = self.subsystems[i]
+        if rest is not None:
+            x_i = sub.state_with(self.subsystem_state(i, x), rest, x_i)
+        try:
+            x_i = sub.full_state(x_i)
+        except ValueError as error:
+            raise ValueError(f"{self.name}: subsystem {self.names[i]!r}: {error}") from None
+        d, c = self._state_slices(i)
+        nd = sub.num_discrete_states
         return x.at[d].set(x_i[:nd]).at[c].set(x_i[nd:])
+
+    def initial_state_with(self, states: Mapping) -> jax.Array:
+        """The initial state with some subsystems' parts given: `states` maps a subsystem (its
+        index, name or the system object, as for `subsystem`) to its state (as `state_with`
+        takes it; a sub-diagram's may itself be such a mapping); the others keep their
+        `initial_state()`."""
+        x = self.initial_state()
+        for which, x_i in states.items():
+            x = self.state_with(x, which, x_i)
+        return x
+
+    def full_state(self, x0):
+        """The state vector from x0: the vector itself, or a mapping from subsystems to their
+        states (`initial_state_with`)."""
+        return self.initial_state_with(x0) if isinstance(x0, Mapping) else super().full_state(x0)
 
     def _noise(self, i: int, u):
         start = self.num_inputs + self._offsets([s.num_noise_inputs for s in self.subsystems])[i]
@@ -256,7 +322,7 @@ class Diagram(System):
             x_i, target, stop = self.subsystems[i].apply_transition(
                 sub_mode, local, t, self.subsystem_state(i, x), us[i])
             new_mode = mode + (target - sub_mode) * self._strides[i]
-            return self._with_subsystem_state(i, x, x_i), jnp.asarray(new_mode, jnp.int32), stop
+            return self.state_with(x, i, x_i), jnp.asarray(new_mode, jnp.int32), stop
         return HybridSystem._switch(k, len(self.transitions), branch, mode, t, x, u)
 
     # ----- the deterministic, one-mode contract -------------------------------------------
@@ -293,8 +359,23 @@ class Diagram(System):
     def initial_state(self):
         x = jnp.zeros(self.num_states)
         for i, s in enumerate(self.subsystems):
-            x = self._with_subsystem_state(i, x, jnp.asarray(s.initial_state(), x.dtype))
+            x = self.state_with(x, i, jnp.asarray(s.initial_state(), x.dtype))
         return x
+
+    def check_shapes(self, t, x) -> None:
+        """Each subsystem as a system of its own, then the wiring (frame conversions)."""
+        for i, sub in enumerate(self.subsystems):
+            sub.check_shapes(t, self.subsystem_state(i, x))
+        u = jax.ShapeDtypeStruct((self.num_inputs + self.num_noise_inputs,), x.dtype)
+        mode = jnp.asarray(self.initial_mode, jnp.int32)
+        try:
+            out = jax.eval_shape(lambda x, u: self.mode_output(mode, t, x, u), x, u)
+        except Exception as e:
+            raise ValueError(f"evaluating the signals of diagram {self.name} failed (a frame "
+                             f"conversion returning the wrong shape?): {type(e).__name__}: {e}") from e
+        if out.shape != (self.num_outputs,):
+            raise ValueError(f"diagram {self.name}'s output has shape {out.shape}, expected "
+                             f"({self.num_outputs},)")
 
     def state_constraints(self, x):
         parts = [s.state_constraints(self.subsystem_state(i, x))
@@ -304,10 +385,6 @@ class Diagram(System):
     @property
     def name(self) -> str:
         return self.diagram_name
-
-    def subsystem(self, name: str) -> System:
-        """The subsystem called `name`."""
-        return self.subsystems[_lookup(self.names, name)]
 
 
 # ----- construction-time checks ---------------------------------------------------------------

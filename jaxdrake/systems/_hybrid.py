@@ -21,6 +21,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._numbers import device_array
 from ._frame import Frame
 from ._system import System
 
@@ -190,6 +191,38 @@ class HybridSystem(System):
         xc = jnp.zeros(self.num_continuous_states, x_mode.dtype).at[: m.num_continuous_states].set(
             x_mode[m.num_discrete_states:])
         return jnp.concatenate([xd, xc])
+
+    def full_state(self, x0):
+        """The padded state from x0: the padded state itself, or the initial mode's own state."""
+        x = device_array(x0)
+        n = self.modes[self.initial_mode].num_states
+        if n != self.num_states and x.ndim <= 1 and x.size == n:
+            return self.pad_state(self.initial_mode, x.reshape(n))
+        return super().full_state(x)
+
+    def check_shapes(self, t, x) -> None:
+        """Each mode as a system of its own, then every guard (a scalar) and reset (the target
+        mode's state, or a pair (state, stop))."""
+        u = jax.ShapeDtypeStruct((self.num_inputs,), x.dtype)
+        for i, mode in enumerate(self.modes):
+            mode.check_shapes(t, self.mode_state(i, x))
+        for k, tr in enumerate(self.transitions):
+            label = f"{self.name} transition {k}" + (f" ({tr.name})" if tr.name else "")
+            x_source = jax.ShapeDtypeStruct((self.modes[tr.source].num_states,), x.dtype)
+            try:
+                guard = jax.eval_shape(lambda x, u: tr.guard(self, t, x, u), x_source, u)
+                out = jax.eval_shape(lambda x, u: tr.reset(self, t, x, u), x_source, u)
+            except Exception as e:
+                raise ValueError(f"{label}: the guard or reset failed on a state of shape "
+                                 f"{x_source.shape}: {type(e).__name__}: {e}") from e
+            if getattr(guard, "shape", None) not in ((), (1,)):
+                raise ValueError(f"{label}: the guard must return a scalar, got shape "
+                                 f"{getattr(guard, 'shape', type(guard))}")
+            x_plus = out[0] if isinstance(out, tuple) else out
+            n_target = self.modes[tr.target].num_states
+            if getattr(x_plus, "shape", None) != (n_target,):
+                raise ValueError(f"{label}: the reset must return the target mode's state, shape "
+                                 f"({n_target},), got {getattr(x_plus, 'shape', type(x_plus))}")
 
     @staticmethod
     def _switch(index, count, branch, *operands):

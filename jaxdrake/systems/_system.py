@@ -20,6 +20,7 @@ import jax.extend
 import jax.numpy as jnp
 import numpy as np
 
+from .._numbers import device_array
 from ._frame import Frame
 
 
@@ -176,6 +177,45 @@ class System(eqx.Module):
         """Warn about a (concrete) start state that the system can tell is questionable (a
         rigid-body plant: a joint past its position limit); nothing by default. `simulate`
         calls it before compiling."""
+
+    def full_state(self, x0):
+        """The state vector, shape (num_states,), from an initial state as a user gives it (a
+        scalar for one state); another shape is an error naming the state frame. `simulate`
+        calls it on its x0. A hybrid system also takes its initial mode's own state, a diagram
+        a mapping from subsystems to their states (`Diagram.initial_state_with`)."""
+        x = device_array(x0)
+        if x.shape == () and self.num_states == 1:
+            x = x.reshape(1)
+        if x.shape != (self.num_states,):
+            raise ValueError(f"x0 has shape {x.shape}, but {self.name}'s state frame "
+                             f"{self.state_frame} needs shape ({self.num_states},)")
+        return x
+
+    def check_shapes(self, t, x) -> None:
+        """Trace each declared method once at (t, x) -- shapes only, nothing evaluated -- so that
+        a wrong shape is a named Python error: `output`, and `dynamics`, `update` and
+        `state_constraints` where the system has them, must return their declared sizes.
+        `simulate` calls it while tracing, before compiling. A hybrid system checks its modes,
+        guards and resets; a diagram its subsystems and wiring."""
+        u = jax.ShapeDtypeStruct((self.num_inputs,), x.dtype)
+        expected = [("output", self.output, self.num_outputs, (t, x, u))]
+        if self.num_continuous_states:
+            expected.append(("dynamics", self.dynamics, self.num_continuous_states, (t, x, u)))
+        if self.num_discrete_states:
+            expected.append(("update", self.update, self.num_discrete_states, (t, x, u)))
+        if self.num_state_constraints:
+            expected.append(("state_constraints", self.state_constraints, self.num_state_constraints, (x,)))
+        for name, method, size, args in expected:
+            try:
+                out = jax.eval_shape(method, *args)
+            except NotImplementedError:
+                raise
+            except Exception as e:
+                raise ValueError(f"{self.name}.{name} failed on a state of shape {x.shape} and an "
+                                 f"input of shape ({self.num_inputs},): {type(e).__name__}: {e}") from e
+            if getattr(out, "shape", None) != (size,):
+                raise ValueError(f"{self.name}.{name} returned shape {getattr(out, 'shape', type(out))}, "
+                                 f"expected ({size},)")
 
     def state_constraints(self, x):
         """Announced constraints $\\phi(x) = 0$ (size `num_state_constraints`)."""
