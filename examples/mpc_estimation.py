@@ -17,7 +17,8 @@ sample it answers (a `ZeroOrderHold` in front of the cart: the computation's and
 delay), which is what the LCM loop below does. Both loops start from the same offset and see
 the same noise draws. Then the MPC controller runs as an LCM node against the plant as an LCM
 node, two processes on a loopback relay (tcpq://127.0.0.1, never multicast): the plant ticks
-in real time, the controller answers each measurement before the next tick.
+in real time at 100 Hz, the controller answers each measurement, and the plant applies the
+answer from its next tick: the simulated loop, message for message, when no answer is late.
 
 Run:  python examples/mpc_estimation.py [--out DIR]     (saves mpc_estimation.png)
 """
@@ -150,9 +151,9 @@ def simulate_loop(controller, key=None, start=START, duration=DURATION):
     the upright): per sample t_k, the cart's state x(t_k), the estimate x̂_k|k-1 the
     controller used, the measurement y_k and the force on the cart over (t_k, t_k+1]."""
     loop = jd.feedback(delayed_cart_pole(key), controller)
-    coordinates = loop.state_frame.coordinates
-    cart = [coordinates.index(f"DelayedCartPole.cart.{c}") for c in ("x", "theta", "xdot", "thetadot")]
-    estimate = [coordinates.index(f"{controller.name}.estimator.{c}") for c in ("x", "theta", "xdot", "thetadot")]
+    coordinates, state = loop.state_frame.coordinates, ("x", "theta", "xdot", "thetadot")
+    cart = [coordinates.index(f"DelayedCartPole.cart.{c}") for c in state]
+    estimate = [coordinates.index(f"{controller.name}.estimator.{c}") for c in state]
     hold = [coordinates.index("DelayedCartPole.hold.x0")]
     # the estimate starts at the upright (a Luenberger observer's own initial state is the
     # plant's, θ = 0: hanging down)
@@ -186,7 +187,7 @@ def summary(name, run):
 def node(name, url, *extra):
     """Start `python -m jaxdrake.lcm examples/mpc_estimation.py:name`; return once it has
     compiled and subscribed."""
-    process = subprocess.Popen([sys.executable, "-m", "jaxdrake.lcm", f"{pathlib.Path(__file__).resolve()}:{name}",
+    process = subprocess.Popen([sys.executable, "-m", "jaxdrake.lcm", f"{HERE / 'mpc_estimation.py'}:{name}",
                                 "--url", url, "--x64", *extra], cwd=HERE.parent, stdout=subprocess.PIPE,
                                stderr=subprocess.STDOUT, text=True)
     line = ""
@@ -206,6 +207,7 @@ def mpc_over_lcm(ticks: int):
     summaries."""
     with tempfile.TemporaryDirectory() as tmp, LoopbackRelay() as relay:
         folder = pathlib.Path(tmp)
+        # its first wait lasts until the plant node has compiled and ticks: a long input timeout
         controller = node("mpc_controller", relay.url, "--lockstep", "--input-timeout", "600",
                           "--log", str(folder / "controller.log"))
         plant = node("noisy_cart_pole", relay.url, "--rate", f"{1 / PERIOD:g}", "--max-ticks", str(ticks),
