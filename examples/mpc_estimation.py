@@ -151,19 +151,17 @@ def simulate_loop(controller, key=None, start=START, duration=DURATION):
     the upright): per sample t_k, the cart's state x(t_k), the estimate x̂_k|k-1 the
     controller used, the measurement y_k and the force on the cart over (t_k, t_k+1]."""
     loop = jd.feedback(delayed_cart_pole(key), controller)
-    coordinates, state = loop.state_frame.coordinates, ("x", "theta", "xdot", "thetadot")
-    cart = [coordinates.index(f"DelayedCartPole.cart.{c}") for c in state]
-    estimate = [coordinates.index(f"{controller.name}.estimator.{c}") for c in state]
-    hold = [coordinates.index("DelayedCartPole.hold.x0")]
-    # the estimate starts at the upright (a Luenberger observer's own initial state is the
-    # plant's, θ = 0: hanging down)
-    x0 = loop.initial_state().at[jnp.asarray(cart)].set(jnp.asarray(start))
-    x0 = x0.at[jnp.asarray(estimate)].set(jnp.asarray(UPRIGHT))
+    cart, hold, estimator = "DelayedCartPole.cart", "DelayedCartPole.hold", f"{controller.name}.estimator"
+    # the estimate x̂ (an estimator's first 4 states) starts at the upright (a Luenberger
+    # observer's own initial state is the plant's, θ = 0: hanging down)
+    x_hat0 = loop.subsystem(estimator).initial_state().at[:4].set(UPRIGHT)
+    x0 = loop.initial_state_with({cart: start, estimator: x_hat0})
     traj = jd.simulate(loop, (0.0, duration), x0, max_steps=16 * round(duration / PERIOD))
     t = PERIOD * jnp.arange(round(duration / PERIOD))
     before, after = traj.state(t, side="left"), traj.state(t, side="right")
-    return dict(t=np.asarray(t), x=np.asarray(before[:, cart]), x_hat=np.asarray(before[:, estimate]),
-                y=np.asarray(traj.eval(t)), u=np.asarray(after[:, hold]))
+    return dict(t=np.asarray(t), x=np.asarray(loop.subsystem_state(cart, before)),
+                x_hat=np.asarray(loop.subsystem_state(estimator, before)[:, :4]), y=np.asarray(traj.eval(t)),
+                u=np.asarray(loop.subsystem_state(hold, after)))
 
 
 def summary(name, run):
