@@ -246,7 +246,7 @@ def lcm_report(over_lcm, simulated):
           f"p50 {np.median(intervals):.2f} ms, p99 {np.percentile(intervals, 99):.2f} ms, max {intervals.max():.2f} ms)")
     print(f"LCM round trip y_k -> its answer: p50 {np.nanmedian(trips):.2f} ms, p99 "
           f"{np.nanpercentile(trips, 99):.2f} ms, max {np.nanmax(trips):.2f} ms; {len(late)} of {len(trips)} "
-          f"answers after the next tick{f' (ticks {list(late[:5])})' if len(late) else ''}")
+          f"answers after the next tick{f' (ticks {late[:5].tolist()}...)' if len(late) else ''}")
     K = min(len(sent), len(simulated["t"]))
     print("LCM loop vs the simulated loop (same start, same noise): max |(x, θ) gap| = "
           f"{np.abs(over_lcm['x'][:K] - simulated['x'][:K, :2]).max():.2e}")
