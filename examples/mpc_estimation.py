@@ -284,7 +284,7 @@ def figure(runs, over_lcm):
         axes[1, 0].axhline(limit, color="k", ls=":", lw=1)
     axes[1, 0].set(ylabel="u (N)", title=f"force on the cart, limits ±{FORCE_LIMIT:g} N (dotted)")
     axes[1, 1].set_yscale("symlog", linthresh=0.1)
-    axes[1, 1].set(title="estimation error of the unmeasured velocities (symlog, linear within ±0.1)")
+    axes[1, 1].set(title="errors of the estimated velocities (symlog: linear within ±0.1)")
     axes[2, 0].plot(mpc["t"], mpc["x"][:, 1] - np.pi, "k-", lw=3, alpha=0.25, label="MPC + UKF simulated, one process")
     axes[2, 0].plot(over_lcm["t"][::3], over_lcm["x"][::3, 1] - np.pi, ".", color="C0", ms=3,
                     label="over LCM, two processes (from the plant's log)")
