@@ -227,8 +227,9 @@ def mpc_over_lcm(ticks: int):
             commands[round(t / PERIOD)] = (when, value[0])
     t = PERIOD * np.arange(len(sent))
     noise = np.asarray(jax.vmap(lambda s: sensor_noise(jax.random.key(SEED), s))(jnp.asarray(t)))
-    return dict(t=t, sent=np.array(sent), x=np.array(y) - noise,
-                answered=np.array([commands.get(k + 1, (np.nan,))[0] for k in range(len(t))]),
+    answered = np.array([commands.get(k + 1, (np.nan,))[0] for k in range(len(t))])
+    return dict(t=t, sent=np.array(sent), x=np.array(y) - noise, answered=answered,
+                late=np.flatnonzero(~(answered[:-1] <= np.array(sent[1:]))),  # answered after the next tick
                 u=np.array([commands.get(k, (np.nan, 0.0))[1] for k in range(len(t))]),
                 summaries=[next(line for line in out.splitlines() if line.startswith("stopped:"))
                            for out in (plant_out, controller_out)])
@@ -241,7 +242,7 @@ def lcm_report(over_lcm, simulated):
     print("controller node:", over_lcm["summaries"][1])
     sent, trips = over_lcm["sent"], (over_lcm["answered"] - over_lcm["sent"])[:-1] * 1e3
     intervals = np.diff(sent) * 1e3
-    late = np.flatnonzero(~(over_lcm["answered"][:-1] <= sent[1:]))
+    late = over_lcm["late"]
     print(f"LCM plant: {len(sent)} ticks at {(len(sent) - 1) / (sent[-1] - sent[0]):.1f} Hz (tick interval "
           f"p50 {np.median(intervals):.2f} ms, p99 {np.percentile(intervals, 99):.2f} ms, max {intervals.max():.2f} ms)")
     print(f"LCM round trip y_k -> its answer: p50 {np.nanmedian(trips):.2f} ms, p99 "
@@ -288,7 +289,8 @@ def figure(runs, over_lcm):
     axes[2, 0].plot(mpc["t"], mpc["x"][:, 1] - np.pi, "k-", lw=3, alpha=0.25, label="MPC + UKF simulated, one process")
     axes[2, 0].plot(over_lcm["t"][::3], over_lcm["x"][::3, 1] - np.pi, ".", color="C0", ms=3,
                     label="over LCM, two processes (from the plant's log)")
-    axes[2, 0].set(xlabel="t (s)", ylabel="θ − π (rad)", title="the MPC controller as an LCM node (tcpq on 127.0.0.1)")
+    axes[2, 0].set(xlabel="t (s)", ylabel="θ − π (rad)", title="MPC as an LCM node (tcpq on 127.0.0.1): "
+                   f"{len(over_lcm['late'])} of {len(over_lcm['t']) - 1} answers late")
     axes[2, 1].step(mpc["t"], mpc["u"][:, 0], where="post", color="k", lw=3, alpha=0.25, label="simulated")
     axes[2, 1].step(over_lcm["t"], over_lcm["u"], where="post", color="C0", lw=1, label="its commands over LCM")
     axes[2, 1].set(xlabel="t (s)", ylabel="u (N)", title="force over LCM")
