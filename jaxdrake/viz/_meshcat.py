@@ -41,10 +41,10 @@ from ..multibody import (ContactModel, KinematicTree, RigidBodySystem, URDFError
                           resolve_model_file)
 from . import _meshcat_server
 from ._puppet import puppet_model, render_frames
-from ._urdf_visuals import urdf_color
+from ._urdf_visuals import link_color
 from ._visualizer import DRAW_PERIOD, Visualizer, _in_notebook, batched
 
-_GREY, _SKELETON, _FORCE = 0xA0A0A8, 0x4C72B0, 0x2CA02C
+_SKELETON, _FORCE = 0x4C72B0, 0x2CA02C
 # contact arrows (m): shaft and dot radii, the head's length and radius (Drake draws 2 mm shafts)
 _SHAFT, _DOT, _HEAD_LENGTH, _HEAD_RADIUS = 0.003, 0.006, 0.02, 0.008
 
@@ -83,12 +83,10 @@ def _y_onto(d):
     return np.column_stack([x, d, np.cross(x, d)])
 
 
-def _material(visual, materials):
+def _material(color):
+    """A MeshCat material of an RGBA colour."""
     import meshcat.geometry as g
 
-    color = urdf_color(visual, materials)
-    if color is None:
-        return g.MeshLambertMaterial(color=_GREY)
     rgb = int(np.round(color[0] * 255)) << 16 | int(np.round(color[1] * 255)) << 8 | int(np.round(color[2] * 255))
     return g.MeshLambertMaterial(color=rgb, opacity=float(color[3]), transparent=bool(color[3] < 1))
 
@@ -293,10 +291,10 @@ class MeshcatVisualizer(Visualizer):
 
         visuals, materials, mesh_file = self._urdf_visuals()
         if any(visuals.values()):
-            for name in self.links:
+            for i, name in enumerate(self.links):
                 for k, visual in enumerate(visuals.get(name, [])):
                     geometry, placement = _geometry(visual, lambda filename: mesh_file(name, filename))
-                    robot[name][f"visual{k}"].set_object(geometry, _material(visual, materials))
+                    robot[name][f"visual{k}"].set_object(geometry, _material(link_color(visual, materials, i)))
                     robot[name][f"visual{k}"].set_transform(placement)
             return
         skeleton = self._skeleton()

@@ -13,21 +13,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._urdf_visuals import urdf_color
-
-_GREY = (0.63, 0.63, 0.66, 1.0)
+from ._urdf_visuals import link_color
 
 
-def _add_visual(mujoco, spec, body, visual, materials, mesh_file, name):
+def _add_visual(mujoco, spec, body, visual, color, mesh_file, name):
     """One URDF <visual> as a geom of `body` (a MuJoCo mesh asset for a mesh, the file given by
-    `mesh_file(filename)`)."""
+    `mesh_file(filename)`), in `color` (RGBA)."""
     import trimesh
 
     origin = np.eye(4) if visual.origin is None else np.asarray(visual.origin, float)
     quat = np.zeros(4)
     mujoco.mju_mat2Quat(quat, np.ascontiguousarray(origin[:3, :3]).ravel())
-    color = urdf_color(visual, materials)
-    geom = body.add_geom(pos=origin[:3, 3], quat=quat, rgba=_GREY if color is None else color, contype=0,
+    geom = body.add_geom(pos=origin[:3, 3], quat=quat, rgba=color, contype=0,
                          conaffinity=0)
     shape = visual.geometry
     if shape.box is not None:
@@ -80,7 +77,8 @@ def puppet_model(links, visuals, materials, mesh_file, skeleton, neutral, floati
         body = world.add_body(name=f"link{i}", mocap=True)
         if drawn:
             for k, visual in enumerate(visuals.get(link, [])):
-                _add_visual(mujoco, spec, body, visual, materials, lambda filename: mesh_file(link, filename),
+                _add_visual(mujoco, spec, body, visual, link_color(visual, materials, i),
+                            lambda filename: mesh_file(link, filename),
                             f"mesh{i}_{k}")
             continue
         body.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.03, 0, 0], rgba=[0.3, 0.45, 0.69, 1],

@@ -14,3 +14,19 @@ def urdf_color(visual, materials):
             if source is not None and source.color is not None:
                 return np.asarray(source.color.rgba, float)
     return None
+
+
+# muted, distinguishable link colours (matplotlib's tab10, lightened) for visuals without a material
+_LINK_PALETTE = ((0.45, 0.62, 0.81), (1.00, 0.66, 0.38), (0.50, 0.78, 0.50), (0.90, 0.50, 0.50),
+                 (0.70, 0.60, 0.83), (0.72, 0.58, 0.54), (0.93, 0.64, 0.84), (0.65, 0.65, 0.65),
+                 (0.80, 0.80, 0.45), (0.45, 0.80, 0.85))
+
+
+def link_color(visual, materials, link_index: int):
+    """The RGBA colour a viewer draws a URDF <visual> in: its material's (`urdf_color`), else
+    link `link_index`'s colour from a palette of distinct colours, so that a robot whose file
+    names no colours shows its links apart rather than all grey."""
+    color = urdf_color(visual, materials)
+    if color is not None:
+        return color
+    return np.array([*_LINK_PALETTE[link_index % len(_LINK_PALETTE)], 1.0])
