@@ -800,20 +800,29 @@ SLIDER = """<robot name="slider"><link name="rail"/>
 <limit lower="-1" upper="0.5" effort="10" velocity="10"/></joint></robot>"""
 
 
-def test_a_joint_limit_stops_a_slider_as_the_critically_damped_closed_form_says(tmp_path):
-    """A free 2 kg carriage at v0 = 1 m/s hits its 0.5 m limit at t = 0.5 s. Past it, the
-    compliant limit is m pdd + 2 m w pd + m w^2 p = 0 with p(0) = 0, pd(0) = v0, so
-    p = v0 t e^{-w t}: deepest v0 / (w e) at 1/w; the push k p + d pd vanishes at 2/w, where
-    the carriage leaves at v0 e^{-2} (it is not pulled back in)."""
+def test_a_joint_limit_stops_a_slider_as_the_capped_spring_damper_closed_form_says(tmp_path):
+    """A free 2 kg carriage at v0 = 1 m/s hits its 0.5 m limit at t = 0.5 s; past it by p, the
+    push is clip(k p + d pd, 0, 2 k p) with k = m w^2, d = 2 m w. Entering, d pd > k p: the
+    capped push 2 k p gives p = v0 sin(sqrt2 w t) / (sqrt2 w) until pd = w p / 2, at
+    tan(sqrt2 w t1) = 2 sqrt2, where p1 = 2 v0 / (3 w), pd1 = v0 / 3. Then the critically
+    damped m pdd + 2 m w pd + m w^2 p = 0 gives p = (v0 / w) e^{-w s} (2/3 + w s), s = t - t1:
+    deepest v0 e^{-1/3} / w at w s = 1/3; the push vanishes at w s = 4/3 (pd = -w p / 2), 2 v0
+    e^{-4/3} / w past the limit, whence the carriage coasts out at v0 e^{-4/3}, not pulled back."""
     path = tmp_path / "slider.urdf"
     path.write_text(SLIDER)
     slider = jd.RigidBodySystem.from_urdf(path, gravity=False)
-    w = 2 * np.pi / 0.02
+    w, v0, t_hit = 2 * np.pi / 0.02, 1.0, 0.5
     np.testing.assert_allclose(slider.limit_stiffness, [2 * w ** 2])
-    traj = jd.simulate(slider, (0.0, 0.6), jnp.array([0.0, 1.0]), rtol=1e-10, atol=1e-12)
-    t_hit = 0.5
-    np.testing.assert_allclose(traj.state(t_hit + 1 / w)[0], 0.5 + 1.0 / (w * np.e), atol=1e-7)
-    np.testing.assert_allclose(traj.final_state[1], -np.exp(-2.0), rtol=1e-6)
+    np.testing.assert_allclose(slider.limit_damping, [2 * 2 * w])
+    traj = jd.simulate(slider, (0.0, 0.6), jnp.array([0.0, v0]), rtol=1e-10, atol=1e-12)
+    t1 = t_hit + np.arctan(2 * np.sqrt(2)) / (np.sqrt(2) * w)
+    np.testing.assert_allclose(traj.state(t1), [0.5 + 2 * v0 / (3 * w), v0 / 3], atol=1e-7)
+    np.testing.assert_allclose(traj.state(t1 + 1 / (3 * w)), [0.5 + v0 * np.exp(-1 / 3) / w, 0.0], atol=1e-7)
+    t_free = t1 + 4 / (3 * w)
+    v_out = -v0 * np.exp(-4 / 3)
+    np.testing.assert_allclose(traj.state(t_free), [0.5 - 2 * v_out / w, v_out], atol=1e-7)
+    np.testing.assert_allclose(traj.final_state, [0.5 - 2 * v_out / w + v_out * (0.6 - t_free), v_out],
+                               rtol=1e-6)
     free = jd.simulate(jd.RigidBodySystem.from_urdf(path, gravity=False, joint_limits=False), (0.0, 0.6),
                        jnp.array([0.0, 1.0]))
     np.testing.assert_allclose(free.final_state, [0.6, 1.0], atol=1e-9)
@@ -834,3 +843,46 @@ def test_the_passive_panda_stays_within_its_joint_limits():
 
     assert past(panda) < 0.1
     assert past(jd.RigidBodySystem(panda.tree, joint_limits=False)) > 1.0
+
+
+def test_the_panda_simulates_from_its_initial_state_pressed_onto_its_joint_4_limit():
+    """initial_state() puts joint 4 on its upper limit (its zero lies past it) and gravity
+    presses it there. With default options the simulation succeeds (the push is continuous at
+    the limit), joint 4 never goes past by more than (1 + e^{-4/3}/3) lambda / k, the bound
+    for a joint pressed from rest by lambda, and once the impacts have settled it rests
+    lambda / k past, where lambda(t) is the torque a rigid stop would bear: from Pinocchio's
+    H and nonlinear effects with joint 4 locked (qdd_4 = 0), the other limits' pushes applied."""
+    ts = np.linspace(0.0, 0.25, 51)
+    with jax.enable_x64(False):  # float32, where the uncapped damper's jump stopped it at t = 4e-5
+        panda = jd.models.Panda()
+        x0 = panda.initial_state()
+        traj = jd.simulate(panda, (0.0, 0.25), x0)
+        assert traj.final_state.dtype == jnp.float32 and traj.success
+        xs = np.asarray(traj.state(jnp.asarray(ts, jnp.float32)), float)
+    lower, upper = np.asarray(panda.tree.position_lower, float), np.asarray(panda.tree.position_upper, float)
+    k, d = np.asarray(panda.limit_stiffness, float), np.asarray(panda.limit_damping, float)
+    assert float(x0[3]) == upper[3]
+
+    def push(p, p_dot):  # the documented law, clip(k p + d pd, 0, 2 k p) past a limit by p
+        spring = k * np.maximum(p, 0.0)
+        return np.clip(spring + d * p_dot, 0.0, 2 * spring)
+
+    others = push(lower - xs[:, :7], -xs[:, 7:]) - push(xs[:, :7] - upper, xs[:, 7:])
+    others[:, 3] = 0.0
+    full = pin.buildModelFromUrdf(str(panda.source))
+    model = pin.buildReducedModel(full, [full.getJointId(f"panda_finger_joint{i}") for i in (1, 2)],
+                                  pin.neutral(full))
+    data = model.createData()
+    rigid_stop = []
+    for x, tau in zip(xs, others):
+        q, v = x[:7], x[7:]
+        H = pin.crba(model, data, q)
+        H_inv = np.linalg.inv(np.triu(H) + np.triu(H, 1).T)
+        n = pin.nonLinearEffects(model, data, q, v) + np.asarray(panda.tree.damping) * v - tau
+        rigid_stop.append(-(H_inv @ n)[3] / H_inv[3, 3])  # pushing joint 4 down: > 0
+    past = xs[:, 3] - upper[3]
+    load = np.array(rigid_stop) / k[3]
+    assert np.all(load > 0)
+    assert np.max(past) <= (1 + np.exp(-4 / 3) / 3) * np.max(load)
+    settled = ts >= 0.1
+    np.testing.assert_allclose(past[settled], load[settled], rtol=0.01)

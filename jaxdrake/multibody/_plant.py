@@ -76,14 +76,22 @@ class RigidBodySystem(System):
       parser makes actuator effort limits), unless `effort_limits=False`; the simulator
       locates the saturation instants as events.
     - Joint position limits (`<limit lower upper>`) are compliant, unless `joint_limits=False`:
-      past a limit by p > 0, a joint is pushed back by $\max(0, k p + d \dot p)$, a critically
-      damped spring of natural period `limit_period` (default 0.02 s) on the joint's inertia
-      $H_{ii}$ at the neutral configuration: $k = H_{ii}\omega^2$, $d = 2 H_{ii}\omega$,
-      $\omega = 2\pi/$`limit_period`. A joint arriving at speed $v_0$ goes past by at most
-      $v_0/(\omega e)$ and leaves at $v_0 e^{-2}$ (the push never pulls). This is the penalty
-      model of MuJoCo's soft limits and of Drake's discrete plant; Drake's continuous plant
-      ignores limits (`joint_limits=False` reproduces it). `limit_stiffness`, `limit_damping`
-      are leaves (per velocity coordinate; 0 for unlimited joints) that you may replace.
+      past a limit by p > 0, a joint is pushed back by $\mathrm{clip}(k p + d \dot p, 0, 2 k p)$,
+      a critically damped spring of natural period `limit_period` (default 0.02 s) on the
+      joint's inertia $H_{ii}$ at the neutral configuration, $k = H_{ii}\omega^2$,
+      $d = 2 H_{ii}\omega$, $\omega = 2\pi/$`limit_period`, whose damper neither pulls nor
+      pushes harder than the spring ($|d \dot p| \le k p$). Drake's discrete plant pushes by
+      $\max(0, k p + d \dot p)$, whose damper switches on with a jump $d \dot p$ at the limit:
+      harmless to a time-stepper, a discontinuity that an error-controlled integrator must
+      creep through (in float32 it may not). Capped, the push grows from 0 at the limit,
+      continuous in the state, as MSC Adams' IMPACT force ramps its damping up from 0 at
+      contact; it is Drake's wherever $d \dot p \le k p$ (at rest, on the way out) and stays
+      homogeneous in $(p, \dot p)$: a joint arriving at speed $v_0$ goes past by at most
+      $v_0 e^{-1/3}/\omega$ and leaves at $v_0 e^{-4/3}$; pressed from rest by a steady
+      generalized force $\tau$, it settles $\tau/k$ past the limit after going at most
+      $(1 + e^{-4/3}/3)\,\tau/k$ past. Drake's continuous plant ignores limits
+      (`joint_limits=False` reproduces it). `limit_stiffness`, `limit_damping` are leaves (per
+      velocity coordinate; 0 for unlimited joints) that you may replace.
     - Coupled joints: `couplers=[CouplerConstraint(...)]`, or the URDF's `<mimic>` elements
       with `from_urdf(..., mimic=True)` (by default, as Pinocchio's `buildModelFromUrdf`, a
       mimic joint is an independent joint).
@@ -322,16 +330,17 @@ class RigidBodySystem(System):
                                             translation=height * n, name=name, material=material)
 
     def joint_limit_torque(self, q, v):
-        r"""The compliant limits' generalized force: $\max(0, k p + d\dot p)$ towards the
-        allowed range for each joint past a limit by p, 0 elsewhere (see the class docstring)."""
+        r"""The compliant limits' generalized force: $\mathrm{clip}(k p + d\dot p, 0, 2 k p)$
+        towards the allowed range for each joint past a limit by p, 0 elsewhere (see the class
+        docstring)."""
         if not self.limited:
             return jnp.zeros(self.tree.nv, v.dtype)
         iq, iv = (np.array(i) for i in zip(*self.limited))
         k, d = self.limit_stiffness[iv], self.limit_damping[iv]
         qi, vi = q[iq], v[iv]
         lower, upper = self.tree.position_lower[iq], self.tree.position_upper[iq]
-        up = jnp.where(qi < lower, jnp.maximum(0.0, k * (lower - qi) - d * vi), 0.0)
-        down = jnp.where(qi > upper, jnp.maximum(0.0, k * (qi - upper) + d * vi), 0.0)
+        up = _limit_push(k, d, lower - qi, -vi)
+        down = _limit_push(k, d, qi - upper, vi)
         return jnp.zeros(self.tree.nv, v.dtype).at[iv].add(up - down)
 
     def forward_dynamics(self, q, v, u):
@@ -487,6 +496,13 @@ def _replace_fields(module, **fields):
     for field in dataclasses.fields(module):
         object.__setattr__(copy, field.name, fields.get(field.name, getattr(module, field.name)))
     return copy
+
+
+def _limit_push(k, d, p, p_dot):
+    """clip(k p + d p_dot, 0, 2 k p) for a joint past its limit by p (0 when p <= 0): the
+    damper neither pulls nor outpushes the spring, so the push is 0 at the limit whatever p_dot."""
+    spring = k * jnp.maximum(p, 0.0)
+    return jnp.clip(spring + d * p_dot, 0.0, 2 * spring)
 
 
 def _limited_joints(tree) -> tuple:
