@@ -19,9 +19,22 @@ without it, the Gauss-Newton model crawls (pendulum swing-ups: 553 iterations fo
 of 64, against 46 with it). Every loop is a `lax.while_loop` and every derivative comes from JAX,
 so `jax.vmap` over initial states, goals or parameters solves many problems at once (all
 members run until the last has finished). It returns a status, never raises inside `jit`.
+
+The stages, module-level functions over an `ILQRProblem` (what every stage reads), in the order
+they run:
+
+- outer loop over `ILQRState` (`keep_going` / `outer_iteration`): `solve_subproblem` for the
+  current multiplier and penalty, then `update_multiplier`;
+- inner loop over `DDPState` (`ddp_iteration`): `backward_pass` (the gains, from
+  `expand_steps`' local models, one `backward_step` per knot), `line_search` (a
+  `forward_pass` per step length), `update_regularization`, `subproblem_converged`.
 """
 
 from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -130,142 +143,314 @@ def ilqr(system: System, x0, inputs, time_step, running_cost, final_cost=None, *
 def _ilqr(system, x0, inputs, time_step, running_cost, final_cost, final_state, input_bounds,
           max_iterations, max_outer, tol, constraint_tol, penalty, penalty_growth):
     """`ilqr`'s program, for checked arrays (see `ilqr`)."""
-    N, m = inputs.shape
-    n = system.num_states
-    dtype = inputs.dtype
+    m, n, dtype = inputs.shape[1], system.num_states, inputs.dtype
     h = jnp.asarray(system.sample_time if system.has_discrete_state else time_step, dtype)
-    final_cost = (lambda x: jnp.zeros((), dtype)) if final_cost is None else final_cost
     if input_bounds is None:
         input_bounds = system.input_limits if system.input_limits is not None else (-jnp.inf, jnp.inf)
-    u_lo = jnp.broadcast_to(jnp.asarray(input_bounds[0], dtype), (m,))
-    u_hi = jnp.broadcast_to(jnp.asarray(input_bounds[1], dtype), (m,))
-    has_goal = final_state is not None
-    goal = jnp.broadcast_to(jnp.asarray(final_state if has_goal else 0.0, dtype), (n,))
-    goal_mask = ~jnp.isnan(goal)
-    goal = jnp.where(goal_mask, goal, 0.0)
-    times = jnp.arange(N, dtype=dtype) * h
+    goal = goal_mask = None
+    if final_state is not None:
+        goal = jnp.broadcast_to(jnp.asarray(final_state, dtype), (n,))
+        goal_mask = ~jnp.isnan(goal)
+        goal = jnp.where(goal_mask, goal, 0.0)
+    problem = ILQRProblem(
+        system=system, running_cost=running_cost,
+        final_cost=(lambda x: jnp.zeros((), dtype)) if final_cost is None else final_cost,
+        x0=x0, times=jnp.arange(inputs.shape[0], dtype=dtype) * h, h=h,
+        u_lo=jnp.broadcast_to(jnp.asarray(input_bounds[0], dtype), (m,)),
+        u_hi=jnp.broadcast_to(jnp.asarray(input_bounds[1], dtype), (m,)), goal=goal, goal_mask=goal_mask,
+        max_iterations=max_iterations, max_outer=max_outer,
+        final_tol=max(tol, 100 * float(jnp.finfo(dtype).eps)),  # never below what the float width resolves
+        constraint_tol=constraint_tol, penalty_growth=penalty_growth)
+    U = jnp.clip(inputs, problem.u_lo, problem.u_hi)
+    start = ILQRState(knot_states=problem.rollout(U), knot_inputs=U, multiplier=jnp.zeros(n, dtype),
+                      penalty=jnp.asarray(penalty, dtype), iterations=jnp.asarray(0), updates=jnp.asarray(0))
+    s = jax.lax.while_loop(functools.partial(keep_going, problem), functools.partial(outer_iteration, problem), start)
+    cost = problem.objective(s.knot_states, s.knot_inputs)
+    violation = problem.violation(s.knot_states)
+    converged = jnp.isfinite(cost) & (violation <= constraint_tol) & (s.iterations < max_iterations)
+    return ILQRResult(knot_states=s.knot_states, knot_inputs=s.knot_inputs, time_step=h, cost=cost,
+                      constraint_violation=violation, iterations=s.iterations, converged=converged)
 
-    def step(t, x, u):
-        return discrete_step(system, t, x, u, h, "rk4")
 
-    def step_derivatives(t, x, u):
+class ILQRProblem(eqx.Module):
+    r"""What every stage reads, fixed for one solve: the discretized dynamics
+    $x_{k+1} = \Phi(t_k, x_k, u_k)$ from `x0` at the knot times $t_k = k h$, the costs, the input
+    box $[u_{lo}, u_{hi}]$, the goal $c(x) = x - x_{goal}$ on the entries of `goal_mask` (`goal`
+    None: no goal), and the loops' budget and tolerances. Closed over by the loops, never passed
+    through a transformation."""
+
+    system: System
+    running_cost: Callable
+    final_cost: Callable
+    x0: jax.Array
+    times: jax.Array  # (N,)
+    h: jax.Array
+    u_lo: jax.Array  # (m,)
+    u_hi: jax.Array
+    goal: jax.Array | None  # (n,), zero where free
+    goal_mask: jax.Array | None  # (n,) bool: the constrained entries
+    max_iterations: int  # iLQR iterations, shared by all subproblems
+    max_outer: int  # subproblems (multiplier updates)
+    final_tol: float  # the relative cost change that ends the last subproblems
+    constraint_tol: float
+    penalty_growth: float
+
+    @property
+    def dtype(self):
+        return self.x0.dtype
+
+    def step(self, t, x, u):
+        r"""$\Phi(t, x, u)$: an RK4 step with u held (a discrete system's update)."""
+        return discrete_step(self.system, t, x, u, self.h, "rk4")
+
+    def step_derivatives(self, t, x, u):
         """((Phi_xx, Phi_xu, Phi_uu), (Phi_x, Phi_u)): the step's second-derivative tensors
-        (output index first) with its Jacobians, for every step at once, off the backward
-        pass's sequential path (which then only contracts them with V_x)."""
+        (output index first) with its Jacobians."""
         def jacobians(x, u):
-            A, B = jax.jacfwd(step, (1, 2))(t, x, u)
+            A, B = jax.jacfwd(self.step, (1, 2))(t, x, u)
             return (A, B), (A, B)
         ((fxx, fxu), (_, fuu)), first = jax.jacfwd(jacobians, (0, 1), has_aux=True)(x, u)
         return (fxx, fxu, fuu), first
 
-    def goal_constraint(x):
-        return jnp.where(goal_mask, x - goal, 0.0) if has_goal else jnp.zeros(n, dtype)
+    def goal_constraint(self, x):
+        """c(x) = x - x_goal on the constrained entries, zero elsewhere (zero without a goal)."""
+        if self.goal is None:
+            return jnp.zeros(self.system.num_states, self.dtype)
+        return jnp.where(self.goal_mask, x - self.goal, 0.0)
 
-    def stage(t, x, u):
-        return h * running_cost(t, x, u)
+    def stage_cost(self, t, x, u):
+        r"""$h\,\ell(t, x, u)$."""
+        return self.h * self.running_cost(t, x, u)
 
-    def terminal(x, lam, mu):
-        c = goal_constraint(x)
-        return final_cost(x) + lam @ c + mu / 2 * c @ c
+    def terminal_cost(self, x, multiplier, penalty):
+        r"""The augmented Lagrangian's final cost, $\ell_f(x) + \lambda^T c(x) + \tfrac{\mu}{2} |c(x)|^2$."""
+        c = self.goal_constraint(x)
+        return self.final_cost(x) + multiplier @ c + penalty / 2 * c @ c
 
-    def rollout(U):
+    def rollout(self, U):
+        """The knot states (N+1, n) from x0 under the inputs U."""
         def body(x, tu):
             t, u = tu
-            return step(t, x, u), x
-        xN, X = jax.lax.scan(body, x0, (times, U))
+            return self.step(t, x, u), x
+        xN, X = jax.lax.scan(body, self.x0, (self.times, U))
         return jnp.concatenate([X, xN[None]])
 
-    def total(X, U, lam_f, mu):
-        return jnp.sum(jax.vmap(stage)(times, X[:-1], U)) + terminal(X[-1], lam_f, mu)
+    def running_total(self, X, U):
+        r"""$\sum_k h\,\ell(t_k, x_k, u_k)$."""
+        return jnp.sum(jax.vmap(self.stage_cost)(self.times, X[:-1], U))
 
-    def backward(X, U, lam_f, mu, reg):
-        (fxx, fxu, fuu), (fx, fu) = jax.vmap(step_derivatives)(times, X[:-1], U)
-        grads = jax.vmap(jax.grad(stage, (1, 2)))(times, X[:-1], U)
-        hess = jax.vmap(jax.hessian(stage, (1, 2)))(times, X[:-1], U)
-        Vx = jax.grad(terminal)(X[-1], lam_f, mu)
-        Vxx = jax.hessian(terminal)(X[-1], lam_f, mu)
+    def augmented_cost(self, X, U, multiplier, penalty):
+        r"""The augmented Lagrangian, $\sum_k h\,\ell(t_k, x_k, u_k) + \ell_f(x_N) + \lambda^T c(x_N) +
+        \tfrac{\mu}{2} |c(x_N)|^2$."""
+        return self.running_total(X, U) + self.terminal_cost(X[-1], multiplier, penalty)
 
-        def body(carry, per_step):
-            Vx, Vxx, ok, dv, warm = carry
-            A, B, lx, lu, lxx, lux, luu, fxx, fxu, fuu, u = per_step
-            curvature = lambda T: jnp.tensordot(Vx, T, axes=1)  # noqa: E731  (V_x' . d^2 Phi)
-            lxx, lux, luu = lxx + curvature(fxx), lux + curvature(fxu).T, luu + curvature(fuu)  # DDP
-            Vreg = Vxx + reg * jnp.eye(n, dtype=dtype)
-            Qx, Qu = lx + A.T @ Vx, lu + B.T @ Vx
-            Qxx = lxx + A.T @ Vxx @ A
-            Quu, Qux = luu + B.T @ Vxx @ B, lux + B.T @ Vxx @ A
-            Quu_reg = luu + B.T @ Vreg @ B  # regularized for the gains only (Tassa et al. 2012, eq. 10-11)
-            kff, free, chol = box_qp((Quu_reg + Quu_reg.T) / 2, Qu, u_lo - u, u_hi - u, warm)
-            ok = ok & jnp.all(jnp.isfinite(chol))
-            K = jnp.where(free[:, None], -jax.scipy.linalg.cho_solve((chol, True), lux + B.T @ Vreg @ A), 0.0)
-            Vx = Qx + K.T @ Quu @ kff + K.T @ Qu + Qux.T @ kff
-            Vxx = Qxx + K.T @ Quu @ K + K.T @ Qux + Qux.T @ K
-            dv = dv + jnp.stack([kff @ Qu, kff @ Quu @ kff / 2])
-            return (Vx, (Vxx + Vxx.T) / 2, ok, dv, kff), (kff, K)
+    def objective(self, X, U):
+        r"""$J = \sum_k h\,\ell(t_k, x_k, u_k) + \ell_f(x_N)$, without the constraint terms."""
+        return self.running_total(X, U) + self.final_cost(X[-1])
 
-        (lxx, _), (lux, luu) = hess
-        start = (Vx, Vxx, jnp.asarray(True), jnp.zeros(2, dtype), jnp.zeros(m, dtype))
-        (_, _, ok, dv, _), (kff, K) = jax.lax.scan(body, start, (fx, fu, *grads, lxx, lux, luu, fxx, fxu, fuu, U), reverse=True)
-        return kff, K, ok, dv
+    def violation(self, X):
+        """max |c(x_N)| (the inputs are clamped into their bounds, never outside)."""
+        return jnp.max(jnp.abs(self.goal_constraint(X[-1])), initial=0.0)
 
-    def forward(X, U, kff, K, alpha):
-        def body(x, inputs):
-            t, xb, ub, k, Kk = inputs
-            u = jnp.clip(ub + alpha * k + Kk @ (x - xb), u_lo, u_hi)
-            return step(t, x, u), (x, u)
-        xN, (X_new, U_new) = jax.lax.scan(body, x0, (times, X[:-1], U, kff, K))
-        return jnp.concatenate([X_new, xN[None]]), U_new
+    def inner_tolerance(self, updates):
+        """The relative cost change that ends subproblem `updates`: loose first (1e-3), ten
+        times tighter after each multiplier update, down to `final_tol` (as ALTRO)."""
+        return jnp.maximum(self.final_tol, 1e-3 * 0.1 ** updates.astype(self.dtype))
 
-    def inner_iteration(state, lam_f, mu, inner_tol):
-        X, U, J, reg, it, _ = state
-        kff, K, ok, dv = backward(X, U, lam_f, mu, reg)
-        trials = jax.vmap(lambda a: forward(X, U, kff, K, a))(jnp.asarray(_ALPHAS, dtype))
-        costs = jax.vmap(lambda Xa, Ua: total(Xa, Ua, lam_f, mu))(*trials)
-        expected = -(jnp.asarray(_ALPHAS, dtype) * dv[0] + jnp.asarray(_ALPHAS, dtype) ** 2 * dv[1])
-        accept = ok & jnp.isfinite(costs) & ((J - costs) > 1e-4 * jnp.maximum(expected, 0.0)) & (costs < J)
-        best = jnp.argmax(accept)  # the largest accepted step
-        improved = jnp.any(accept)
-        X_new = jnp.where(improved, trials[0][best], X)
-        U_new = jnp.where(improved, trials[1][best], U)
-        J_new = jnp.where(improved, costs[best], J)
-        reg = jnp.where(improved, jnp.maximum(reg / 10, 1e-9), jnp.minimum(reg * 10, 1e10))
-        small = improved & (J - J_new <= inner_tol * (1 + jnp.abs(J_new)))
-        # nothing left to gain at this float width: the model's own predicted decrease is rounding
-        flat = -(dv[0] + dv[1]) <= 10 * jnp.finfo(dtype).eps * (1 + jnp.abs(J))
-        done = small | (ok & flat) | (~improved & (reg >= 1e10))
-        return X_new, U_new, J_new, reg, it + 1, done
 
-    def violation(X):  # of the goal: the inputs are clamped into their bounds, never outside
-        return jnp.max(jnp.abs(goal_constraint(X[-1])), initial=0.0)
+class ILQRState(eqx.Module):
+    """The augmented-Lagrangian (outer) loop's state."""
 
-    final_tol = max(tol, 100 * float(jnp.finfo(dtype).eps))  # never below what the float width resolves
+    knot_states: jax.Array  # X (N+1, n)
+    knot_inputs: jax.Array  # U (N, m)
+    multiplier: jax.Array  # lambda (n,), of the goal constraint
+    penalty: jax.Array  # mu
+    iterations: jax.Array  # iLQR iterations so far, all subproblems together
+    updates: jax.Array  # multiplier updates so far (subproblems solved)
 
-    def inner_tolerance(outer):  # loose first, tighter after each multiplier update (as ALTRO)
-        return jnp.maximum(final_tol, 1e-3 * 0.1 ** outer.astype(dtype))
 
-    def outer_iteration(state):
-        X, U, lam_f, mu, it, outer = state
-        J = total(X, U, lam_f, mu)
-        inner = jax.lax.while_loop(
-            lambda s: (~s[-1]) & (s[-2] < max_iterations),
-            lambda s: inner_iteration(s, lam_f, mu, inner_tolerance(outer)),
-            (X, U, J, jnp.asarray(1e-6, dtype), it, jnp.asarray(False)))  # fresh regularization
-        X, U, _, _, it, _ = inner
-        lam_f = lam_f + mu * goal_constraint(X[-1])
-        return X, U, lam_f, jnp.minimum(mu * penalty_growth, 1e8), it, outer + 1
+class DDPState(eqx.Module):
+    """The iterate of one subproblem's (inner) loop."""
 
-    def keep_going(state):
-        X, U, lam_f, mu, it, outer = state
-        last_was_loose = inner_tolerance(outer - 1) > final_tol
-        unfinished = (outer == 0) | (violation(X) > constraint_tol) | last_was_loose
-        return (outer < max_outer) & (it < max_iterations) & unfinished
+    knot_states: jax.Array
+    knot_inputs: jax.Array
+    cost: jax.Array  # the augmented cost of the knots
+    regularization: jax.Array  # rho, added to the value Hessian for the gains
+    iterations: jax.Array  # as ILQRState's: the budget is shared
+    done: jax.Array
 
-    U0 = jnp.clip(inputs, u_lo, u_hi)
-    X0 = rollout(U0)
-    state = (X0, U0, jnp.zeros(n, dtype), jnp.asarray(penalty, dtype), jnp.asarray(0), jnp.asarray(0))
-    X, U, lam_f, mu, it, outer = jax.lax.while_loop(keep_going, outer_iteration, state)
-    cost = jnp.sum(jax.vmap(lambda t, x, u: h * running_cost(t, x, u))(times, X[:-1], U)) + final_cost(X[-1])
-    viol = violation(X)
-    converged = jnp.isfinite(cost) & (viol <= constraint_tol) & (it < max_iterations)
-    return ILQRResult(knot_states=X, knot_inputs=U, time_step=h, cost=cost, constraint_violation=viol,
-                      iterations=it, converged=converged)
+
+class StepModel(eqx.Module):
+    """The second-order model of each step about the nominal knots (leading axis N): the
+    dynamics' Jacobians and second-derivative tensors (output index first), the stage cost's
+    gradient and Hessian blocks, and the nominal input."""
+
+    A: jax.Array  # Phi_x (n, n)
+    B: jax.Array  # Phi_u (n, m)
+    fxx: jax.Array  # Phi_xx (n, n, n)
+    fxu: jax.Array  # Phi_xu (n, n, m)
+    fuu: jax.Array  # Phi_uu (n, m, m)
+    lx: jax.Array
+    lu: jax.Array
+    lxx: jax.Array
+    lux: jax.Array  # (m, n)
+    luu: jax.Array
+    u: jax.Array
+
+
+class Gains(eqx.Module):
+    r"""The backward pass's policy $u_k = \bar u_k + \alpha k_k + K_k (x_k - \bar x_k)$ (clamped),
+    whether every regularized $Q_{uu}$ was positive definite, and the model's predicted decrease
+    $\Delta V(\alpha) = -(\alpha d_1 + \alpha^2 d_2)$, $d = (\sum_k k_k^T Q_u, \sum_k \tfrac12 k_k^T Q_{uu} k_k)$."""
+
+    feedforward: jax.Array  # k (N, m)
+    feedback: jax.Array  # K (N, m, n)
+    ok: jax.Array
+    decrease: jax.Array  # d (2,)
+
+
+def expand_steps(problem: ILQRProblem, X, U) -> StepModel:
+    """Every step's `StepModel` at once (vmapped), off the backward pass's sequential path,
+    which then only contracts the tensors with V_x."""
+    (fxx, fxu, fuu), (A, B) = jax.vmap(problem.step_derivatives)(problem.times, X[:-1], U)
+    lx, lu = jax.vmap(jax.grad(problem.stage_cost, (1, 2)))(problem.times, X[:-1], U)
+    (lxx, _), (lux, luu) = jax.vmap(jax.hessian(problem.stage_cost, (1, 2)))(problem.times, X[:-1], U)
+    return StepModel(A=A, B=B, fxx=fxx, fxu=fxu, fuu=fuu, lx=lx, lu=lu, lxx=lxx, lux=lux, luu=luu, u=U)
+
+
+def backward_step(problem: ILQRProblem, regularization, carry, k: StepModel):
+    r"""One step of the backward pass, from $(V_x', V_{xx}')$ at step k+1 (DDP, with the
+    dynamics' curvature):
+
+    $$Q_x = \ell_x + A^T V_x', \quad Q_u = \ell_u + B^T V_x', \quad
+      Q_{xx} = \ell_{xx} + A^T V_{xx}' A + V_x' \cdot \Phi_{xx},$$
+    $$Q_{ux} = \ell_{ux} + B^T V_{xx}' A + V_x' \cdot \Phi_{ux}, \quad
+      Q_{uu} = \ell_{uu} + B^T V_{xx}' B + V_x' \cdot \Phi_{uu};$$
+
+    the gains from the regularized $\tilde Q = Q$ with $V_{xx}' + \rho I$ for $V_{xx}'$ (Tassa
+    et al. 2012, eq. 10-11): $k$ solves the box QP $\min \tfrac12 k^T \tilde Q_{uu} k + Q_u^T k$,
+    $u_{lo} - \bar u \le k \le u_{hi} - \bar u$ (warm-started at the next step's k), and
+    $K = -\tilde Q_{uu}^{-1} \tilde Q_{ux}$ on the free inputs, zero on the clamped ones; then
+
+    $$V_x = Q_x + K^T Q_{uu} k + K^T Q_u + Q_{ux}^T k, \quad
+      V_{xx} = Q_{xx} + K^T Q_{uu} K + K^T Q_{ux} + Q_{ux}^T K.$$
+
+    carry: (V_x, V_xx, ok, d, the next step's k); returns it for step k with (k, K)."""
+    Vx, Vxx, ok, decrease, warm = carry
+    n = Vx.shape[0]
+    curvature = lambda T: jnp.tensordot(Vx, T, axes=1)  # noqa: E731  (V_x' . d^2 Phi)
+    lxx, lux, luu = k.lxx + curvature(k.fxx), k.lux + curvature(k.fxu).T, k.luu + curvature(k.fuu)  # DDP
+    A, B = k.A, k.B
+    Vreg = Vxx + regularization * jnp.eye(n, dtype=Vxx.dtype)
+    Qx, Qu = k.lx + A.T @ Vx, k.lu + B.T @ Vx
+    Qxx = lxx + A.T @ Vxx @ A
+    Quu, Qux = luu + B.T @ Vxx @ B, lux + B.T @ Vxx @ A
+    Quu_reg = luu + B.T @ Vreg @ B
+    kff, free, chol = box_qp((Quu_reg + Quu_reg.T) / 2, Qu, problem.u_lo - k.u, problem.u_hi - k.u, warm)
+    ok = ok & jnp.all(jnp.isfinite(chol))
+    K = jnp.where(free[:, None], -jax.scipy.linalg.cho_solve((chol, True), lux + B.T @ Vreg @ A), 0.0)
+    Vx = Qx + K.T @ Quu @ kff + K.T @ Qu + Qux.T @ kff
+    Vxx = Qxx + K.T @ Quu @ K + K.T @ Qux + Qux.T @ K
+    decrease = decrease + jnp.stack([kff @ Qu, kff @ Quu @ kff / 2])
+    return (Vx, (Vxx + Vxx.T) / 2, ok, decrease, kff), (kff, K)
+
+
+def backward_pass(problem: ILQRProblem, X, U, multiplier, penalty, regularization) -> Gains:
+    r"""The gains about the knots (X, U): `backward_step` from the final step to the first,
+    starting from the augmented final cost's $V_x = \nabla L_f(x_N)$, $V_{xx} = \nabla^2 L_f(x_N)$."""
+    model = expand_steps(problem, X, U)
+    Vx = jax.grad(problem.terminal_cost)(X[-1], multiplier, penalty)
+    Vxx = jax.hessian(problem.terminal_cost)(X[-1], multiplier, penalty)
+    m, dtype = U.shape[1], U.dtype
+    start = (Vx, Vxx, jnp.asarray(True), jnp.zeros(2, dtype), jnp.zeros(m, dtype))
+    (_, _, ok, decrease, _), (kff, K) = jax.lax.scan(functools.partial(backward_step, problem, regularization),
+                                                     start, model, reverse=True)
+    return Gains(feedforward=kff, feedback=K, ok=ok, decrease=decrease)
+
+
+def forward_pass(problem: ILQRProblem, X, U, gains: Gains, alpha):
+    r"""The knots under the policy: $x_0$ given, $u_k = \mathrm{clip}(\bar u_k + \alpha k_k +
+    K_k (x_k - \bar x_k), u_{lo}, u_{hi})$, $x_{k+1} = \Phi(t_k, x_k, u_k)$. Returns (X, U)."""
+    def body(x, per_step):
+        t, xb, ub, k, K = per_step
+        u = jnp.clip(ub + alpha * k + K @ (x - xb), problem.u_lo, problem.u_hi)
+        return problem.step(t, x, u), (x, u)
+    xN, (X_new, U_new) = jax.lax.scan(body, problem.x0, (problem.times, X[:-1], U, gains.feedforward, gains.feedback))
+    return jnp.concatenate([X_new, xN[None]]), U_new
+
+
+def line_search(problem: ILQRProblem, X, U, cost, gains: Gains, multiplier, penalty):
+    r"""Backtracking over $\alpha \in \{1, \tfrac12, \dots, 2^{-9}\}$, all forward passes at once:
+    the largest $\alpha$ whose cost $J(\alpha)$ is finite, below J, and decreases by at least
+    $10^{-4}$ of the predicted $\Delta V(\alpha)$ (Armijo). Returns (X, U, cost, improved): the
+    knots unchanged when no step is accepted (or the gains are not `ok`)."""
+    alphas = jnp.asarray(_ALPHAS, cost.dtype)
+    trials = jax.vmap(lambda a: forward_pass(problem, X, U, gains, a))(alphas)
+    costs = jax.vmap(lambda Xa, Ua: problem.augmented_cost(Xa, Ua, multiplier, penalty))(*trials)
+    expected = -(alphas * gains.decrease[0] + alphas ** 2 * gains.decrease[1])
+    accept = gains.ok & jnp.isfinite(costs) & ((cost - costs) > 1e-4 * jnp.maximum(expected, 0.0)) & (costs < cost)
+    best = jnp.argmax(accept)  # the largest accepted step
+    improved = jnp.any(accept)
+    return (jnp.where(improved, trials[0][best], X), jnp.where(improved, trials[1][best], U),
+            jnp.where(improved, costs[best], cost), improved)
+
+
+def update_regularization(regularization, improved):
+    r"""Levenberg-Marquardt: $\rho \leftarrow \max(\rho / 10, 10^{-9})$ after a step,
+    $\min(10 \rho, 10^{10})$ after none."""
+    return jnp.where(improved, jnp.maximum(regularization / 10, 1e-9), jnp.minimum(regularization * 10, 1e10))
+
+
+def subproblem_converged(cost, new_cost, improved, gains: Gains, regularization, tolerance):
+    r"""Done when a step changed the cost by at most `tolerance` $(1 + |J|)$; or the model's
+    own predicted decrease for a full step, $\Delta V(1) = -(d_1 + d_2)$, is at rounding
+    ($10\,\epsilon\,(1 + |J|)$: nothing left to gain at this float width); or no step helps
+    even at the largest regularization."""
+    small = improved & (cost - new_cost <= tolerance * (1 + jnp.abs(new_cost)))
+    flat = -(gains.decrease[0] + gains.decrease[1]) <= 10 * jnp.finfo(cost.dtype).eps * (1 + jnp.abs(cost))
+    return small | (gains.ok & flat) | (~improved & (regularization >= 1e10))
+
+
+def ddp_iteration(problem: ILQRProblem, s: DDPState, multiplier, penalty, tolerance) -> DDPState:
+    """One iteration of the subproblem: `backward_pass`, `line_search`, `update_regularization`,
+    `subproblem_converged`."""
+    gains = backward_pass(problem, s.knot_states, s.knot_inputs, multiplier, penalty, s.regularization)
+    X, U, cost, improved = line_search(problem, s.knot_states, s.knot_inputs, s.cost, gains, multiplier, penalty)
+    regularization = update_regularization(s.regularization, improved)
+    done = subproblem_converged(s.cost, cost, improved, gains, regularization, tolerance)
+    return DDPState(knot_states=X, knot_inputs=U, cost=cost, regularization=regularization,
+                    iterations=s.iterations + 1, done=done)
+
+
+def solve_subproblem(problem: ILQRProblem, s: ILQRState) -> ILQRState:
+    r"""Minimize the augmented cost for the current $\lambda$, $\mu$ by `ddp_iteration`s from the
+    current knots, with fresh regularization ($\rho = 10^{-6}$), until `subproblem_converged`
+    at `inner_tolerance` or the iteration budget is spent."""
+    tolerance = problem.inner_tolerance(s.updates)
+    start = DDPState(knot_states=s.knot_states, knot_inputs=s.knot_inputs,
+                     cost=problem.augmented_cost(s.knot_states, s.knot_inputs, s.multiplier, s.penalty),
+                     regularization=jnp.asarray(1e-6, problem.dtype), iterations=s.iterations, done=jnp.asarray(False))
+    d = jax.lax.while_loop(lambda d: ~d.done & (d.iterations < problem.max_iterations),
+                           lambda d: ddp_iteration(problem, d, s.multiplier, s.penalty, tolerance), start)
+    return dataclasses.replace(s, knot_states=d.knot_states, knot_inputs=d.knot_inputs, iterations=d.iterations)
+
+
+def update_multiplier(problem: ILQRProblem, s: ILQRState) -> ILQRState:
+    r"""The method of multipliers: $\lambda \leftarrow \lambda + \mu\, c(x_N)$, then
+    $\mu \leftarrow \min(\text{penalty\_growth}\,\mu, 10^8)$."""
+    return dataclasses.replace(s, multiplier=s.multiplier + s.penalty * problem.goal_constraint(s.knot_states[-1]),
+                               penalty=jnp.minimum(s.penalty * problem.penalty_growth, 1e8), updates=s.updates + 1)
+
+
+def outer_iteration(problem: ILQRProblem, s: ILQRState) -> ILQRState:
+    """One augmented-Lagrangian iteration: `solve_subproblem`, then `update_multiplier`."""
+    return update_multiplier(problem, solve_subproblem(problem, s))
+
+
+def keep_going(problem: ILQRProblem, s: ILQRState):
+    """Another subproblem while the budget lasts (`max_outer`, `max_iterations`) and: none has
+    run yet, the goal is violated by more than `constraint_tol`, or the last one was solved
+    only to a loose tolerance."""
+    last_was_loose = problem.inner_tolerance(s.updates - 1) > problem.final_tol
+    unfinished = (s.updates == 0) | (problem.violation(s.knot_states) > problem.constraint_tol) | last_was_loose
+    return (s.updates < problem.max_outer) & (s.iterations < problem.max_iterations) & unfinished
