@@ -502,7 +502,9 @@ def _limit_push(k, d, p, p_dot):
     """clip(k p + d p_dot, 0, 2 k p) for a joint past its limit by p (0 when p <= 0): the
     damper neither pulls nor outpushes the spring, so the push is 0 at the limit whatever p_dot."""
     spring = k * jnp.maximum(p, 0.0)
-    return jnp.clip(spring + d * p_dot, 0.0, 2 * spring)
+    # `where`, not the clip alone: inside the limits clip(d p_dot, 0, 0) is 0, but at rest
+    # (p_dot = 0) its ties would give the linearization a derivative d/4 in p_dot
+    return jnp.where(p > 0, jnp.clip(spring + d * p_dot, 0.0, 2 * spring), 0.0)
 
 
 def _limited_joints(tree) -> tuple:
