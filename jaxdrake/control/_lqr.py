@@ -106,6 +106,13 @@ def _require_stabilising(system, lin, K, S):
             "inputs, or penalise every state in Q (Q > 0).")
 
 
+def check_weight_shapes(caller: str, system: System, Q, R):
+    """Q must be (n, n) and R (m, m) for `system`'s n states and m inputs."""
+    for label, M, size in (("Q", Q, system.num_states), ("R", R, system.num_inputs)):
+        if M.shape != (size, size):
+            raise ValueError(f"{caller}: {label} must be ({size}, {size}) for {system.name}, got {M.shape}")
+
+
 def check_cost_weights(caller: str, Q, R, N=None, Qf=None):
     """Refuse weights that make the quadratic cost $x^T Q x + 2 x^T N u + u^T R u$ unbounded
     below or the gain undefined: R positive definite, [[Q, N], [N^T, R]] (and Qf) positive
@@ -141,9 +148,7 @@ def lqr(system: System, Q, R, x0=None, u0=None, *, N=None, check_equilibrium: bo
     x0 = jnp.zeros(n) if x0 is None else jnp.asarray(x0, float).reshape(n)
     u0 = jnp.zeros(m) if u0 is None else jnp.asarray(u0, float).reshape(m)
     Q, R = (array_module(M).atleast_2d(M).astype(float) for M in (Q, R))  # numbers stay numpy: nothing compiled
-    for label, M, size in (("Q", Q, n), ("R", R, m)):
-        if M.shape != (size, size):
-            raise ValueError(f"lqr: {label} must be ({size}, {size}) for {system.name}, got {M.shape}")
+    check_weight_shapes("lqr", system, Q, R)
     if N is not None:
         N = jnp.asarray(N, float).reshape(n, m)
     check_cost_weights("lqr", Q, R, N)

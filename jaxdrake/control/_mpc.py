@@ -26,7 +26,7 @@ import numpy as np
 
 from ..simulation import discrete_step
 from ..systems import System, require_plain_system
-from ._lqr import check_cost_weights, linearize
+from ._lqr import check_cost_weights, check_weight_shapes, linearize
 from ._qp import QPSolution, QPStatus, QPWorkspace, qp_workspace, solve_qp
 from ._riccati import solve_discrete_are
 
@@ -274,9 +274,7 @@ def linear_mpc(system: System, Q, R, horizon, *, period=None, x0=None, u0=None, 
     x0 = jnp.zeros(n) if x0 is None else jnp.asarray(x0, float).reshape(n)
     u0 = jnp.zeros(m) if u0 is None else jnp.asarray(u0, float).reshape(m)
     Q, R = jnp.atleast_2d(jnp.asarray(Q, float)), jnp.atleast_2d(jnp.asarray(R, float))
-    for label, M, size in (("Q", Q, n), ("R", R, m)):
-        if M.shape != (size, size):
-            raise ValueError(f"{caller}: {label} must be ({size}, {size}) for {system.name}, got {M.shape}")
+    check_weight_shapes(caller, system, Q, R)
     if terminal_cost is not None:
         terminal_cost = jnp.atleast_2d(jnp.asarray(terminal_cost, float))
         if terminal_cost.shape != (n, n):
@@ -343,13 +341,24 @@ def _finite_plan(plan, bounds):
     return finite, jnp.where(finite, plan, jnp.clip(jnp.zeros_like(plan), *bounds))
 
 
-def _initial_plan_state(num_inputs: int, N: int, bounds):
-    """[u_0; status; plan] for the plan u = 0 clipped into the bounds."""
-    plan = jnp.broadcast_to(jnp.clip(jnp.zeros(num_inputs), *bounds), (N, num_inputs))
-    return jnp.concatenate([plan[0], jnp.zeros(1), plan.reshape(-1)])
+class _PlanController(RecedingHorizonController):
+    """A controller whose discrete state is exactly $[u_0; \\text{status}; \\text{plan}]$
+    (iLQR, MPPI); subclasses hold `plant`, `input_bounds`, `horizon_steps` and `period`."""
+
+    def _declare_plan_state(self):
+        m = self.plant.num_inputs
+        super().__init__(num_discrete_states=m + 1 + self.horizon_steps * m, num_inputs=self.plant.num_states,
+                         num_outputs=m, sample_time=self.period, direct_feedthrough=False,
+                         **_controller_frames(self.plant))
+
+    def initial_state(self):
+        """The plan u = 0 clipped into the bounds."""
+        m, N = self.num_outputs, self.horizon_steps
+        plan = jnp.broadcast_to(jnp.clip(jnp.zeros(m), *self.input_bounds), (N, m))
+        return jnp.concatenate([plan[0], jnp.zeros(1), plan.reshape(-1)])
 
 
-class NonlinearMPC(RecedingHorizonController):
+class NonlinearMPC(_PlanController):
     """Nonlinear MPC by iLQR (see `nonlinear_mpc`)."""
 
     plant: System
@@ -366,13 +375,7 @@ class NonlinearMPC(RecedingHorizonController):
         self.plant, self.running_cost, self.final_cost = plant, running_cost, final_cost
         self.input_bounds, self.horizon_steps, self.period = input_bounds, int(horizon_steps), float(period)
         self.max_iterations, self.tolerance = int(max_iterations), float(tolerance)
-        m = plant.num_inputs
-        super().__init__(num_discrete_states=m + 1 + self.horizon_steps * m, num_inputs=plant.num_states,
-                         num_outputs=m, sample_time=self.period, direct_feedthrough=False,
-                         **_controller_frames(plant))
-
-    def initial_state(self):
-        return _initial_plan_state(self.num_outputs, self.horizon_steps, self.input_bounds)
+        self._declare_plan_state()
 
     def update(self, t, x, u):
         from ..trajopt import ilqr  # imported on first use, as `import jaxdrake` keeps trajopt (IPOPT) lazy
@@ -430,7 +433,7 @@ def rollout_cost(system: System, running_cost, final_cost, x0, inputs, period):
     return cost + (0.0 if final_cost is None else final_cost(xN))
 
 
-class MPPI(RecedingHorizonController):
+class MPPI(_PlanController):
     """Sampling MPC, MPPI (see `mppi`)."""
 
     plant: System
@@ -449,13 +452,7 @@ class MPPI(RecedingHorizonController):
         self.plant, self.running_cost, self.final_cost = plant, running_cost, final_cost
         self.input_bounds, self.noise_std, self.temperature, self.key_data = input_bounds, noise_std, temperature, key_data
         self.horizon_steps, self.period, self.num_samples = int(horizon_steps), float(period), int(num_samples)
-        m = plant.num_inputs
-        super().__init__(num_discrete_states=m + 1 + self.horizon_steps * m, num_inputs=plant.num_states,
-                         num_outputs=m, sample_time=self.period, direct_feedthrough=False,
-                         **_controller_frames(plant))
-
-    def initial_state(self):
-        return _initial_plan_state(self.num_outputs, self.horizon_steps, self.input_bounds)
+        self._declare_plan_state()
 
     def update(self, t, x, u):
         N, m, K = self.horizon_steps, self.num_outputs, self.num_samples
