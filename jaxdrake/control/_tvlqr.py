@@ -23,13 +23,13 @@ from ..systems import System
 from ..trajectories import Trajectory
 from ._lqr import check_cost_weights
 
-def _nominal_at(nominal, t):
+def nominal_at(nominal, t):
     """A nominal signal at time t: a `Trajectory` (its state) or a constant array."""
     return nominal.state(t) if isinstance(nominal, (Trajectory, SimulatedTrajectory)) else nominal
 
 
 def _jacobians(plant, t, x_nominal, u_nominal):
-    x0, u0 = _nominal_at(x_nominal, t), _nominal_at(u_nominal, t)
+    x0, u0 = nominal_at(x_nominal, t), nominal_at(u_nominal, t)
     return jax.jacfwd(plant.dynamics, argnums=(1, 2))(t, x0, u0)
 
 
@@ -47,7 +47,7 @@ def _riccati_rhs(tau, s, u, params):
 def _tracking_output(t, _, plant_state, params):
     K, x_nominal, u_nominal = params
     gain = K.state(t).reshape(-1, plant_state.shape[0])
-    return _nominal_at(u_nominal, t) - gain @ (plant_state - _nominal_at(x_nominal, t))
+    return nominal_at(u_nominal, t) - gain @ (plant_state - nominal_at(x_nominal, t))
 
 
 class FiniteHorizonLQRResult(eqx.Module):

@@ -17,17 +17,13 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from ..control import nominal_at
 from ..simulation import SimulatedTrajectory, simulate
 from ..systems import System
 from ..trajectories import Trajectory
 from ._checks import as_matrix, check_covariance, check_plant
 from ._kalman import noise_intensities, noise_jacobians
 from ._observer import LuenbergerObserver
-
-
-def _nominal_at(nominal, t):
-    """A nominal signal at time t: a trajectory's state, or a constant array."""
-    return nominal.state(t) if isinstance(nominal, (Trajectory, SimulatedTrajectory)) else nominal
 
 
 def _as_nominal(value, size, label, name):
@@ -41,7 +37,7 @@ def _as_nominal(value, size, label, name):
 
 def _noise_model_along(plant, t, x_nominal, u_nominal, W, V):
     """(A, C, W_x, V_y, N) at time t on the nominal."""
-    _, A, _, G, C, _, H = noise_jacobians(plant, t, _nominal_at(x_nominal, t), _nominal_at(u_nominal, t))
+    _, A, _, G, C, _, H = noise_jacobians(plant, t, nominal_at(x_nominal, t), nominal_at(u_nominal, t))
     return (A, C) + noise_intensities(G, H, W, V)
 
 
