@@ -157,7 +157,8 @@ def _output_feedback_through_estimator(a: System, b: System, s: float) -> System
                          "sets, at the same instant; an estimator's output (its state) must not depend "
                          "on its input directly")
     nu = a.num_inputs
-    if _both_linear(a, b) and a.input_limits is None and b.input_limits is None:
+    if (_both_linear(a, b) and frame_conversion(b.output_frame, a.input_frame) is None
+            and a.input_limits is None and b.input_limits is None):
         b_u, b_y = b.B[:, :nu], b.B[:, nu:]
         return LinearSystem(
             _block([[a.A, s * a.B @ b.C], [b_y @ a.C, b.A + s * (b_u + b_y @ a.D) @ b.C]]),
