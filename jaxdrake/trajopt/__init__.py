@@ -6,6 +6,7 @@ from ._ilqr import ILQRResult, ilqr
 from ._nlp import NonlinearProgram, SolverResult, Term
 from ._program import (DirectCollocation, DirectTranscription, MultipleShooting,
                        TrajectoryOptimizationResult)
+from ._status import ILQRStatus, SolverStatus
 
-__all__ = ["DirectCollocation", "DirectTranscription", "ILQRResult", "MultipleShooting", "NonlinearProgram",
-           "SolverResult", "Term", "TrajectoryOptimizationResult", "ilqr"]
+__all__ = ["DirectCollocation", "DirectTranscription", "ILQRResult", "ILQRStatus", "MultipleShooting",
+           "NonlinearProgram", "SolverResult", "SolverStatus", "Term", "TrajectoryOptimizationResult", "ilqr"]

@@ -45,6 +45,7 @@ from ..simulation import discrete_step
 from ..systems import System
 from ..systems import require_plain_system
 from ..trajectories import Trajectory
+from ._status import ILQRStatus, messages
 
 _ALPHAS = 0.5 ** np.arange(10)
 _BOX_QP_ITERATIONS = 8  # projected Newton steps per box QP, at most (m + 1: exact in one when m = 1)
@@ -81,7 +82,8 @@ def box_qp(H, g, lower, upper, x0):
 class ILQRResult(eqx.Module):
     """The knot states (N+1, n) and inputs (N, m) of the solution, the cost J (without the
     constraint terms), the largest constraint violation, the number of inner (iLQR) iterations,
-    and `converged` (cost change below `tol`, constraints below `constraint_tol`)."""
+    and the `status` (an `ILQRStatus` code; an array for a batch): `success` (cost change below
+    `tol`, constraints below `constraint_tol`, within the budget) and `message` from it."""
 
     knot_states: jax.Array
     knot_inputs: jax.Array
@@ -89,7 +91,17 @@ class ILQRResult(eqx.Module):
     cost: jax.Array
     constraint_violation: jax.Array
     iterations: jax.Array
-    converged: jax.Array
+    status: jax.Array
+
+    @property
+    def success(self):
+        """True where the solve converged; works on traced and batched results."""
+        return self.status == ILQRStatus.SUCCESS
+
+    @property
+    def message(self):
+        """What `status` means (an array of messages for a batch)."""
+        return messages(ILQRStatus, self.status)
 
     @property
     def times(self):
@@ -167,9 +179,12 @@ def _ilqr(system, x0, inputs, time_step, running_cost, final_cost, final_state, 
     s = jax.lax.while_loop(functools.partial(keep_going, problem), functools.partial(outer_iteration, problem), start)
     cost = problem.objective(s.knot_states, s.knot_inputs)
     violation = problem.violation(s.knot_states)
-    converged = jnp.isfinite(cost) & (violation <= constraint_tol) & (s.iterations < max_iterations)
+    status = jnp.select([~jnp.isfinite(cost), s.iterations >= max_iterations,
+                         ~(violation <= constraint_tol)],
+                        [ILQRStatus.NONFINITE, ILQRStatus.MAXIMUM_ITERATIONS, ILQRStatus.GOAL_NOT_REACHED],
+                        ILQRStatus.SUCCESS)
     return ILQRResult(knot_states=s.knot_states, knot_inputs=s.knot_inputs, time_step=h, cost=cost,
-                      constraint_violation=violation, iterations=s.iterations, converged=converged)
+                      constraint_violation=violation, iterations=s.iterations, status=status)
 
 
 class ILQRProblem(eqx.Module):

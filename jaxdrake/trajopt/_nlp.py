@@ -19,12 +19,14 @@ import time
 import warnings
 from typing import Callable
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._extras import MissingExtraError, require
 from .._progress import finish, progress_bar
+from ._status import SolverStatus
 
 
 @dataclasses.dataclass(frozen=True)
@@ -319,22 +321,28 @@ class NonlinearProgram:
 
 # ----- solvers ------------------------------------------------------------------------------
 
-@dataclasses.dataclass
-class SolverResult:
-    """What a solver returned: the point `z`, `success`, the solver's own `status` code and
-    `message`, the final `cost` and `constraint_violation` (largest bound or constraint
-    violation), `iterations`, `solve_time` (s) and the per-iteration `log` (dicts)."""
+class SolverResult(eqx.Module):
+    """What a solver returned, on the host: the point `z`, the `status` (a `SolverStatus`;
+    `success` and `message` from it), the final `cost` and `constraint_violation` (largest
+    bound or constraint violation), `iterations`, `solve_time` (s), the `solver`'s name and the
+    per-iteration `log` (dicts)."""
 
     z: np.ndarray
-    success: bool
-    status: int
-    message: str
+    status: SolverStatus
     cost: float
     constraint_violation: float
     iterations: int
     solve_time: float
     solver: str
     log: list
+
+    @property
+    def success(self) -> bool:
+        return self.status.success
+
+    @property
+    def message(self) -> str:
+        return self.status.message
 
 
 def constraint_violation(nlp: NonlinearProgram, z) -> float:
@@ -364,13 +372,14 @@ class _Progress:
         finish(self.bar, len(self.log))
 
 
-IPOPT_STATUS = {0: "solved", 1: "solved to acceptable level", 2: "infeasible problem detected",
-                3: "search direction becomes too small", 4: "diverging iterates",
-                5: "user requested stop", 6: "feasible point found", -1: "maximum iterations exceeded",
-                -2: "restoration failed", -3: "error in step computation", -4: "maximum CPU time exceeded",
-                -5: "maximum wall time exceeded", -10: "not enough degrees of freedom",
-                -11: "invalid problem definition", -12: "invalid option",
-                -13: "invalid number detected (NaN or inf in a function or derivative)"}
+IPOPT_STATUS = {0: SolverStatus.SOLVED, 1: SolverStatus.SOLVED_TO_ACCEPTABLE_LEVEL, 2: SolverStatus.INFEASIBLE,
+                3: SolverStatus.SEARCH_DIRECTION_TOO_SMALL, 4: SolverStatus.DIVERGING_ITERATES,
+                5: SolverStatus.USER_REQUESTED_STOP, 6: SolverStatus.FEASIBLE_POINT_FOUND,
+                -1: SolverStatus.MAXIMUM_ITERATIONS, -2: SolverStatus.RESTORATION_FAILED,
+                -3: SolverStatus.ERROR_IN_STEP_COMPUTATION, -4: SolverStatus.MAXIMUM_TIME,
+                -5: SolverStatus.MAXIMUM_TIME, -10: SolverStatus.NOT_ENOUGH_DEGREES_OF_FREEDOM,
+                -11: SolverStatus.INVALID_PROBLEM, -12: SolverStatus.INVALID_PROBLEM,
+                -13: SolverStatus.NONFINITE}  # IPOPT's ApplicationReturnStatus; others: SOLVER_ERROR
 
 
 def solve_ipopt(nlp: NonlinearProgram, z0, *, tol=1e-8, max_iterations=3000, hessian="exact",
@@ -420,10 +429,7 @@ def solve_ipopt(nlp: NonlinearProgram, z0, *, tol=1e-8, max_iterations=3000, hes
     finally:
         monitor.close()
     elapsed = time.perf_counter() - start
-    status = int(info["status"])
-    message = IPOPT_STATUS.get(status, info["status_msg"].decode() if isinstance(info["status_msg"], bytes)
-                               else str(info["status_msg"]))
-    return SolverResult(z=np.asarray(z), success=status in (0, 1), status=status, message=message,
+    return SolverResult(z=np.asarray(z), status=IPOPT_STATUS.get(int(info["status"]), SolverStatus.SOLVER_ERROR),
                         cost=float(info["obj_val"]), constraint_violation=constraint_violation(nlp, z),
                         iterations=len(monitor.log) - 1 if monitor.log else 0, solve_time=elapsed,
                         solver="ipopt", log=monitor.log)
@@ -468,11 +474,20 @@ def solve_scipy(nlp: NonlinearProgram, z0, *, tol=1e-8, max_iterations=3000, opt
         monitor.close()
     elapsed = time.perf_counter() - start
     violation = constraint_violation(nlp, out.x)
-    ok = bool(out.status in (1, 2)) and np.isfinite(out.fun) and violation <= max(1e-6, 10 * tol)
-    message = out.message if np.isfinite(out.fun) else "non-finite objective: " + str(out.message)
-    return SolverResult(z=np.asarray(out.x), success=ok, status=int(out.status), message=str(message),
+    return SolverResult(z=np.asarray(out.x), status=_scipy_status(out, violation, tol),
                         cost=float(out.fun), constraint_violation=violation, iterations=int(out.nit),
                         solve_time=elapsed, solver="scipy", log=monitor.log)
+
+
+def _scipy_status(out, violation: float, tol: float) -> SolverStatus:
+    """trust-constr's ending as a `SolverStatus`: stopped on its gradient or step tolerance (1, 2)
+    with a finite cost and the constraints met to max(1e-6, 10 tol) is SOLVED."""
+    if not (np.isfinite(out.fun) and np.isfinite(violation)):
+        return SolverStatus.NONFINITE
+    if out.status in (1, 2):
+        return SolverStatus.SOLVED if violation <= max(1e-6, 10 * tol) else SolverStatus.CONSTRAINTS_VIOLATED
+    return {0: SolverStatus.MAXIMUM_ITERATIONS, 3: SolverStatus.USER_REQUESTED_STOP}.get(out.status,
+                                                                                     SolverStatus.SOLVER_ERROR)
 
 
 SOLVERS = {"ipopt": solve_ipopt, "scipy": solve_scipy}

@@ -24,6 +24,7 @@ import dataclasses
 import functools
 from typing import Callable
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -34,14 +35,19 @@ from ..systems import System
 from ..systems import require_plain_system
 from ..trajectories import Trajectory
 from ._nlp import NonlinearProgram, SolverResult, Term, resolve_solver, solve
+from ._status import SolverStatus
 
 
-@dataclasses.dataclass
-class TrajectoryOptimizationResult:
-    """A solved trajectory program: `states` and `inputs` as `Trajectory` objects (cubic /
-    first-order hold for collocation, the rule's own hold for transcription), the knot values,
-    the `duration` and `parameters`, the largest dynamic `max_defect`, and the solver's report
-    (`success`, `status`, `message`, `cost`, `iterations`, `solve_time`, `log`)."""
+class TrajectoryOptimizationResult(eqx.Module):
+    """A solved trajectory program, on the host (the solve is IPOPT's or SciPy's):
+
+    - `states`, `inputs`: `Trajectory` objects (cubic / first-order hold for collocation, the
+      rule's own hold for transcription); `times`, `knot_states`, `knot_inputs` their knots;
+    - `duration`, `parameters` (None without free parameters), `max_defect` (the largest
+      dynamic defect);
+    - the solver's report: `status` (a `SolverStatus`; `success` and `message` from it),
+      `cost`, `constraint_violation`, `iterations`, `solve_time` (s), `solver` (its name),
+      `log` (per iteration) and `z` (the decision vector, for `initial_guess=`)."""
 
     states: Trajectory
     inputs: Trajectory
@@ -51,13 +57,22 @@ class TrajectoryOptimizationResult:
     duration: float
     parameters: np.ndarray | None
     max_defect: float
-    solver: SolverResult
+    status: SolverStatus
+    cost: float
+    constraint_violation: float
+    iterations: int
+    solve_time: float
+    solver: str
+    log: list
+    z: np.ndarray
 
-    def __getattr__(self, name):  # success, status, message, cost, iterations, solve_time, log
-        if name in ("success", "status", "message", "cost", "iterations", "solve_time", "log",
-                    "constraint_violation", "z"):
-            return getattr(self.solver, name)
-        raise AttributeError(name)
+    @property
+    def success(self) -> bool:
+        return self.status.success
+
+    @property
+    def message(self) -> str:
+        return self.status.message
 
     def __repr__(self):
         return (f"TrajectoryOptimizationResult(success={self.success}, message={self.message!r}, "
@@ -385,7 +400,8 @@ class _TrajectoryProgram:
     _hessian_approximation = "exact"
 
     def _result(self, result: SolverResult) -> TrajectoryOptimizationResult:
-        return TrajectoryOptimizationResult(**self._solution(result.z), solver=result)
+        report = {field.name: getattr(result, field.name) for field in dataclasses.fields(result)}
+        return TrajectoryOptimizationResult(**self._solution(result.z), **report)
 
     def _solution(self, z) -> dict:
         """The trajectories and knot values of the decision vector z (all but the solver's report)."""
