@@ -385,7 +385,7 @@ class NonlinearMPC(_PlanController):
         result = ilqr(self.plant, u, guess, self.period, self.running_cost, self.final_cost,
                       input_bounds=self.input_bounds, max_iterations=self.max_iterations, tol=self.tolerance)
         finite, plan = _finite_plan(result.knot_inputs, self.input_bounds)
-        status = jnp.where(finite, jnp.where(result.converged, 0, 1), QPStatus.NONFINITE)
+        status = jnp.where(finite, jnp.where(result.success, 0, 1), QPStatus.NONFINITE)
         return jnp.concatenate([plan[0], status[None].astype(x.dtype), plan.reshape(-1)])
 
 
