@@ -103,7 +103,7 @@ def batched(batch, chunk=None):
     start = time.perf_counter()
     results = jax.block_until_ready(run(angles))
     warm = time.perf_counter() - start
-    return warm, first, int(results.converged.sum()), int(results.iterations.max())
+    return warm, first, int(results.success.sum()), int(results.iterations.max())
 
 
 def main():

@@ -89,7 +89,7 @@ def pendulum_batch(num=64):
     start = time.perf_counter()
     results = jd.run_batch(solve, angles, chunk_size=32)  # one program, two chunks of 32
     print(f"iLQR batch: {num} pendulum swing-ups in {time.perf_counter() - start:.1f} s (with compilation), "
-          f"{int(results.converged.sum())} converged, up to {int(results.iterations.max())} iterations")
+          f"{int(results.success.sum())} converged, up to {int(results.iterations.max())} iterations")
     return angles, results
 
 
@@ -138,7 +138,7 @@ def main(out: pathlib.Path):
     ax.axhline(np.pi, color="k", ls=":")
     ax.set(xlabel="t", ylabel="θ", title=f"{len(angles)} pendulum swing-ups, one vmapped iLQR (|u| ≤ 2)")
     ax = fig.add_subplot(grid[2, 2])
-    ok = np.asarray(batch.converged)
+    ok = np.asarray(batch.success)
     ax.plot(np.asarray(angles)[ok], np.asarray(batch.cost)[ok], "o", ms=3, label="converged")
     ax.plot(np.asarray(angles)[~ok], np.asarray(batch.cost)[~ok], "x", color="C3", label="not converged")
     ax.legend(fontsize=8)
