@@ -4,7 +4,9 @@ each chunk sharded across devices (JAX's `NamedSharding` over a "batch" mesh axi
 One program is compiled for every full chunk (the last one is padded with copies of the batch's
 last member and trimmed), and chunks are dispatched ahead of the host copies of their
 predecessors' results, so the devices are not idle while results come back. On several hosts
-(`jax.distributed.initialize()` first), pass the global devices and gather=False.
+(`jax.distributed.initialize()` first), every process calls it with the same arguments and the
+global devices: each chunk is one program over all of them, each process holds its own shards,
+and gathered results are exchanged between processes (tests/test_distributed.py).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import os
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._progress import progress_bar
@@ -31,8 +34,14 @@ def run_batch(fn, inputs, *, chunk_size: int | None = None, devices=None, progre
       default: as many as fit in a quarter of the devices' free memory (`default_chunk_size`),
       at most the whole batch.
     - `devices`: default `jax.local_devices()`; `progress`: a progress bar over chunks (tqdm; drawn once the work has run 2 s).
-    - `gather`: return NumPy arrays on the host (device memory holds one chunk at a time);
-      False keeps the results on the devices, sharded along the batch axis.
+      Several processes (`jax.distributed`): every one calls `run_batch` with the same `fn`,
+      `inputs` and `jax.devices()`.
+    - `gather`: return NumPy arrays on the host (device memory holds one chunk at a time; with
+      several processes every one receives the whole batch); False keeps the results on the
+      devices, sharded along the batch axis (each process holds its own shards).
+
+    Returns once the results are computed. A process of a distributed run that dies while
+    results are exchanged makes the others raise `ConnectionError`, not wait for it.
 
     The compiled program is kept per (`fn`, devices): pass the same function object (not a new
     lambda) to call again without compiling."""
@@ -54,30 +63,32 @@ def run_batch(fn, inputs, *, chunk_size: int | None = None, devices=None, progre
     if chunk < 1:
         raise ValueError(f"run_batch: chunk_size must be a positive int, got {chunk_size}")
     chunk = -(-min(chunk, size) // count) * count  # a multiple of the device count
-    mapped, sharding = _program(fn, devices, gather)
+    mapped, sharding = _program(fn, devices, gather and devices[0].platform != "cpu" and _one_process(devices))
     starts = range(0, size, chunk)
     bar = progress_bar(progress, len(starts), "batch", "chunk")
     pending, results = None, []
-    for start in starts:
-        stop = min(start + chunk, size)
-        piece = [padded(np.asarray(leaf[start:stop]) if not isinstance(leaf, jax.Array) else leaf[start:stop],
-                         chunk) for leaf in leaves]
-        piece = jax.device_put(jax.tree.unflatten(treedef, piece), sharding)
-        with _out_of_memory_named(fn, member, chunk):
+    with _failures_named(fn, member, chunk):
+        for start in starts:
+            stop = min(start + chunk, size)
+            piece = [padded(np.asarray(leaf[start:stop]) if not isinstance(leaf, jax.Array) else leaf[start:stop],
+                             chunk) for leaf in leaves]
+            piece = jax.device_put(jax.tree.unflatten(treedef, piece), sharding)
             out = mapped(piece)  # dispatched; runs while the previous chunk is copied back
             if pending is not None:
                 results.append(_collect(*pending, gather))
-            if bar:
-                bar.update(1)
-        pending = (out, stop - start)
-    with _out_of_memory_named(fn, member, chunk):
+                if bar:
+                    bar.update(1)
+            pending = (out, stop - start)
         results.append(_collect(*pending, gather))
+        if gather:
+            result = jax.tree.map(lambda *parts: np.concatenate(parts), *results)
+        else:
+            result = jax.block_until_ready(jax.tree.map(
+                lambda *parts: jnp.concatenate(parts) if len(parts) > 1 else parts[0], *results))
     if bar:
         bar.update(1)
         bar.close()
-    if gather:
-        return jax.tree.map(lambda *parts: np.concatenate(parts), *results)
-    return jax.tree.map(lambda *parts: jnp.concatenate(parts) if len(parts) > 1 else parts[0], *results)
+    return result
 
 
 MEMORY_FACTOR = 3  # a member's live memory over its inputs, outputs and largest value (copies)
@@ -123,40 +134,56 @@ def free_memory(device) -> int:
 
 def default_chunk_size(fn, member, devices) -> int:
     """Members per chunk that fit in a quarter of the least free memory of `devices`, per
-    device (at least one per device)."""
-    per_device = min(free_memory(d) for d in devices) // 4 // member_bytes(fn, member)
+    device (at least one per device). `devices` of several processes: each measures its own,
+    and all take the least (every process must run the same chunks)."""
+    here = [d for d in devices if d.process_index == jax.process_index()]
+    per_device = min(free_memory(d) for d in here) // 4 // member_bytes(fn, member)
+    if len(here) < len(devices):
+        per_device = multihost_utils.process_allgather(np.int64(per_device)).min()
     return max(int(per_device), 1) * len(devices)
 
 
+# What XLA's errors say when a collective's peer process has died: Gloo (CPU) and the
+# distributed runtime's health check.
+LOST_PEER = ("closed by peer", "reset by peer", "heartbeat timeout", "stopped sending heartbeats")
+
+
 @contextlib.contextmanager
-def _out_of_memory_named(fn, member, chunk):
-    """Re-raise XLA's bare RESOURCE_EXHAUSTED as a MemoryError naming the remedies."""
+def _failures_named(fn, member, chunk):
+    """Re-raise XLA's bare errors as named ones: RESOURCE_EXHAUSTED as a MemoryError naming the
+    remedies; a lost peer of a distributed run as a ConnectionError."""
     try:
         yield
     except jax.errors.JaxRuntimeError as error:
-        if "RESOURCE_EXHAUSTED" not in str(error):
-            raise
-        raise MemoryError(f"run_batch: a chunk of {chunk} members did not fit in device memory (about "
-                          f"{member_bytes(fn, member):,} bytes per member, estimated): pass a smaller "
-                          "chunk_size, or return less per member (simulate(..., dense=False) keeps only the "
-                          "final state)") from error
+        text = str(error)
+        if "RESOURCE_EXHAUSTED" in text:
+            raise MemoryError(f"run_batch: a chunk of {chunk} members did not fit in device memory (about "
+                              f"{member_bytes(fn, member):,} bytes per member, estimated): pass a smaller "
+                              "chunk_size, or return less per member (simulate(..., dense=False) keeps only "
+                              "the final state)") from error
+        if jax.process_count() > 1 and any(sign in text for sign in LOST_PEER):
+            raise ConnectionError(f"run_batch: another process of this distributed run (this is process "
+                                  f"{jax.process_index()} of {jax.process_count()}) died while results were "
+                                  f"exchanged ({text.splitlines()[0]}); a process cannot rejoin a "
+                                  "jax.distributed run: start every process again") from error
+        raise
 
 
 @functools.lru_cache(maxsize=64)
-def _program(fn, devices, gather):
+def _program(fn, devices, to_host):
     """The jitted, sharded `vmap(fn)` for these devices (kept: one compilation per chunk shape).
     On several devices each runs `vmap(fn)` on its own slice (`shard_map`): a loop inside `fn`
     (an adaptive simulation's `while`) then stops per device, without the all-reduce of its
-    condition across devices that one global program needs every iteration. Results to be
-    gathered are written to pinned host memory by the program itself on accelerators: a
-    separate copy would share the device-to-host queue with the next chunk's loop, whose
+    condition across devices that one global program needs every iteration. `to_host`: the
+    program writes its results to pinned host memory itself (results to be gathered, from
+    accelerators of this process; across processes a collective gathers them from the devices):
+    a separate copy would share the device-to-host queue with the next chunk's loop, whose
     condition is read back every iteration, and stall it."""
     sharding = batch_sharding(devices)
     mapped = jax.vmap(fn)
     if len(devices) > 1:  # check_vma=False: the event search's custom_vmap has no replication rule
         mapped = jax.shard_map(mapped, mesh=sharding.mesh, in_specs=sharding.spec, out_specs=sharding.spec,
                                check_vma=False)
-    to_host = gather and devices[0].platform != "cpu"
     out = sharding.with_memory_kind("pinned_host") if to_host else sharding
     return jax.jit(mapped, in_shardings=sharding, out_shardings=out), sharding
 
@@ -175,7 +202,15 @@ def padded(x, chunk):
     return (jnp if isinstance(x, jax.Array) else np).concatenate([x, tail])
 
 
+def _one_process(devices) -> bool:
+    return all(d.process_index == jax.process_index() for d in devices)
+
+
 def _collect(out, used, gather):
+    """A chunk's first `used` results: NumPy arrays of the whole chunk on this host (from every
+    process, by an all-gather over JAX's collectives, where the chunk spans several), or the
+    sharded arrays."""
     if gather:
-        return jax.tree.map(lambda a: np.asarray(a)[:used], out)
+        return jax.tree.map(lambda a: np.asarray(a if a.is_fully_addressable
+                                                 else multihost_utils.process_allgather(a, tiled=True))[:used], out)
     return jax.tree.map(lambda a: a[:used] if used < a.shape[0] else a, out)
