@@ -112,7 +112,8 @@ def main(out: pathlib.Path, num: int) -> pathlib.Path:
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("output"))
+    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("output"),
+                        help="folder for the figure (default: output/)")
     parser.add_argument("--batch", type=int, default=50,
                         help="initial states per plant (the notebook runs 1000)")
     args = parser.parse_args()
