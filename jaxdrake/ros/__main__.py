@@ -49,8 +49,12 @@ def main(argv=None):
                                      epilog="\n".join(__doc__.splitlines()[2:]),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--map", help="TOML mapping file ([[route]] tables, optional lcm_url)")
-    parser.add_argument("--to-ros", nargs=4, action="append", metavar=("CHANNEL", "TOPIC", "TYPE", "LCM"))
-    parser.add_argument("--to-lcm", nargs=4, action="append", metavar=("TOPIC", "CHANNEL", "TYPE", "LCM"))
+    parser.add_argument("--to-ros", nargs=4, action="append", metavar=("CHANNEL", "TOPIC", "TYPE", "LCM"),
+                        help="carry LCM channel CHANNEL to ROS topic TOPIC as TYPE, decoded as LCM says "
+                             "(repeatable; TYPE and LCM below)")
+    parser.add_argument("--to-lcm", nargs=4, action="append", metavar=("TOPIC", "CHANNEL", "TYPE", "LCM"),
+                        help="carry ROS topic TOPIC of TYPE to LCM channel CHANNEL, encoded as LCM says "
+                             "(repeatable)")
     parser.add_argument("--url", help="LCM URL (default: the mapping's lcm_url, else the multicast group "
                                       "with ttl=0, host only)")
     parser.add_argument("--ros", choices=("1", "2"), default="1", help="ROS 1 (rospy, default) or ROS 2 (DDS)")
