@@ -53,6 +53,7 @@ def test_double_integrator_lqr_closed_form():
     result = lqr(jd.models.DoubleIntegrator(), np.eye(2), np.eye(1))
     np.testing.assert_allclose(result.K, [[1.0, np.sqrt(3)]], rtol=1e-12)
     np.testing.assert_allclose(result.S, [[np.sqrt(3), 1.0], [1.0, np.sqrt(3)]], rtol=1e-12)
+    assert result.success and result.status == jd.control.LQRStatus.SUCCESS and "stabilising" in result.message
 
 
 def finite_difference_jacobians(system, x0, u0, eps=1e-6):
@@ -356,6 +357,9 @@ def test_lqr_without_a_stabilising_solution_is_a_named_error():
     uncontrollable = jd.LinearSystem([[1.0, 0.0], [0.0, -1.0]], [[0.0], [1.0]])  # the unstable mode has no input
     with pytest.raises(ValueError, match="no stabilising solution"):
         lqr(uncontrollable, np.eye(2), np.eye(1))
+    traced = jax.jit(lambda Q: lqr(uncontrollable, Q, np.eye(1)))(jnp.eye(2))  # inside jit: a status
+    assert int(traced.status) == jd.control.LQRStatus.NO_STABILISING_SOLUTION and not bool(traced.success)
+    assert "no stabilising solution" in traced.message
     with pytest.raises(ValueError, match="imaginary axis"):  # Q = 0 leaves the double integrator's modes unseen
         lqr(jd.models.DoubleIntegrator(), np.zeros((2, 2)), np.eye(1))
     discrete = jd.LinearSystem([[2.0, 0.0], [0.0, 0.5]], [[0.0], [1.0]], sample_time=0.1)

@@ -12,8 +12,8 @@ $u = u_0 - K (x - x_0)$ as a system ready for `feedback`.
 
 from __future__ import annotations
 
+import enum
 import functools
-from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -61,16 +61,50 @@ def linearize(system: System, x0, u0=None, *, t=0.0, check_equilibrium: bool = T
                         output_frame=system.output_frame)
 
 
-class LQRResult(NamedTuple):
-    """`K` (gain), `S` (cost-to-go $\\tilde x^T S \\tilde x$), the `linearization`, and the
-    `controller` system $u = u_0 - K(x - x_0)$ (input: the plant's state; output: its input):
-    for a `LinearSystem` about the origin a `LinearSystem` $u = -Kx$ (Drake's rule), so that
-    its closed loops stay linear."""
+class LQRStatus(enum.IntEnum):
+    """How an `lqr` solve ended (`LQRResult.status`). A call outside `jit` raises instead of
+    returning a failure; inside `jit` (or `grad`, `vmap`) the status reports it."""
+
+    SUCCESS = 0
+    NO_STABILISING_SOLUTION = 1
+
+    @property
+    def message(self) -> str:
+        """What happened and the usual remedy."""
+        return {LQRStatus.SUCCESS: "solved: S is the stabilising solution of the Riccati equation",
+                LQRStatus.NO_STABILISING_SOLUTION:
+                    "the Riccati equation has no stabilising solution (S is not finite or not positive "
+                    "semidefinite): an unstable mode is not controllable through B, or Q does not see a "
+                    "mode on the stability boundary; check the operating point and the inputs, or "
+                    "penalise every state in Q (Q > 0)"}[self]
+
+
+class LQRResult(eqx.Module):
+    r"""`K` (gain), `S` (cost-to-go $\tilde x^T S \tilde x$), the `linearization` about the
+    operating point (`x0`, `u0`), the `controller` system $u = u_0 - K(x - x_0)$ (input: the
+    plant's state; output: its input) and the `status` (an `LQRStatus` code; `success` and
+    `message` from it). The controller is, for a `LinearSystem` about the origin, a
+    `LinearSystem` $u = -Kx$ (Drake's rule), so that its closed loops stay linear; otherwise a
+    static `System.from_functions` system keeping (K, x0, u0) as its `functions.params` (where
+    Drake returns an `AffineSystem` with $D = -K$, $y_0 = u_0 + K x_0$)."""
 
     K: jax.Array
     S: jax.Array
     linearization: LinearSystem
     controller: System
+    x0: jax.Array
+    u0: jax.Array
+    status: jax.Array
+
+    @property
+    def success(self):
+        """True when S is the stabilising solution; works on traced and batched results."""
+        return self.status == LQRStatus.SUCCESS
+
+    @property
+    def message(self) -> str:
+        """What `status` means (one result, not a batch)."""
+        return LQRStatus(int(self.status)).message
 
 
 def _affine_gain(t, x, y, params):
@@ -80,25 +114,32 @@ def _affine_gain(t, x, y, params):
 
 @functools.partial(jax.jit, static_argnums=5)
 def _lqr_gain(A, B, Q, R, N, discrete: bool):
-    """(K, S) from the Riccati equation of (A, B, Q, R, N)."""
+    """(K, S, status) from the Riccati equation of (A, B, Q, R, N); the status says whether S
+    is finite and positive semidefinite (the stabilising solution is the one that is, for Q >= 0
+    with (A, Q) detectable)."""
     if discrete:
         S = solve_discrete_are(A, B, Q, R, N)
         cross = B.T @ S @ A + (0.0 if N is None else N.T)
-        return jnp.linalg.solve(R + B.T @ S @ B, cross), S
-    S = solve_continuous_are(A, B, Q, R, N)
-    return jnp.linalg.solve(R, B.T @ S + (0.0 if N is None else N.T)), S
+        K = jnp.linalg.solve(R + B.T @ S @ B, cross)
+    else:
+        S = solve_continuous_are(A, B, Q, R, N)
+        K = jnp.linalg.solve(R, B.T @ S + (0.0 if N is None else N.T))
+    finite = jnp.all(jnp.isfinite(S)) & jnp.all(jnp.isfinite(K))
+    scale = jnp.max(jnp.abs(jnp.where(finite, S, 0.0)), initial=1.0)
+    semidefinite = jnp.linalg.eigvalsh(jnp.where(finite, (S + S.T) / 2, 0.0))[0] >= -1e-8 * scale
+    return K, S, jnp.where(finite & semidefinite, LQRStatus.SUCCESS, LQRStatus.NO_STABILISING_SOLUTION)
 
 
-def _require_stabilising(system, lin, K, S):
-    """A ValueError unless S is finite and A - B K is stable (the Riccati equation has a
-    stabilising solution only for stabilisable (A, B) and (A, Q) without unobservable modes
-    on the stability boundary)."""
+def _require_stabilising(system, lin, K, status):
+    """A ValueError unless the status is SUCCESS and A - B K is stable (the Riccati equation
+    has a stabilising solution only for stabilisable (A, B) and (A, Q) without unobservable
+    modes on the stability boundary)."""
     poles = np.linalg.eigvals(np.asarray(lin.A) - np.asarray(lin.B) @ np.asarray(K)) if np.all(np.isfinite(K)) else None
     if lin.is_discrete:
         boundary, stable = "unit circle", poles is not None and np.all(np.abs(poles) < 1)
     else:
         boundary, stable = "imaginary axis", poles is not None and np.all(poles.real < 0)
-    if not (stable and np.all(np.isfinite(S))):
+    if not (stable and int(status) == LQRStatus.SUCCESS):
         raise ValueError(
             f"lqr: the Riccati equation of {system.name} has no stabilising solution "
             f"(closed-loop poles {poles}): an unstable mode is not controllable through B, or Q "
@@ -142,7 +183,8 @@ def check_cost_weights(caller: str, Q, R, N=None, Qf=None):
 def lqr(system: System, Q, R, x0=None, u0=None, *, N=None, check_equilibrium: bool = True) -> LQRResult:
     """The infinite-horizon LQR of `system` about (x0, u0) (default: the origin, u = 0):
     continuous or discrete to match the system; `N` the cross term. Differentiable with
-    respect to Q, R and the plant's parameters."""
+    respect to Q, R and the plant's parameters. Outside `jit` a Riccati equation without a
+    stabilising solution is a ValueError; inside, the result's `status` says so."""
     n, m = system.num_states, system.num_inputs
     about_origin = x0 is None and u0 is None
     x0 = jnp.zeros(n) if x0 is None else jnp.asarray(x0, float).reshape(n)
@@ -153,9 +195,9 @@ def lqr(system: System, Q, R, x0=None, u0=None, *, N=None, check_equilibrium: bo
         N = jnp.asarray(N, float).reshape(n, m)
     check_cost_weights("lqr", Q, R, N)
     lin = linearize(system, x0, u0, check_equilibrium=check_equilibrium)
-    K, S = _lqr_gain(lin.A, lin.B, Q, R, N, lin.is_discrete)
+    K, S, status = _lqr_gain(lin.A, lin.B, Q, R, N, lin.is_discrete)
     if not isinstance(K, jax.core.Tracer):
-        _require_stabilising(system, lin, K, S)
+        _require_stabilising(system, lin, K, status)
     if isinstance(system, LinearSystem) and about_origin:  # Drake's rule: u = -K x, a LinearSystem
         controller = LinearSystem(jnp.zeros((0, 0)), jnp.zeros((0, n)), jnp.zeros((m, 0)), -K,
                                   input_frame=system.state_frame, output_frame=system.input_frame)
@@ -163,5 +205,5 @@ def lqr(system: System, Q, R, x0=None, u0=None, *, N=None, check_equilibrium: bo
         controller = System.from_functions(
             output=_affine_gain, num_states=0, num_inputs=n, num_outputs=m, params=(K, x0, u0),
             input_frame=system.state_frame, output_frame=system.input_frame)
-    return LQRResult(K, S, lin, controller)
+    return LQRResult(K=K, S=S, linearization=lin, controller=controller, x0=x0, u0=u0, status=status)
 
