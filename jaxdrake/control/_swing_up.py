@@ -172,7 +172,7 @@ class SwitchToLQR(HybridSystem):
 
     def __init__(self, swing_up: System, lqr: LQRResult, *, angles=(), enter=1e3, leave=None,
                  angle_tolerance=jnp.pi / 2, output_limits=(-jnp.inf, jnp.inf)):
-        K, goal, u_goal = lqr.controller.functions.params
+        K, goal, u_goal = lqr.K, lqr.x0, lqr.u0
         if swing_up.num_inputs != lqr.controller.num_inputs or swing_up.num_outputs != lqr.controller.num_outputs:
             raise ValueError(f"SwitchToLQR: the swing-up controller maps {swing_up.num_inputs} -> "
                              f"{swing_up.num_outputs}, the LQR {lqr.controller.num_inputs} -> "
