@@ -47,6 +47,7 @@ def test_reversed_van_der_pol_matches_drake_and_converges_in_simulation():
 
     system = reversed_van_der_pol()
     roa = region_of_attraction(system, [0.0, 0.0], return_certificate=True)
+    assert roa.success and roa.status == roa.result.status and isinstance(roa.result, jd.analysis.SosResult)
     S = np.array([[1.5, -0.5], [-0.5, 1.0]])  # A'S + SA = -I for A = [[0, -1], [1, -1]]
     np.testing.assert_allclose(np.asarray(jax.hessian(roa.V)(jnp.zeros(2))) / 2, S, rtol=1e-10)
 
@@ -134,12 +135,14 @@ def test_sos_program_reports_infeasibility_and_its_certificate_check_catches_lie
     x, y = Polynomial.variables_of(2)
     prog = SosProgram(2)
     prog.add_sos_constraint(x**2 - 1.0)  # negative at the origin: not SOS
-    with pytest.raises(InfeasibleError):
+    with pytest.raises(InfeasibleError) as caught:
         prog.solve()
+    assert caught.value.status == jd.analysis.ConicStatus.INFEASIBLE and caught.value.solver == "CLARABEL"
     # a genuine SOS polynomial: (x - y)^2 + x^2 y^2
     prog = SosProgram(2)
     record = prog.add_sos_constraint((x - y) ** 2 + x**2 * y**2)
     result = prog.solve()
+    assert result.success and result.status == jd.analysis.ConicStatus.OPTIMAL and result.message == "optimal"
     assert result.check(20_000).ok
     assert sorted(map(tuple, record.basis)) == [(0, 1), (1, 0), (1, 1)]  # Newton polytope pruning
     assert np.allclose(record.gram_value(), record.gram_value().T)
@@ -156,6 +159,7 @@ def test_searching_for_the_region_of_attraction_enlarges_it(capsys):
     assert "region of attraction" in shown and f"beta={search.history[-1]:.6g}" in shown
     assert all(b2 >= b1 * (1 - 1e-6) for b1, b2 in zip(search.history, search.history[1:]))
     assert search.beta > 1.2 * quadratic  # the quartic region contains a larger ellipse
+    assert search.success and search.result.check().ok
     # states in the new region (rejection-sampled from a box) converge in simulation
     box = RNG.uniform(-2.5, 2.5, size=(4000, 2))
     inside = box[np.asarray(search.V(box)) <= 1.0][:256]
@@ -185,4 +189,10 @@ def test_conic_program_solves_an_lmi_and_an_lp_to_their_closed_forms(solver, den
         prog.add_constraint(constraint)
     result = prog.solve(maximize=xy.sum(), solver=solver)
     np.testing.assert_allclose(xy.value, [1.6, 1.2], atol=1e-5)
-    assert abs(result.objective - 2.8) < 1e-5
+    assert abs(result.objective - 2.8) < 1e-5 and result.success and result.solver == solver
+    prog = ConicProgram()
+    xy = prog.new_variable(2)
+    prog.add_constraint(xy >= 0)
+    with pytest.raises(jd.analysis.SolveError, match="unbounded") as caught:  # x + y has no maximum on x, y >= 0
+        prog.solve(maximize=xy.sum(), solver=solver)
+    assert caught.value.status == jd.analysis.ConicStatus.UNBOUNDED

@@ -9,6 +9,8 @@ the program is stacking their sparse rows -- no modelling layer in between.
 
 from __future__ import annotations
 
+import dataclasses
+import enum
 import time
 
 import numpy as np
@@ -18,10 +20,47 @@ from .._extras import require
 from ..systems import AffineExpression, DecisionSpace, LinearConstraint
 
 
-class SolveError(RuntimeError):
-    """The convex solver did not return a trustworthy solution (message from the solver)."""
+class ConicStatus(enum.IntEnum):
+    """How a conic solve ended (Clarabel's and SCS's statuses mapped onto one list). OPTIMAL
+    and OPTIMAL_INACCURATE (whose answer passed the program's own checks) are successes; a
+    failure is raised as `InfeasibleError` / `SolveError` carrying its status."""
 
-    def __init__(self, message: str, status: str = "", solver: str = ""):
+    OPTIMAL = 0
+    OPTIMAL_INACCURATE = 1
+    INFEASIBLE = 2
+    UNBOUNDED = 3
+    FAILED = 4
+    UNTRUSTED = 5
+
+    @property
+    def message(self) -> str:
+        """What happened and the usual remedy."""
+        return _MESSAGES[self]
+
+    @property
+    def success(self) -> bool:
+        return self in (ConicStatus.OPTIMAL, ConicStatus.OPTIMAL_INACCURATE)
+
+
+_MESSAGES = {
+    ConicStatus.OPTIMAL: "optimal",
+    ConicStatus.OPTIMAL_INACCURATE: "optimal to reduced accuracy (the solver's own tolerances not all met; "
+                                    "the answer passed the program's checks)",
+    ConicStatus.INFEASIBLE: "infeasible: no certificate of the requested form exists (raise the degrees of the "
+                            "polynomials or multipliers, or ask for less)",
+    ConicStatus.UNBOUNDED: "unbounded: the objective grows without bound (bound it)",
+    ConicStatus.FAILED: "the solver stopped without a solution (numerical trouble or its iteration limit; try "
+                        "the other solver, or rescale the program)",
+    ConicStatus.UNTRUSTED: "the solver's answer failed the program's checks (coefficient residuals or Gram "
+                           "eigenvalues beyond the tolerance)",
+}
+
+
+class SolveError(RuntimeError):
+    """The convex solver did not return a trustworthy solution: the message, the `status` (a
+    `ConicStatus`) and the `solver`."""
+
+    def __init__(self, message: str, status: ConicStatus = ConicStatus.FAILED, solver: str = ""):
         super().__init__(message)
         self.status, self.solver = status, solver
 
@@ -29,18 +68,35 @@ class SolveError(RuntimeError):
 class InfeasibleError(SolveError):
     """The program is infeasible: no certificate of the requested form exists."""
 
+    def __init__(self, message: str, status: ConicStatus = ConicStatus.INFEASIBLE, solver: str = ""):
+        super().__init__(message, status, solver)
 
+
+@dataclasses.dataclass(frozen=True)
 class ConicResult:
-    """A solved program: `status` ("optimal" or "optimal_inaccurate"), `solver`,
-    `solve_time` (s, assembly included), `objective`, and `value(expr)`."""
+    """A solved program, kept on the host (a frozen dataclass, not a pytree: its numbers are
+    read through the program's decision space, on the host): the `program`, the
+    `objective_expression` (None for a feasibility program), the `solver`'s name, the `status`
+    (a `ConicStatus`; `success` and `message` from it), `solve_time` (s, assembly included);
+    `objective` (its value) and `value(expr)`."""
 
-    def __init__(self, program, objective, solver: str, status: str, solve_time: float):
-        self.program, self.solver, self.status, self.solve_time = program, solver, status, solve_time
-        self._objective = objective
+    program: ConicProgram
+    objective_expression: AffineExpression | None
+    solver: str
+    status: ConicStatus
+    solve_time: float
+
+    @property
+    def success(self) -> bool:
+        return self.status.success
+
+    @property
+    def message(self) -> str:
+        return self.status.message
 
     @property
     def objective(self) -> float | None:
-        return None if self._objective is None else self._objective.value
+        return None if self.objective_expression is None else self.objective_expression.value
 
     def value(self, item):
         """The number of a decision expression."""
@@ -107,24 +163,26 @@ class ConicProgram:
         if set(candidates) - set(_SOLVERS):
             raise ValueError(f"unknown solver {solver!r}: choose one of {sorted(_SOLVERS)}")
         sign = -1.0 if maximize is not None else 1.0
-        messages, status = [], ""
+        messages, status = [], ConicStatus.FAILED
         for name in candidates:
             start = time.perf_counter()
             status, y, words = _SOLVERS[name](self.conic_data, objective, sign, verbose)
             result = self.result_type(self, objective, name, status, time.perf_counter() - start)
-            if status == "infeasible":
+            if status == ConicStatus.INFEASIBLE:
                 raise InfeasibleError(f"the program is infeasible ({name}: {words})", status, name)
-            if status == "unbounded":
+            if status == ConicStatus.UNBOUNDED:
                 raise SolveError(f"the program is unbounded ({name}: {words}); bound the objective",
                                  status, name)
             if y is None or not np.all(np.isfinite(y)):
                 messages.append(f"{name}: status {words}")
+                status = ConicStatus.FAILED
                 continue
             self.space.solution = y
             doubt = self._verify(result, tolerance)
             if doubt is None:
                 return result
             messages.append(f"{name}: status {words}, {doubt}")
+            status = ConicStatus.UNTRUSTED
         raise SolveError("no trustworthy solution: " + "; ".join(messages), status, candidates[-1])
 
     def conic_data(self, objective, sign: float, psd_order: str):
@@ -179,10 +237,11 @@ def _clarabel(conic_data, objective, sign, verbose):
     size = len(q)
     solution = clarabel.DefaultSolver(scipy.sparse.csc_matrix((size, size)), q, A, b, cones, settings).solve()
     words = str(solution.status)
-    status = {"Solved": "optimal", "AlmostSolved": "optimal_inaccurate", "PrimalInfeasible": "infeasible",
-              "AlmostPrimalInfeasible": "infeasible", "DualInfeasible": "unbounded",
-              "AlmostDualInfeasible": "unbounded"}.get(words, "failed")
-    return status, np.asarray(solution.x, float) if status.startswith("optimal") else None, words
+    status = {"Solved": ConicStatus.OPTIMAL, "AlmostSolved": ConicStatus.OPTIMAL_INACCURATE,
+              "PrimalInfeasible": ConicStatus.INFEASIBLE, "AlmostPrimalInfeasible": ConicStatus.INFEASIBLE,
+              "DualInfeasible": ConicStatus.UNBOUNDED, "AlmostDualInfeasible": ConicStatus.UNBOUNDED,
+              }.get(words, ConicStatus.FAILED)
+    return status, np.asarray(solution.x, float) if status.success else None, words
 
 
 def _scs(conic_data, objective, sign, verbose):
@@ -192,10 +251,11 @@ def _scs(conic_data, objective, sign, verbose):
     solution = scs.SCS({"A": A, "b": b, "c": q}, {"z": zero, "l": nonnegative, "s": list(psd)},
                        verbose=verbose, eps_abs=1e-8, eps_rel=1e-8, max_iters=100_000).solve()
     words = solution["info"]["status"]
-    status = {"solved": "optimal", "solved_inaccurate": "optimal_inaccurate", "infeasible": "infeasible",
-              "infeasible_inaccurate": "infeasible", "unbounded": "unbounded",
-              "unbounded_inaccurate": "unbounded"}.get(words, "failed")
-    return status, np.asarray(solution["x"], float) if status.startswith("optimal") else None, words
+    status = {"solved": ConicStatus.OPTIMAL, "solved_inaccurate": ConicStatus.OPTIMAL_INACCURATE,
+              "infeasible": ConicStatus.INFEASIBLE, "infeasible_inaccurate": ConicStatus.INFEASIBLE,
+              "unbounded": ConicStatus.UNBOUNDED, "unbounded_inaccurate": ConicStatus.UNBOUNDED,
+              }.get(words, ConicStatus.FAILED)
+    return status, np.asarray(solution["x"], float) if status.success else None, words
 
 
 _SOLVERS = {"CLARABEL": _clarabel, "SCS": _scs}

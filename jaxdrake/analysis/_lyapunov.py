@@ -13,8 +13,8 @@ import numpy as np
 from .._progress import progress_bar
 from ..control import solve_continuous_lyapunov
 from ..systems import Polynomial, PolynomialSystem, System, taylor_polynomial
-from ._conic import ConicProgram, InfeasibleError, SolveError
-from ._sos import CertificateCheck, SosProgram
+from ._conic import ConicProgram, ConicStatus, InfeasibleError, SolveError
+from ._sos import CertificateCheck, SosProgram, SosResult
 
 
 def common_lyapunov_function(As, epsilon: float = 1e-6, solver: str | None = None) -> np.ndarray:
@@ -38,7 +38,7 @@ def common_lyapunov_function(As, epsilon: float = 1e-6, solver: str | None = Non
     prog.solve(maximize=t, solver=solver)
     if t.value < epsilon:
         raise InfeasibleError(f"no common quadratic Lyapunov function: the best margin is "
-                              f"t* = {t.value:.2e} < {epsilon:g}", "infeasible")
+                              f"t* = {t.value:.2e} < {epsilon:g}")
     P_value = P.value.reshape(n, n)
     return (P_value + P_value.T) / 2
 
@@ -117,16 +117,30 @@ def _in_state_coordinates(V: Polynomial, x0) -> Polynomial:
     return V.substitute([xi - float(ci) for xi, ci in zip(x, x0)]).pruned()
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class RegionOfAttraction:
-    r"""A certified region of attraction $\{x : V(x) \le \rho\}$: V (a numeric Polynomial in
-    the state x), rho, the multiplier, the solve's result, and the sampled check."""
+    r"""A certified region of attraction $\{x : V(x) \le \rho\}$, kept on the host (a frozen
+    dataclass, as its `SosResult`): V (a numeric Polynomial in the state x), rho, the
+    multiplier, the solve's `result` and the sampled `check`; `status`, `success` and `message`
+    are the solve's (a failed solve or check is raised, never returned)."""
 
     V: Polynomial
     rho: float
     multiplier: Polynomial
-    result: object
+    result: SosResult
     check: CertificateCheck
+
+    @property
+    def status(self) -> ConicStatus:
+        return self.result.status
+
+    @property
+    def success(self) -> bool:
+        return self.result.success
+
+    @property
+    def message(self) -> str:
+        return self.result.message
 
 
 def region_of_attraction(system: System, x0, S=None, *, u0=None, taylor_degree: int = 3,
@@ -268,7 +282,7 @@ def global_lyapunov_function(system: System, x0, degree: int = 2, *, u0=None, ep
     if float(margin.value) < epsilon:
         raise InfeasibleError(f"no Lyapunov function of degree {degree} with the required dissipation: "
                               f"the largest margin is t* = {float(margin.value):.2e} < epsilon = {epsilon:g}",
-                              "infeasible", result.solver)
+                              solver=result.solver)
     check = result.check(num_check_samples)
     if not check.ok:
         raise SolveError(f"the certificate fails at {check.num_violations} sampled points",
@@ -276,16 +290,30 @@ def global_lyapunov_function(system: System, x0, degree: int = 2, *, u0=None, ep
     return result.value(V).pruned(1e-9)
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class RegionOfAttractionSearch:
-    r"""The result of `search_region_of_attraction`: the certified region $\{x : V(x) \le 1\}$
-    (V a numeric Polynomial in x), the inscribed level $\beta$ of the shape
-    $p = (x - x_0)^T S (x - x_0)$ (so $\{p \le \beta\} \subseteq \{V \le 1\}$) and $\beta$
-    after each iteration."""
+    r"""The result of `search_region_of_attraction`, kept on the host: the certified region
+    $\{x : V(x) \le 1\}$ (V a numeric Polynomial in x), the inscribed level $\beta$ of the shape
+    $p = (x - x_0)^T S (x - x_0)$ (so $\{p \le \beta\} \subseteq \{V \le 1\}$), $\beta$
+    after each iteration, and the `result` of the final V's certification; `status`, `success`
+    and `message` are that solve's (a failed one is raised, never returned)."""
 
     V: Polynomial
     beta: float
     history: list
+    result: SosResult
+
+    @property
+    def status(self) -> ConicStatus:
+        return self.result.status
+
+    @property
+    def success(self) -> bool:
+        return self.result.success
+
+    @property
+    def message(self) -> str:
+        return self.result.message
 
 
 def search_region_of_attraction(system: System, x0, degree: int = 4, *, S=None, u0=None,
@@ -359,4 +387,4 @@ def search_region_of_attraction(system: System, x0, degree: int = 4, *, S=None, 
     if rho < 1 - 1e-6 or not check.ok:
         raise SolveError(f"the final V is not certified at level 1 (rho = {rho:.6g}, "
                          f"{check.num_violations} sampled violations)", result.status, result.solver)
-    return RegionOfAttractionSearch(_in_state_coordinates(V, x0), history[-1], history)
+    return RegionOfAttractionSearch(_in_state_coordinates(V, x0), history[-1], history, result)
