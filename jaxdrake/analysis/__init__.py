@@ -7,11 +7,11 @@ from ._lyapunov import (RegionOfAttraction, common_lyapunov_function, global_lya
                         RegionOfAttractionSearch, polynomial_dynamics, region_of_attraction,
                         sample_sublevel_set, search_region_of_attraction,
                         verify_region_of_attraction)
-from ._conic import ConicProgram, ConicResult, InfeasibleError, SolveError
+from ._conic import ConicProgram, ConicResult, ConicStatus, InfeasibleError, SolveError
 from ._sos import CertificateCheck, SosProgram, SosResult, gram_basis
 from ..control import solve_continuous_lyapunov, solve_discrete_lyapunov
 
-__all__ = ["CertificateCheck", "ConicProgram", "ConicResult", "InfeasibleError", "LimitCycle", "LimitCycleError", "limit_cycle", "RegionOfAttraction", "RegionOfAttractionSearch", "SolveError", "SosProgram",
+__all__ = ["CertificateCheck", "ConicProgram", "ConicResult", "ConicStatus", "InfeasibleError", "LimitCycle", "LimitCycleError", "limit_cycle", "RegionOfAttraction", "RegionOfAttractionSearch", "SolveError", "SosProgram",
            "SosResult", "common_lyapunov_function", "global_lyapunov_function", "gram_basis",
            "polynomial_dynamics", "region_of_attraction", "sample_sublevel_set", "search_region_of_attraction",
            "solve_continuous_lyapunov", "solve_discrete_lyapunov", "taylor_polynomial_system",
