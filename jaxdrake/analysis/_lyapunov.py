@@ -185,12 +185,13 @@ def region_of_attraction(system: System, x0, S=None, *, u0=None, taylor_degree: 
                          f"eigenvalues {np.linalg.eigvalsh(hessian)} (must be negative definite)")
     rho_value, lam, result = _largest_level(V, f, solver, multiplier_degree)
     if not rho_value > 0:
-        raise SolveError(f"no positive level certified (rho = {rho_value:.3g})", result.status, result.solver)
+        raise SolveError(f"no positive level certified (rho = {rho_value:.3g})", ConicStatus.INFEASIBLE,
+                         result.solver)
     check = result.check(num_check_samples, scale=float(np.sqrt(rho_value / np.linalg.eigvalsh(S).min())))
     if not check.ok:
         raise SolveError(f"the certificate fails at {check.num_violations} of {check.num_samples} sampled "
                          f"points (worst relative violation {check.worst_violation:.2e})",
-                         result.status, result.solver)
+                         ConicStatus.UNTRUSTED, result.solver)
     if not return_certificate:
         return rho_value
     return RegionOfAttraction(_in_state_coordinates(V, x0), rho_value, lam, result, check)
@@ -286,7 +287,7 @@ def global_lyapunov_function(system: System, x0, degree: int = 2, *, u0=None, ep
     check = result.check(num_check_samples)
     if not check.ok:
         raise SolveError(f"the certificate fails at {check.num_violations} sampled points",
-                         result.status, result.solver)
+                         ConicStatus.UNTRUSTED, result.solver)
     return result.value(V).pruned(1e-9)
 
 
@@ -386,5 +387,5 @@ def search_region_of_attraction(system: System, x0, degree: int = 4, *, S=None, 
     check = result.check(scale=float(np.sqrt(max(history[-1], 1e-9) / np.linalg.eigvalsh(S).min())))
     if rho < 1 - 1e-6 or not check.ok:
         raise SolveError(f"the final V is not certified at level 1 (rho = {rho:.6g}, "
-                         f"{check.num_violations} sampled violations)", result.status, result.solver)
+                         f"{check.num_violations} sampled violations)", ConicStatus.UNTRUSTED, result.solver)
     return RegionOfAttractionSearch(_in_state_coordinates(V, x0), history[-1], history, result)
