@@ -74,7 +74,7 @@ def first_and_second(fn):
     return None if failures(out) else (first, time.perf_counter() - start)
 
 
-def measure(name, make, make_x0, options=None):
+def measure(name, make, make_x0, options=None, autodiff=("reverse",)):
     options = options or {}
     plant = make()
     x0 = jnp.asarray(make_x0(plant))
@@ -88,27 +88,31 @@ def measure(name, make, make_x0, options=None):
     if name != "ball":
         rows["simulate (euler)"] = first_and_second(
             lambda: final_state_or_nan(jd.simulate(plant, (0.0, 1.0), x0, solver="euler", dt=1e-2, throw=False)))
-    loss = jax.jit(jax.grad(lambda x: jnp.sum(jd.simulate(plant, (0.0, 1.0), x, **options).final_state ** 2)))
-    rows["jit(grad(simulate))"] = first_and_second(lambda: loss(x0))
+    for mode in autodiff:
+        loss = jax.jit(jax.grad(lambda x: jnp.sum(
+            jd.simulate(plant, (0.0, 1.0), x, autodiff=mode, **options).final_state ** 2)))
+        rows["jit(grad(simulate))" + ("" if mode == "reverse" else f" {mode}")] = first_and_second(lambda: loss(x0))
     return rows
 
 
 def main():
     parser = argument_parser(__doc__, repeats=1, gpu_help="unused")
     parser.add_argument("--systems", nargs="*", default=list(systems()))
+    parser.add_argument("--autodiff", nargs="*", default=["reverse"], choices=["reverse", "checkpointed"],
+                        help="the reverse modes whose gradient rows are timed")
     args = parser.parse_args()
     print(machine_line())
-    print(f"{'system':10s} {'program':22s} {'first call':>11s} {'second':>9s} {'/ dynamics':>11s}")
+    print(f"{'system':10s} {'program':35s} {'first call':>11s} {'second':>9s} {'/ dynamics':>11s}")
     for name in args.systems:
-        rows = measure(name, *systems()[name])
+        rows = measure(name, *systems()[name], autodiff=args.autodiff)
         reference = (rows.get("jit(dynamics)") or (None,))[0]
         for program, times in rows.items():
             if times is None:
-                print(f"{name:10s} {program:22s} {'failed (non-finite result): not timed':>33s}", flush=True)
+                print(f"{name:10s} {program:35s} {'failed (non-finite result): not timed':>33s}", flush=True)
                 continue
             first, second = times
             ratio = f"{first / reference:10.1f}x" if reference else ""
-            print(f"{name:10s} {program:22s} {first:10.2f}s {second * 1e3:7.1f}ms {ratio:>11s}", flush=True)
+            print(f"{name:10s} {program:35s} {first:10.2f}s {second * 1e3:7.1f}ms {ratio:>11s}", flush=True)
         jax.clear_caches()
 
 

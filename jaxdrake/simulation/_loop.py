@@ -38,6 +38,7 @@ from . import _events as ev
 from ._controller import AbstractStepSizeController
 from ._inputs import InputSource
 from ._result import SimulatedTrajectory
+from ._reverse import run_reverse
 from ._solvers import AbstractSolver
 from ._status import SimulationStatus
 
@@ -445,6 +446,14 @@ class Loop(eqx.Module):
     # ----- the whole loop -------------------------------------------------------------------
 
     def run(self, t0, x0, h0, status, autodiff: str) -> LoopState:
+        """The loop from its start to its end, differentiable as `autodiff` says: "forward"
+        (the plain loop, for `jax.jvp`), "reverse" (`_reverse.run_reverse`) or
+        "checkpointed" (`jax.grad` through the checkpointed loop)."""
+        if autodiff == "reverse":
+            return run_reverse(self, t0, x0, h0, status)
+        return self.run_loop(t0, x0, h0, status, kind="lax" if autodiff == "forward" else "checkpointed")
+
+    def run_loop(self, t0, x0, h0, status, kind: str) -> LoopState:
         def cond(s):
             return (s.status == SimulationStatus.SUCCESS) & (s.t < self.tf) & (s.iterations < self.max_steps)
 
@@ -453,7 +462,7 @@ class Loop(eqx.Module):
                     s.events.times, s.events.indices, s.events.modes, s.events.states)
 
         return eqxi.while_loop(cond, self.iterate, self.initial_state(t0, x0, h0, status), max_steps=self.max_steps,
-                               kind="lax" if autodiff == "forward" else "checkpointed", buffers=buffers)
+                               kind=kind, buffers=buffers)
 
 
 def initial_status(system, source, t0, tf, x0):

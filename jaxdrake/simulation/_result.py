@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..trajectories import Trajectory, check_side, compiled_when_eager, plot_signal, sample_signal, vectorize_in_time
+from ..trajectories import NUM_COEFFICIENTS, Trajectory, check_side, compiled_when_eager, plot_signal, sample_signal, vectorize_in_time
 from ._events import event_transitions
 from ._status import SimulationStatus
 
@@ -185,3 +185,10 @@ class SimulatedTrajectory(eqx.Module):
             tk = np.arange(np.ceil(ts[0] / dt), np.floor(ts[-1] / dt) + 1) * dt
             held = (tk, np.asarray(self.eval(jnp.asarray(tk))))
         return plot_signal(ts, ys, list(frame.coordinates), frame.name, outputs, ax=ax, held_samples=held, **kwargs)
+
+
+def trajectory_bytes(num_states: int, max_steps: int, max_events: int, dense: bool, itemsize: int) -> int:
+    """Bytes of one trajectory's buffers: per piece its polynomial (NUM_COEFFICIENTS x n),
+    start, end and mode; per event its state, time, index and mode."""
+    pieces = (max_steps + 1 if dense else 2) * (NUM_COEFFICIENTS * num_states + 3)
+    return (pieces + max_events * (num_states + 3)) * itemsize

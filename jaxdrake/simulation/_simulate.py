@@ -18,11 +18,10 @@ import numpy as np
 from .._numbers import device_array
 from ..systems import System
 from ..systems import check_initialised
-from ..trajectories import NUM_COEFFICIENTS
 from ._controller import ConstantStepSize, IController
 from ._inputs import NoisyInput, leaves_to_arrays, make_source
 from ._loop import run_simulation
-from ._result import SimulatedTrajectory
+from ._result import SimulatedTrajectory, trajectory_bytes
 from ._solvers import make_solver
 from ._status import SimulationError, SimulationStatus
 
@@ -108,8 +107,8 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
                     ("event_tol", event_tol)):
         if v is not None and _concrete(v) and not float(v) > 0:
             raise ValueError(f"{name} must be positive, got {v}")
-    if autodiff not in ("reverse", "forward"):
-        raise ValueError(f"autodiff must be 'reverse' or 'forward', got {autodiff!r}")
+    if autodiff not in ("reverse", "forward", "checkpointed"):
+        raise ValueError(f"autodiff must be 'reverse', 'forward' or 'checkpointed', got {autodiff!r}")
     if not (isinstance(max_steps, int) and max_steps > 0):
         raise ValueError(f"max_steps must be a positive int, got {max_steps!r}")
 
@@ -144,13 +143,6 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
         if not SimulationStatus.is_success(status):
             raise SimulationError(status, _failure_message(system, status, t0, tf, traj))
     return traj
-
-
-def trajectory_bytes(num_states: int, max_steps: int, max_events: int, dense: bool, itemsize: int) -> int:
-    """Bytes of one trajectory's buffers: per piece its polynomial (NUM_COEFFICIENTS x n),
-    start, end and mode; per event its state, time, index and mode."""
-    pieces = (max_steps + 1 if dense else 2) * (NUM_COEFFICIENTS * num_states + 3)
-    return (pieces + max_events * (num_states + 3)) * itemsize
 
 
 def _failure_message(system, status, t0, tf, traj) -> str:

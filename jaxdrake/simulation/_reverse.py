@@ -1,0 +1,151 @@
+r"""Reverse mode of the simulation loop (`simulate(..., autodiff="reverse")`, the default).
+
+`jax.grad` asks for $\bar p = J^T \bar y$, the cotangent $\bar y$ of the loop's result (the
+final state and the trajectory buffers) pulled back to the differentiated inputs $p$ (the
+perturbed leaves of the system, the input source, x0, t0, tf). Two ways, picked while
+tracing from the number $P$ of differentiated scalars:
+
+- **Forward sensitivities** ($P \le$ `MAX_FORWARD_DIRECTIONS`): the backward pass re-runs
+  the plain loop under `jax.jvp` with the $P$ unit tangents $e_i$ (a `vmap`, in chunks whose
+  tangent buffers fit in `TANGENT_BYTES`) and contracts each output tangent with the
+  cotangent, $\bar p_i = \langle \bar y, J e_i \rangle$. The program holds the loop once
+  and its tangent once: no transpose of the loop, no recomputation of checkpoints, so it
+  compiles in about the time of `jax.jacfwd` (2.5x less than the checkpointed VJP for the
+  acrobot and the Panda) and runs faster for the few-parameter gradients of system
+  identification and design. It is the same derivative (of the computed solution, step
+  sizes held, event times by the implicit-function theorem) as the other way.
+- **The checkpointed loop's VJP** (larger $P$: a neural controller's weights, a long input
+  tape): the loop re-run as `equinox.internal.while_loop(kind="checkpointed")`
+  (recursive checkpointing bounded by `max_steps`) and transposed by JAX.
+
+`autodiff="checkpointed"` takes the second way whatever $P$ is.
+"""
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._result import trajectory_bytes
+
+MAX_FORWARD_DIRECTIONS = 64
+TANGENT_BYTES = 256 * 2**20
+
+
+def run_reverse(loop, t0, x0, h0, status):
+    """`loop.run_loop` differentiable by `jax.grad` (see the module doc). The loop is traced
+    once into a jaxpr whose closed-over values (a traced gain inside an input function or a
+    controller) become arguments, so that they are differentiated too."""
+    inputs = (loop, t0, x0, h0)
+    run = eqx.filter_closure_convert(lambda i: i[0].run_loop(i[1], i[2], i[3], status, kind="lax"), inputs)
+    return _differentiable_run((run, inputs), status)
+
+
+@eqx.filter_custom_vjp
+def _differentiable_run(vjp_arg, status):
+    run, inputs = vjp_arg
+    return run(inputs)
+
+
+@_differentiable_run.def_fwd
+def _forward(perturbed, vjp_arg, status):
+    """The forward pass: with few differentiated scalars whose tangents fit in memory, the
+    loop under `jax.jvp` along every unit direction at once (its tangents are the residuals,
+    so the backward pass only contracts); else the plain loop."""
+    directions = _Directions(vjp_arg, perturbed)
+    if not (directions.forward and directions.chunk() == directions.count):
+        return _differentiable_run.fn(vjp_arg, status), None
+    out, tangents = jax.vmap(lambda e: jax.jvp(directions.run, (directions.values,), (directions.split(e),)),
+                             out_axes=(None, 0))(directions.basis())
+    return out, tangents
+
+
+@_differentiable_run.def_bwd
+def _backward(tangents, cotangent, perturbed, vjp_arg, status):
+    directions = _Directions(vjp_arg, perturbed)
+    if tangents is not None:  # stored by the forward pass
+        flat = jax.vmap(lambda t: _contract(cotangent, t))(tangents)
+    elif directions.forward or directions.in_closure:
+        # a closed-over value is differentiated: only the traced jaxpr may be re-run
+        flat = jax.lax.map(lambda e: _contract(cotangent, jax.jvp(directions.run, (directions.values,),
+                                                                   (directions.split(e),))[1]),
+                           directions.basis(), batch_size=directions.chunk())
+    else:
+        primal, pullback = eqx.filter_vjp(directions.checkpointed(status), directions.values)
+        return directions.gradient(pullback(_dense_cotangent(primal, cotangent))[0])
+    return directions.gradient(directions.split(flat))
+
+
+class _Directions:
+    """The differentiated leaves of (the traced loop's closed-over values, (loop, t0, x0,
+    h0)), flattened into `count` scalars."""
+
+    def __init__(self, vjp_arg, perturbed):
+        self.leaves, self.treedef = jax.tree.flatten(vjp_arg)
+        flags = self.treedef.flatten_up_to(perturbed)
+        self.chosen = [i for i, flag in enumerate(flags) if flag]
+        self.values = [self.leaves[i] for i in self.chosen]
+        self.sizes = [int(np.prod(v.shape)) for v in self.values]
+        self.offsets = np.cumsum([0] + self.sizes)
+        self.count = int(self.offsets[-1])
+        self.dtype = jnp.result_type(*self.values) if self.values else jnp.float32
+        self.forward = 0 < self.count <= MAX_FORWARD_DIRECTIONS
+        num_closure_leaves = len(jax.tree.leaves(vjp_arg[0]))
+        self.in_closure = any(i < num_closure_leaves for i in self.chosen)
+
+    def _with(self, values):
+        leaves = list(self.leaves)
+        for i, value in zip(self.chosen, values):
+            leaves[i] = value
+        return jax.tree.unflatten(self.treedef, leaves)
+
+    def run(self, values):
+        """The traced loop as a function of the differentiated leaves."""
+        run, inputs = self._with(values)
+        return run(inputs)
+
+    def checkpointed(self, status):
+        """The loop traced again as the checkpointed loop (only when no closed-over value
+        is differentiated), a function of the differentiated leaves."""
+        def run(values):
+            _, (loop, t0, x0, h0) = self._with(values)
+            return loop.run_loop(t0, x0, h0, status, kind="checkpointed")
+        return run
+
+    def basis(self):
+        return jnp.eye(self.count, dtype=self.dtype)
+
+    def split(self, flat):
+        """A vector over the `count` scalars as one array per differentiated leaf."""
+        return [flat[a:b].reshape(v.shape).astype(v.dtype)
+                for a, b, v in zip(self.offsets[:-1], self.offsets[1:], self.values)]
+
+    def chunk(self):
+        """How many directions' tangents (chiefly the trajectory buffers) fit in
+        `TANGENT_BYTES` at once."""
+        _, (loop, _, x0, _) = jax.tree.unflatten(self.treedef, self.leaves)
+        per_direction = trajectory_bytes(x0.shape[0], loop.max_steps, loop.max_events, loop.dense,
+                                         jnp.dtype(x0.dtype).itemsize)
+        return int(max(1, min(self.count, TANGENT_BYTES // per_direction)))
+
+    def gradient(self, grads):
+        """The cotangent of the custom VJP's argument: `grads` at the differentiated leaves."""
+        out = [None] * len(self.leaves)
+        for i, g in zip(self.chosen, grads):
+            out[i] = g
+        return jax.tree.unflatten(self.treedef, out)
+
+
+def _contract(cotangent, tangent_out):
+    """<ybar, ydot> over the outputs whose cotangent is not a symbolic zero."""
+    pairs = zip(jax.tree.leaves(cotangent, is_leaf=lambda x: x is None),
+                jax.tree.leaves(tangent_out, is_leaf=lambda x: x is None))
+    products = [jnp.vdot(c, t.astype(c.dtype)) for c, t in pairs if c is not None]
+    return sum(products[1:], products[0]) if products else jnp.zeros(())
+
+
+def _dense_cotangent(primal, cotangent):
+    """The cotangent with its symbolic zeros (None at an inexact output) made zero arrays."""
+    return jax.tree.map(lambda c, p: (jnp.zeros_like(p) if c is None else c) if eqx.is_inexact_array(p) else None,
+                        cotangent, primal, is_leaf=lambda x: x is None)
