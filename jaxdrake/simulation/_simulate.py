@@ -1,12 +1,13 @@
 """`simulate`: validate in Python, then run the one jit-compiled loop (`_loop.py`).
 
-The loop is `equinox.internal.while_loop` with the trajectory as in-place buffers:
-`kind="checkpointed"` (recursive checkpointing when reverse-mode differentiated, bounded by
-`max_steps`; `autodiff="reverse"`, the default), or `kind="lax"` for `autodiff="forward"`
-(`jax.jvp` / `jax.jacfwd`; the checkpointed loop is a custom VJP that forward mode cannot
-enter). Step sizes are not differentiated (the gradient is that of the discrete scheme on
-its grid); event times are, by the implicit function theorem, so gradients see the shift of
-a switching instant and the saltation jump at an impact.
+The loop is `equinox.internal.while_loop` with the trajectory as in-place buffers. Its
+derivatives (`autodiff`): `"forward"` runs it as it is (`jax.jvp` / `jax.jacfwd`);
+`"reverse"` (the default) makes it a custom VJP (`_reverse.py`: forward sensitivities for up
+to 64 differentiated scalars, else the checkpointed loop's VJP), which forward mode cannot
+enter; `"checkpointed"` always takes JAX's transpose of the checkpointed loop. Step sizes are
+not differentiated (the gradient is that of the discrete scheme on its grid); event times are,
+by the implicit function theorem, so gradients see the shift of a switching instant and the
+saltation jump at an impact.
 """
 from __future__ import annotations
 
@@ -63,7 +64,9 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     - `event_tol`: the time tolerance to which event instants are located.
     - `dense`: keep the dense output (else only the final state, for big batches).
     - `constraint_projection`: project the state onto phi(x) = 0 after every step.
-    - `autodiff`: `"reverse"` (default; `jax.grad` works, through a checkpointed loop) or
+    - `autodiff`: `"reverse"` (default; `jax.grad` / `jax.vjp` work: up to 64 differentiated
+      scalars by forward sensitivities, which compile fast, more through the checkpointed
+      loop), `"checkpointed"` (`jax.grad` always through the checkpointed loop) or
       `"forward"` (`jax.jvp` / `jax.jacfwd` work, `jax.grad` does not).
     - `throw`: outside `jit` / `vmap`, raise `SimulationError` on failure; inside, the
       status is on the result (`traj.status`, `traj.success`) either way.
