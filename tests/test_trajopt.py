@@ -102,6 +102,97 @@ def test_simpson_cost_ignoring_the_state_skips_the_midpoint_dynamics_without_cha
     np.testing.assert_allclose(value, np.sum(h / 6 * (X[:-1, 1] + 4 * midpoint + X[1:, 1])), rtol=1e-12)
 
 
+def drake_pendulum_collocation(N, min_step, max_step):
+    """Drake's DirectCollocation of its PendulumPlant (the parameters of jd.models.Pendulum()),
+    equal time steps, as the notes' swing-up example builds it."""
+    from pydrake.examples import PendulumPlant
+    from pydrake.planning import DirectCollocation
+
+    plant = PendulumPlant()
+    dircol = DirectCollocation(plant, plant.CreateDefaultContext(), num_time_samples=N,
+                               minimum_time_step=min_step, maximum_time_step=max_step)
+    dircol.AddEqualTimeIntervalsConstraints()
+    return dircol
+
+
+def drake_decision_vector(dircol, X, U, h):
+    z = np.zeros(dircol.prog().num_vars())
+    for k in range(len(X)):
+        dircol.prog().SetDecisionVariableValueInVector(dircol.state(k), X[k], z)
+        dircol.prog().SetDecisionVariableValueInVector(dircol.input(k), U[k], z)
+        if k < len(X) - 1:
+            dircol.prog().SetDecisionVariableValueInVector(dircol.time_step(k), [h], z)
+    return z
+
+
+def test_collocation_with_the_trapezoid_is_drakes_program():
+    """At the same (random) knots, DirectCollocation(quadrature="trapezoid")'s objective equals
+    Drake's DirectCollocation objective for the same running cost (time-dependent, to check the
+    knot times), and its defects are Drake's collocation constraints times 2h/3 (Drake writes
+    the cubic's slope minus f at the midpoint: (3/2h) (x1 - x0) - (f0 + f1)/4 - f_c); Simpson's
+    rule gives another number for the same trajectory."""
+    pytest.importorskip("pydrake")
+    N, T = 11, 2.0
+    h = T / (N - 1)
+    dircol = drake_pendulum_collocation(N, 0.01, 1.0)
+    x, u, t = dircol.state(), dircol.input(), dircol.time()
+    dircol.AddRunningCost(u[0] ** 2 + (x[0] - np.pi) ** 2 * (1 + t[0]))
+    rng = np.random.default_rng(0)
+    X, U = rng.normal(size=(N, 2)), rng.normal(size=(N, 1))
+    z = drake_decision_vector(dircol, X, U, h)
+    drake_cost = sum(dircol.prog().EvalBinding(b, z)[0] for b in dircol.prog().GetAllCosts())
+    drake_defects = np.stack([dircol.prog().EvalBinding(b, z) for b in dircol.prog().GetAllConstraints()
+                              if type(b.evaluator()).__name__ == "DirectCollocationConstraint"])
+
+    def ours(quadrature):
+        prog = trajopt.DirectCollocation(jd.models.Pendulum(), N, duration=T, quadrature=quadrature)
+        prog.add_running_cost(lambda t, x, u: u[0] ** 2 + (x[0] - jnp.pi) ** 2 * (1 + t))
+        return prog.nlp, np.concatenate([X.ravel(), U.ravel()])
+
+    nlp, w = ours("trapezoid")
+    assert abs(nlp.objective(w) - drake_cost) < 1e-12 * drake_cost
+    np.testing.assert_allclose(nlp.constraint_values(w)[:(N - 1) * 2].reshape(N - 1, 2), 2 * h / 3 * drake_defects,
+                               atol=1e-13)
+    simpson, w = ours("simpson")
+    assert abs(simpson.objective(w) - drake_cost) > 0.01 * drake_cost
+    with pytest.raises(ValueError, match="quadrature"):
+        trajopt.DirectCollocation(jd.models.Pendulum(), N, duration=T, quadrature="gauss")
+
+
+def test_pendulum_swing_up_from_no_guess_reaches_drakes_optimum():
+    """The notes' swing-up (Drake's example: 21 knots, time steps in [0.05, 0.5], |u| <= 3,
+    cost 10 u^2 + T) solves with no guess at all (the straight line, one step toward the
+    dynamics; from the line alone IPOPT ends 'infeasible problem detected'), at the optimum
+    Drake's IPOPT reaches from its own guess (the line over 4 s): the same cost and duration."""
+    pytest.importorskip("pydrake")
+    from pydrake.solvers import IpoptSolver
+    from pydrake.trajectories import PiecewisePolynomial
+
+    N, goal = 21, np.array([np.pi, 0.0])
+    prog = trajopt.DirectCollocation(jd.models.Pendulum(), N, duration=(20 * 0.05, 20 * 0.5), quadrature="trapezoid")
+    prog.set_initial_state([0.0, 0.0]).set_final_state(goal).add_input_bounds(-3.0, 3.0)
+    result = prog.add_running_cost(lambda t, x, u: 10 * u @ u).add_duration_cost().solve()
+    assert result.success and result.max_defect < 1e-8
+
+    dircol = drake_pendulum_collocation(N, 0.05, 0.5)
+    u = dircol.input()
+    dircol.AddConstraintToAllKnotPoints(-3.0 <= u[0])
+    dircol.AddConstraintToAllKnotPoints(u[0] <= 3.0)
+    dircol.prog().AddBoundingBoxConstraint([0.0, 0.0], [0.0, 0.0], dircol.initial_state())
+    dircol.prog().AddBoundingBoxConstraint(goal, goal, dircol.final_state())
+    dircol.AddRunningCost(10 * u[0] ** 2)
+    dircol.AddFinalCost(dircol.time()[0])
+    dircol.SetInitialTrajectory(PiecewisePolynomial(),
+                                PiecewisePolynomial.FirstOrderHold([0.0, 4.0], np.column_stack([[0.0, 0.0], goal])))
+    drake = IpoptSolver().Solve(dircol.prog())
+    assert drake.is_success()
+    drake_duration = sum(drake.GetSolution(dircol.time_step(k))[0] for k in range(N - 1))
+    assert abs(result.cost - drake.get_optimal_cost()) < 1e-6 * drake.get_optimal_cost()
+    assert abs(result.duration - drake_duration) < 1e-6
+    np.testing.assert_allclose(result.knot_inputs[:, 0], [drake.GetSolution(dircol.input(k))[0] for k in range(N)],
+                               atol=1e-4)
+
+
 def test_jacobian_sparse_and_matches_finite_differences():
     """A pendulum with free duration and a free mass: every block, including the global
     columns, against central differences; the pattern covers every non-zero."""

@@ -28,6 +28,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.sparse.linalg
 
 from .._numbers import device_array
 from ..simulation import FIXED_STEP_RULES, discrete_step, simulate
@@ -226,8 +227,9 @@ class _TrajectoryProgram:
 
     def add_running_cost(self, fn: Callable):
         r"""Add $\int_0^T \ell(t, x, u)\,dt$ with `fn(t, x, u) -> scalar`, by the method's
-        quadrature (Simpson on the collocation's cubic, the rule's rectangle for
-        transcription, the simulation itself for shooting)."""
+        quadrature (for collocation its `quadrature`: Simpson's rule on the cubic, or Drake's
+        trapezoid on the knots; the rule's rectangle for transcription; the simulation itself
+        for shooting)."""
         self._add(self._running_cost_term(fn), "cost")
         return self
 
@@ -334,7 +336,16 @@ class _TrajectoryProgram:
     def initial_guess(self, states=None, inputs=None, duration=None, parameters=None) -> np.ndarray:
         """The decision vector for a guess: `states` / `inputs` each a `Trajectory`, a function
         of time, an array of knot values ((N, n) / (N, m)) or None (states: the straight line
-        between the fixed initial and final states; inputs: zero, clipped into bounds)."""
+        between the fixed initial and final states; inputs: zero), clipped into the bounds.
+        With neither `states` nor `inputs`, the straight line then takes one step toward the
+        dynamics (`toward_dynamics`), as `solve` does."""
+        z = self._interpolated_guess(states, inputs, duration, parameters)
+        if states is None and inputs is None:
+            z = self.toward_dynamics(z)
+        return z
+
+    def _interpolated_guess(self, states, inputs, duration, parameters) -> np.ndarray:
+        """`initial_guess` before the step toward the dynamics."""
         N, n, m = self.num_time_samples, self.num_states, self.num_inputs
         T = float(duration) if duration is not None else (
             self._duration_bounds[0] if not self.free_duration else float(np.mean(self._duration_bounds)))
@@ -356,6 +367,28 @@ class _TrajectoryProgram:
             raise ValueError("the initial guess has non-finite values")
         return z
 
+    def toward_dynamics(self, z, *, exact_hessian: bool | None = None) -> np.ndarray:
+        r"""One Gauss-Newton step from the decision vector z toward the dynamics: the least
+        change $\delta$ of the free knot states and inputs (the duration and parameters kept)
+        with $c(z) + J \delta = 0$ for the dynamic defects c (LSQR's least-norm solution),
+        clipped into the bounds; z itself where the step is not finite. A straight line in
+        state space is no trajectory of a mechanical system (its angles move while its
+        velocities stay at the endpoints' values, with zero input), and IPOPT started there can
+        stop at a point of locally least infeasibility (the notes' pendulum swing-up with a
+        free duration); one step puts velocities and inputs in line with the motion.
+        (`exact_hessian`: which compiled Jacobian program to use, the one the solve uses.)"""
+        exact = (self._hessian_approximation == "exact") if exact_hessian is None else exact_hessian
+        z = np.asarray(z, float)
+        rows = (self.num_time_samples - 1) * self.num_states  # the dynamics term comes first
+        knots = self.num_variables - self.num_globals
+        free = np.flatnonzero(self._lower[:knots] < self._upper[:knots])
+        jacobian = self.nlp.jacobian(z, for_hessian=exact)[:rows][:, free]
+        step = scipy.sparse.linalg.lsqr(jacobian, -self.nlp.constraint_values(z)[:rows], atol=1e-12, btol=1e-12)[0]
+        moved = z.copy()
+        moved[free] += step
+        moved = np.clip(moved, self._lower, self._upper)
+        return moved if np.all(np.isfinite(moved)) else z
+
     @staticmethod
     def _guess_values(spec, times, shape, default, label):
         if spec is None:
@@ -373,14 +406,15 @@ class _TrajectoryProgram:
     def solve(self, states=None, inputs=None, duration=None, parameters=None, *, solver="auto",
               tol=1e-8, max_iterations=3000, hessian=None, progress=True, verbose=False,
               options=None, initial_guess=None) -> TrajectoryOptimizationResult:
-        """Solve from a guess (see `initial_guess`, or pass a decision vector as
-        `initial_guess`) with `solver` ("auto": IPOPT if available, else SciPy's trust-constr;
+        """Solve from a guess (see `initial_guess`: by default the straight line between the
+        fixed initial and final states, one step toward the dynamics; or pass a decision vector
+        as `initial_guess`) with `solver` ("auto": IPOPT if available, else SciPy's trust-constr;
         "ipopt"; "scipy"). `hessian`: "exact" (the sparse autodiff Lagrangian Hessian; default
         for transcription and collocation) or "limited-memory" (IPOPT's L-BFGS, as Drake runs
         IPOPT; compiles faster, more iterations). `progress`: a progress bar of the iterations (drawn once the solve has run 2 s);
         `verbose` the solver's own log.
         Never raises on a failed solve: check `result.success` and `result.message`."""
-        z0 = (self.initial_guess(states, inputs, duration, parameters) if initial_guess is None
+        z0 = (self._interpolated_guess(states, inputs, duration, parameters) if initial_guess is None
               else np.asarray(initial_guess, float))
         if z0.shape != (self.num_variables,):
             raise ValueError(f"initial_guess must have shape ({self.num_variables},), got {z0.shape}")
@@ -395,6 +429,8 @@ class _TrajectoryProgram:
                 raise ValueError("the SciPy solver needs hessian='exact'")
             kwargs["hessian"] = hessian
         self.nlp.compile_for_solver(z0, exact_hessian=hessian == "exact", also=(lambda: self._solution(z0),))
+        if initial_guess is None and states is None and inputs is None:
+            z0 = self.toward_dynamics(z0, exact_hessian=hessian == "exact")
         return self._result(solve(self.nlp, z0, solver, **kwargs))
 
     _hessian_approximation = "exact"
@@ -538,8 +574,14 @@ def _hermite_simpson_batched(system, n, m, h):
 class DirectCollocation(_TrajectoryProgram):
     r"""Direct collocation with Hermite-Simpson's rule (Drake's `DirectCollocation`): cubic
     state segments matching $f$ at the knots, first-order-hold inputs, the dynamics enforced
-    at each segment's midpoint. Running costs use Simpson's rule on the same cubic, so a
-    quadratic-in-u cost of a linear optimal input is integrated exactly.
+    at each segment's midpoint. Running costs are integrated segment by segment by
+    `quadrature`:
+
+    - "simpson" (default): $\tfrac h6 (\ell_k + 4 \ell_c + \ell_{k+1})$ on the Hermite cubic
+      and the first-order-hold input (at the collocation's midpoint $x_c$, $u_c$), exact for a
+      quadratic-in-u cost of a linear input;
+    - "trapezoid": $\tfrac h2 (\ell_k + \ell_{k+1})$ on the knots, as Drake's
+      `AddRunningCost` (then the program and its objective are Drake's with equal time steps).
 
     ```python
     prog = DirectCollocation(DoubleIntegrator(), 21, duration=2.0)
@@ -550,11 +592,14 @@ class DirectCollocation(_TrajectoryProgram):
 
     method = "Hermite-Simpson"
 
-    def __init__(self, system, num_time_samples, *, duration=None, parameters=None,
-                 parameter_bounds=None):
+    def __init__(self, system, num_time_samples, *, duration=None, quadrature: str = "simpson",
+                 parameters=None, parameter_bounds=None):
         if isinstance(system, System) and system.has_discrete_state:
             raise ValueError(f"DirectCollocation needs a continuous system; {system.name} is discrete "
                              "(use DirectTranscription)")
+        if quadrature not in ("simpson", "trapezoid"):
+            raise ValueError(f"unknown quadrature {quadrature!r}; use 'simpson' or 'trapezoid' (Drake's)")
+        self.quadrature = quadrature
         super().__init__(system, num_time_samples, duration=duration, parameters=parameters,
                          parameter_bounds=parameter_bounds)
 
@@ -571,6 +616,9 @@ class DirectCollocation(_TrajectoryProgram):
                                         self._duration_bounds[0] / (self.num_time_samples - 1))
 
     def _running_cost_term(self, fn):
+        if self.quadrature == "trapezoid":
+            return self._segment_term("running cost", lambda t, x0, u0, x1, u1, h, system:
+                                      h / 2 * (fn(t, x0, u0) + fn(t + h, x1, u1)))
         reads_state = _reads_state(fn, self.num_states, self.num_inputs)
 
         def simpson(t, x0, u0, x1, u1, h, system):
