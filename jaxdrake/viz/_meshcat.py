@@ -41,10 +41,10 @@ from ..multibody import (ContactModel, KinematicTree, RigidBodySystem, URDFError
                           resolve_model_file)
 from . import _meshcat_server
 from ._puppet import puppet_model, render_frames
-from ._urdf_visuals import link_color
+from ._urdf_visuals import SKELETON_COLOR, link_color, skeleton_radii
 from ._visualizer import DRAW_PERIOD, Visualizer, _in_notebook, batched
 
-_SKELETON, _FORCE = 0x4C72B0, 0x2CA02C
+_FORCE = 0x2CA02C
 # contact arrows (m): shaft and dot radii, the head's length and radius (Drake draws 2 mm shafts)
 _SHAFT, _DOT, _HEAD_LENGTH, _HEAD_RADIUS = 0.003, 0.006, 0.02, 0.008
 
@@ -298,11 +298,12 @@ class MeshcatVisualizer(Visualizer):
                     robot[name][f"visual{k}"].set_transform(placement)
             return
         skeleton = self._skeleton()
+        joint_radius, rod_radius = skeleton_radii(skeleton)
         for name in self.links:
-            robot[name]["joint"].set_object(g.Sphere(0.03), g.MeshLambertMaterial(color=_SKELETON))
+            robot[name]["joint"].set_object(g.Sphere(joint_radius), _material(SKELETON_COLOR))
             for k, offset in enumerate(skeleton.get(name, [])):
                 length = float(np.linalg.norm(offset))  # a three.js cylinder along y, centred
-                robot[name][f"rod{k}"].set_object(g.Cylinder(length, 0.015), g.MeshLambertMaterial(color=_SKELETON))
+                robot[name][f"rod{k}"].set_object(g.Cylinder(length, rod_radius), _material(SKELETON_COLOR))
                 robot[name][f"rod{k}"].set_transform(_transform(_y_onto(offset / length), offset / 2))
 
     def _neutral_transforms(self):
@@ -414,9 +415,10 @@ class MeshcatVisualizer(Visualizer):
             visuals, materials, mesh_file = self._urdf_visuals()
             skeleton = {} if any(visuals.values()) else self._skeleton()
             connection["puppet"] = puppet_model(self.links, visuals, materials, mesh_file, skeleton,
-                                                 self._neutral_transforms(), self.tree.has_floating_base)
+                                                 self._neutral_transforms())
         model, camera = connection["puppet"]
-        return render_frames(model, camera, self.frame_transforms(xs), self.height, self.width)
+        return render_frames(model, camera, self.frame_transforms(xs), self.height, self.width,
+                             follow=self.tree.has_floating_base)
 
     def save(self, traj, path, fps=None) -> pathlib.Path:
         """Write the scene with the trajectory's animation as one self-contained `.html` file,

@@ -22,6 +22,17 @@ _LINK_PALETTE = ((0.45, 0.62, 0.81), (1.00, 0.66, 0.38), (0.50, 0.78, 0.50), (0.
                  (0.80, 0.80, 0.45), (0.45, 0.80, 0.85))
 
 
+SKELETON_COLOR = np.array([0.30, 0.45, 0.69, 1.0])  # a URDF without visuals, drawn as its skeleton
+
+
+def skeleton_radii(skeleton) -> tuple[float, float]:
+    """(joint sphere, rod) radii of the skeleton drawn for a URDF without visuals ({link:
+    offsets of the links attached to it}): 4% and 2% of its longest rod, at least 3 and 1.5 cm,
+    so that a robot metres long is not drawn as a hairline."""
+    longest = max((float(np.linalg.norm(offset)) for offsets in skeleton.values() for offset in offsets), default=0.0)
+    return max(0.03, 0.04 * longest), max(0.015, 0.02 * longest)
+
+
 def link_color(visual, materials, link_index: int):
     """The RGBA colour a viewer draws a URDF <visual> in: its material's (`urdf_color`), else
     link `link_index`'s colour from a palette of distinct colours, so that a robot whose file
