@@ -20,3 +20,12 @@ def device_array(values, dtype=None):
     if isinstance(values, jax.Array):
         return jnp.asarray(values, dtype)
     return jax.device_put(np.asarray(values, dtype))
+
+
+def call_argument(values, dtype=None):
+    """`values` as an argument of a compiled call: host numbers as numpy arrays (the call
+    transfers them with its other arguments, no `device_put` each), JAX arrays and tracers
+    through `jnp.asarray`."""
+    if isinstance(values, jax.Array):
+        return jnp.asarray(values, dtype)
+    return np.asarray(values, dtype)

@@ -10,7 +10,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._numbers import device_array
 from ..trajectories import Trajectory
 from ._result import SimulatedTrajectory
 
@@ -113,8 +112,8 @@ def leaves_to_arrays(tree, dtype):
     changing a parameter's value does not recompile."""
     def convert(v):
         if isinstance(v, float) or (isinstance(v, np.ndarray) and np.issubdtype(v.dtype, np.floating)):
-            return device_array(v, dtype)
-        if isinstance(v, jax.Array) and jnp.issubdtype(v.dtype, jnp.floating):
+            return np.asarray(v, dtype)  # a numpy array is an argument of the compiled call
+        if isinstance(v, jax.Array) and jnp.issubdtype(v.dtype, jnp.floating) and v.dtype != dtype:
             return v.astype(dtype)
         return v
     return jax.tree.map(convert, tree)

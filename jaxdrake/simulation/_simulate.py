@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._numbers import device_array
+from .._numbers import call_argument
 from ..systems import System
 from ..systems import check_initialised
 from ._controller import ConstantStepSize, IController
@@ -91,11 +91,11 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     x0 = x0.astype(dtype)
     if _concrete(t0, tf) and not (np.isfinite(float(t0)) and np.isfinite(float(tf)) and float(tf) > float(t0)):
         raise ValueError(f"tspan must be finite with t0 < tf, got ({float(t0)}, {float(tf)})")
-    t0, tf = device_array(t0, dtype), device_array(tf, dtype)
+    t0, tf = call_argument(t0, dtype), call_argument(tf, dtype)
     if _concrete(x0) and not np.all(np.isfinite(x0)):
         raise ValueError(f"x0 is not finite: {x0}")
     if _concrete(x0):
-        system.check_initial_state(x0)
+        system.check_initial_state(np.asarray(x0))  # on the host: no op-by-op device work
     source = make_source(system, inputs, t0, dtype)
     if system.is_stochastic:
         if key is None:
@@ -115,17 +115,17 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     if not (isinstance(max_steps, int) and max_steps > 0):
         raise ValueError(f"max_steps must be a positive int, got {max_steps!r}")
 
-    arr = lambda v: None if v is None else jnp.asarray(v, dtype)  # noqa: E731
+    arr = lambda v: None if v is None else call_argument(v, dtype)  # noqa: E731
     system = leaves_to_arrays(system, dtype)
     if solver.adaptive:
         controller = IController(arr(rtol), arr(atol), solver.error_order)
-        h0 = dt if dt is not None else (tf - t0 if system.num_continuous_states == 0 else jnp.nan)
+        h0 = dt if dt is not None else (tf - t0 if system.num_continuous_states == 0 else np.nan)
     else:
         controller = ConstantStepSize(arr(dt))
         h0 = dt
     try:
         traj = _run_simulation(system, solver, controller, source, t0, tf, x0, arr(h0),
-                               arr(jnp.inf if max_step_size is None else max_step_size), arr(event_tol),
+                               arr(np.inf if max_step_size is None else max_step_size), arr(event_tol),
                                max_steps, max_events, dense, constraint_projection, autodiff)
     except jax.errors.JaxRuntimeError as error:
         if "RESOURCE_EXHAUSTED" not in str(error):

@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._numbers import array_module
 from ._frame import Frame, frame_conversion
 from ._hybrid import HybridSystem
 from ._system import System, _static
@@ -152,7 +153,7 @@ class Diagram(System):
         state x, or from states stacked along leading axes (`traj.state(ts)`)."""
         i, rest = self._locate(which)
         d, c = self._state_slices(i)
-        x_i = jnp.concatenate([x[..., d], x[..., c]], axis=-1)
+        x_i = array_module(x).concatenate([x[..., d], x[..., c]], axis=-1)  # numpy stays numpy
         return x_i if rest is None else self.subsystems[i].subsystem_state(rest, x_i)
 
     def state_with(self, x, which, x_i):
@@ -354,7 +355,8 @@ class Diagram(System):
 
     def check_initial_state(self, x0):
         for i, system in enumerate(self.subsystems):
-            system.check_initial_state(self.subsystem_state(i, x0))
+            if type(system).check_initial_state is not System.check_initial_state:  # not the no-op
+                system.check_initial_state(self.subsystem_state(i, x0))
 
     def initial_state(self):
         x = jnp.zeros(self.num_states)

@@ -66,6 +66,13 @@ def _compiled_method(method, self, t, options, named):
     return method(self, t, *options, **dict(named))
 
 
+@jax.jit
+def _last_piece_end(coefficients, num_segments):
+    """Sum of the coefficients of piece num_segments - 1: one compiled call, not op by op."""
+    last = jnp.asarray(num_segments - 1)[..., None, None, None]
+    return jnp.take_along_axis(coefficients, last, axis=-3)[..., 0, :, :].sum(axis=-2)
+
+
 def check_side(side):
     if side not in ("left", "right"):
         raise ValueError(f"side must be 'left' or 'right', got {side!r}")
@@ -198,8 +205,7 @@ class Trajectory(eqx.Module):
     def final_value(self):
         """The value at the end of the last piece (for a batch, of every member): the sum of
         the last piece's coefficients."""
-        last = jnp.asarray(self.num_segments - 1)[..., None, None, None]
-        return jnp.take_along_axis(self.coefficients, last, axis=-3)[..., 0, :, :].sum(axis=-2)
+        return _last_piece_end(self.coefficients, self.num_segments)
 
     # ----- algebra on the pieces ------------------------------------------------------------
 

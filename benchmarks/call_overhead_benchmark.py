@@ -1,0 +1,65 @@
+"""What a warm call from Python costs beside its compiled program: `jd.simulate` of the
+pendulum, of a PD-controlled pendulum (a diagram) and of the bouncing ball (events), each
+called as a user calls it in a notebook and the same call inside `jax.jit`; and
+`traj.eval` at 101 points. Targets (issue 40): a warm call within 0.3 ms of its jitted time;
+`eval` at 101 points <= 1 ms.
+
+    python benchmarks/call_overhead_benchmark.py [--repeats 200]
+"""
+
+from __future__ import annotations
+
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxdrake as jd
+from _common import argument_parser, machine_line  # benchmarks/_common.py
+
+jax.config.update("jax_enable_x64", True)
+
+
+def median_time(fn, repeats: int) -> float:
+    """The median of `repeats` warm calls (after five warm-up calls), in seconds."""
+    for _ in range(5):
+        jax.block_until_ready(fn())
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - start)
+    return float(np.median(times))
+
+
+def cases():
+    """name: (system, x0)."""
+    pendulum = jd.models.Pendulum()
+    pd = jd.System.from_functions(output=lambda t, x, u: -(5.0 * (u[0:1] - np.pi) + 1.0 * u[1:2]),
+                                  num_states=0, num_inputs=2)
+    return {"pendulum": (pendulum, jnp.array([1.0, 0.0])),
+            "PD diagram": (jd.feedback(pendulum, pd), jnp.array([1.0, 0.0])),
+            "bouncing ball": (jd.models.BouncingBall(), jnp.array([1.0, 0.0]))}
+
+
+def main():
+    parser = argument_parser(__doc__, repeats=200, gpu_help="unused")
+    args = parser.parse_args()
+    print(machine_line())
+    print(f"{'case':16s} {'from Python':>12s} {'inside jit':>11s} {'overhead':>9s}")
+    for name, (system, x0) in cases().items():
+        def python_call():
+            return jd.simulate(system, (0.0, 1.0), x0).final_state
+
+        jitted = jax.jit(lambda x0: jd.simulate(system, (0.0, 1.0), x0).final_state)
+        python = median_time(python_call, args.repeats)
+        inside = median_time(lambda: jitted(x0), args.repeats)
+        print(f"{name:16s} {python * 1e3:10.3f}ms {inside * 1e3:9.3f}ms {(python - inside) * 1e3:7.3f}ms", flush=True)
+    traj = jd.simulate(*cases()["pendulum"][:1], (0.0, 1.0), jnp.array([1.0, 0.0]))
+    ts = jnp.linspace(0.0, 1.0, 101)
+    print(f"{'eval, 101 points':16s} {median_time(lambda: traj.eval(ts), args.repeats) * 1e3:10.3f}ms")
+
+
+if __name__ == "__main__":
+    main()
