@@ -231,6 +231,26 @@ def test_gradients_of_rollouts_match_central_differences():
 
 
 @pytest.mark.slow
+def test_grad_goes_through_the_full_contact_solver(tmp_path):
+    """MJX's solver with its default iterations is a while_loop: the default reverse mode
+    differentiates it by forward sensitivities (central differences agree)."""
+    xml = (DATA / "mj_ball.xml").read_text().replace(' iterations="1" ls_iterations="4"', "")
+    (tmp_path / "ball.xml").write_text(xml)
+    ball = jd.MujocoSystem.from_xml(tmp_path / "ball.xml")
+
+    def height_after_bounce(z0, vx):
+        x = jnp.asarray(ball.initial_state()).at[2].set(z0).at[7].set(vx)
+        final = jd.simulate(ball, (0.0, 0.6), x, dense=False).final_state
+        return final[0] + final[2]
+
+    g = jax.grad(height_after_bounce, argnums=(0, 1))(0.6, 0.4)
+    eps = 1e-6
+    fd = [(height_after_bounce(0.6 + eps, 0.4) - height_after_bounce(0.6 - eps, 0.4)) / (2 * eps),
+          (height_after_bounce(0.6, 0.4 + eps) - height_after_bounce(0.6, 0.4 - eps)) / (2 * eps)]
+    np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-8)
+
+
+@pytest.mark.slow
 def test_lqr_of_the_linearized_update_balances_the_cart_pole():
     cartpole = jd.MujocoSystem.from_xml(DATA / "mj_cartpole.xml")
     upright, u0 = jnp.zeros(4), jnp.zeros(1)

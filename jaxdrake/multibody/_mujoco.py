@@ -10,10 +10,11 @@ own loops); by default each step's solve starts from zero (C MuJoCo's `mjDSBL_WA
 which changes nothing without constraints and, with a converged solver, little with them,
 but matters with one solver iteration (MuJoCo Playground's setting). The model's arrays (masses, damping,
 gains, geometry sizes, ...) are pytree leaves: `vmap` over them does not recompile and `grad`
-reaches them. Gradients through contacts: `jax.grad` needs a one-iteration solver
-(`<option iterations="1" ls_iterations="4"/>`, MuJoCo Playground's setting); with more
-iterations MJX's solver is a `while_loop`, which reverse mode cannot differentiate (JAX's error
-then names `while_loop`): use `simulate(..., autodiff="forward")` with `jax.jacfwd`. Needs `pip install mujoco==3.17.0 mujoco-mjx==3.17.0` (the `mujoco` extra).
+reaches them. Gradients through contacts: `jax.grad` of a simulation goes through MJX's
+solver whatever its iteration count (its `while_loop` is differentiated by forward
+sensitivities, for up to 64 differentiated scalars); `autodiff="checkpointed"`, and
+`jax.grad` of `discrete_update` alone, need a one-iteration solver
+(`<option iterations="1" ls_iterations="4"/>`, MuJoCo Playground's setting). Needs `pip install mujoco==3.17.0 mujoco-mjx==3.17.0` (the `mujoco` extra).
 
 MuJoCo derives constants from the model's arrays when it compiles a model (`mj_setConst`):
 subtree masses, the inverse weights that scale constraints (`body_invweight0`,
