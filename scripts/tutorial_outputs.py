@@ -1,8 +1,9 @@
 """The tutorials' outputs, stored: the site shows each notebook with its printed results and plots
 without executing it at build time.
 
-`python scripts/tutorial_outputs.py [name ...]` executes notebooks/<name>.ipynb (all of them
-without names) in a fresh kernel and writes its code cells' outputs to
+`python scripts/tutorial_outputs.py [name ...]` executes docs/tutorials/<name>.ipynb (a link to
+notebooks/<name>.ipynb; all of them without names) in a fresh kernel, in the notebook's own
+folder as a reader would, and writes its code cells' outputs to
 docs/tutorials/outputs/<name>.json, each beside the hash of the code that made it: that cell's
 source and every code cell's before it, so that a change anywhere upstream marks the outputs
 below it stale, while edits to the prose do not.
@@ -19,16 +20,17 @@ import json
 import logging
 import os
 import pathlib
+import re
 import sys
 import time
 
 from mkdocs.plugins import event_priority
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-NOTEBOOKS = ROOT / "notebooks"
 TUTORIALS = ROOT / "docs" / "tutorials"
 OUTPUTS = TUTORIALS / "outputs"
 RENDER = f"python {pathlib.Path(__file__).relative_to(ROOT)}"
+LARGEST_OUTPUT = 2_000_000  # bytes of JSON: an inline 3-D scene with its meshes stays out of the repository
 log = logging.getLogger("mkdocs.hooks.tutorial_outputs")
 
 
@@ -64,18 +66,19 @@ def with_outputs(notebook: dict, stored: dict) -> dict:
 
 
 def render(name: str) -> pathlib.Path:
-    """Execute notebooks/<name>.ipynb (in that folder, as a reader would) and store its outputs."""
+    """Execute the tutorial `name` and store its outputs."""
     import nbclient
     import nbformat
 
-    notebook = nbformat.read(NOTEBOOKS / f"{name}.ipynb", as_version=4)
+    source = (TUTORIALS / f"{name}.ipynb").resolve()
+    notebook = nbformat.read(source, as_version=4)
     nbclient.NotebookClient(notebook, timeout=1200, kernel_name="python3",
-                            resources={"metadata": {"path": str(NOTEBOOKS)}}).execute()
+                            resources={"metadata": {"path": str(source.parent)}}).execute()
     hashes = code_hashes(notebook)
     code = [cell for cell in notebook.cells if cell.cell_type == "code"]
-    stored = {"notebook": f"notebooks/{name}.ipynb", "made_by": f"{RENDER} {name}",
+    stored = {"notebook": str(source.relative_to(ROOT)), "made_by": f"{RENDER} {name}",
               "cells": [{"code_sha256": h, "execution_count": cell.execution_count,
-                         "outputs": [_plain(output) for output in cell.outputs]}
+                         "outputs": [_small(output) for output in _joined_streams(cell.outputs)]}
                         for h, cell in zip(hashes, code, strict=True)]}
     OUTPUTS.mkdir(parents=True, exist_ok=True)
     path = OUTPUTS / f"{name}.json"
@@ -83,11 +86,33 @@ def render(name: str) -> pathlib.Path:
     return path
 
 
-def _plain(output) -> dict:
-    """An nbformat output as plain JSON, without its per-run metadata (execution timings)."""
-    output = json.loads(json.dumps(output))
-    output.get("metadata", {}).pop("execution", None)
-    return output
+def _joined_streams(outputs) -> list[dict]:
+    """The outputs as plain JSON, consecutive prints to one stream joined and each line shown as
+    a terminal leaves it (a progress bar redrawn after carriage returns: its last state)."""
+    joined = []
+    for output in json.loads(json.dumps(outputs)):
+        output.get("metadata", {}).pop("execution", None)  # per-run timings
+        previous = joined[-1] if joined else {}
+        if output["output_type"] == "stream" and previous.get("name") == output["name"]:
+            previous["text"] += output["text"]
+        else:
+            joined.append(output)
+    for output in joined:
+        if output["output_type"] == "stream":
+            output["text"] = re.sub(r"[^\n]*\r(?=[^\n])", "", output["text"])
+    return joined
+
+
+def _small(output: dict) -> dict:
+    """The output, or a note in its place where it is larger than `LARGEST_OUTPUT`."""
+    size = len(json.dumps(output))
+    if size <= LARGEST_OUTPUT:
+        return output
+    kinds = ", ".join(output.get("data", {})) or output["output_type"]
+    note = (f"<p><em>This output ({kinds}, {size / 1e6:.1f} MB) is left out of the documentation to keep the "
+            "repository small: run the notebook to see it.</em></p>")
+    return {"output_type": "display_data", "data": {"text/html": note, "text/plain": note},
+            "metadata": {"left_out_bytes": size}}
 
 
 # the mkdocs hook
