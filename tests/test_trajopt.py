@@ -314,23 +314,24 @@ def test_ilqr_matches_discrete_optimum_and_batches():
 
 def test_ilqr_failures_are_statuses_with_messages():
     """Each way an iLQR solve can fail is its own status (never an exception inside jit): the
-    budget spent, a goal out of reach of the input bounds (|u| <= 0.01 cannot bring the double
-    integrator from (1, 0) to the origin in T = 2 s: it moves at most 0.01 T^2 / 2 = 0.02),
-    a cost undefined along the rollout; a batch reports one status and message per member."""
+    budget spent; a goal out of reach of the input bounds (|u| <= 0.01 cannot bring the double
+    integrator from (1, 0) to the origin in T = 2 s: it moves at most 0.01 T^2 / 2 = 0.02); a
+    non-finite start. A batch reports one status and message per member."""
     plant, S = jd.models.DoubleIntegrator(), trajopt.ILQRStatus
 
-    def solve(x0, cost=lambda t, x, u: u @ u, **options):
-        return trajopt.ilqr(plant, x0, jnp.zeros((20, 1)), 0.1, cost, final_state=jnp.zeros(2), **options)
+    def solve(x0, **options):
+        return trajopt.ilqr(plant, x0, jnp.zeros((20, 1)), 0.1, lambda t, x, u: u @ u, final_state=jnp.zeros(2),
+                            **options)
 
     spent = solve(jnp.array([1.0, 0.0]), max_iterations=1)
     assert int(spent.status) == S.MAXIMUM_ITERATIONS and not bool(spent.success)
     assert "max_iterations" in spent.message
-    far = jax.vmap(lambda x0: solve(x0, input_bounds=(-0.01, 0.01), max_outer=3))(jnp.array([[1.0, 0.0], [0.0, 0.0]]))
-    assert [S(int(code)) for code in far.status] == [S.GOAL_NOT_REACHED, S.SUCCESS]
-    assert float(far.constraint_violation[0]) >= 0.98 - 1e-9
-    assert list(far.message) == [S.GOAL_NOT_REACHED.message, S.SUCCESS.message]
-    undefined = solve(jnp.array([1.0, 0.0]), cost=lambda t, x, u: jnp.log(x[0] - 2.0))
-    assert int(undefined.status) == S.NONFINITE and "not finite" in undefined.message
+    starts = jnp.array([[1.0, 0.0], [0.0, 0.0], [np.nan, 0.0]])
+    batch = jax.vmap(lambda x0: solve(x0, input_bounds=(-0.01, 0.01), max_outer=3))(starts)
+    assert [S(int(code)) for code in batch.status] == [S.GOAL_NOT_REACHED, S.SUCCESS, S.NONFINITE]
+    assert float(batch.constraint_violation[0]) >= 0.98 - 1e-9
+    assert list(batch.message) == [S.GOAL_NOT_REACHED.message, S.SUCCESS.message, S.NONFINITE.message]
+    assert list(np.asarray(batch.success)) == [False, True, False]
 
 
 def test_float32_collocation():

@@ -179,7 +179,8 @@ def _ilqr(system, x0, inputs, time_step, running_cost, final_cost, final_state, 
     s = jax.lax.while_loop(functools.partial(keep_going, problem), functools.partial(outer_iteration, problem), start)
     cost = problem.objective(s.knot_states, s.knot_inputs)
     violation = problem.violation(s.knot_states)
-    status = jnp.select([~jnp.isfinite(cost), s.iterations >= max_iterations,
+    finite = jnp.isfinite(cost) & jnp.all(jnp.isfinite(s.knot_states))
+    status = jnp.select([~finite, s.iterations >= max_iterations,
                          ~(violation <= constraint_tol)],
                         [ILQRStatus.NONFINITE, ILQRStatus.MAXIMUM_ITERATIONS, ILQRStatus.GOAL_NOT_REACHED],
                         ILQRStatus.SUCCESS)

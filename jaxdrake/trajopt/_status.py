@@ -89,8 +89,9 @@ class ILQRStatus(enum.IntEnum):
 
 _ILQR_MESSAGES = {
     ILQRStatus.SUCCESS: "converged: the cost stopped changing (tol) with the goal met (constraint_tol)",
-    ILQRStatus.NONFINITE: "the cost is not finite (NaN or inf): the rollout of the input guess blew up or a "
-                          "cost is undefined there (a shorter time step, a smaller input guess, or bounds)",
+    ILQRStatus.NONFINITE: "the cost or the knot states are not finite (NaN or inf): a non-finite x0, a rollout "
+                          "that blew up or a cost undefined there (a shorter time step, a smaller input guess, "
+                          "or bounds)",
     ILQRStatus.MAXIMUM_ITERATIONS: "max_iterations iLQR iterations were spent before convergence (raise "
                                    "max_iterations, or give a closer input guess)",
     ILQRStatus.GOAL_NOT_REACHED: "the final state misses the goal by more than constraint_tol after "
