@@ -178,3 +178,22 @@ def test_a_new_process_loads_the_programs_of_the_last_one_from_the_compilation_c
     assert directory == str(tmp_path / "xla") and any((tmp_path / "xla").iterdir())
     _, hits_second, x_second = run()
     assert hits_first == 0 and hits_second >= 1 and x_second == x_first
+
+
+def test_compiled_keeps_one_program_per_call_signature():
+    """`jaxdrake._compiled.compiled` (simulate's dispatch): arrays traced, other leaves static
+    and returned as they were; new values of the same signature reuse the program."""
+    from jaxdrake._compiled import compiled
+
+    traces = []
+
+    @compiled
+    def f(x, scale, name):
+        traces.append(name)
+        return {"y": scale * x, "name": name}
+
+    out = f(jnp.ones(3), 2.0, "a")
+    assert out["name"] == "a" and np.allclose(out["y"], 2.0)
+    out = f(np.full(3, 4.0), 2.0, "a")  # numpy arrays are arguments too
+    assert np.allclose(out["y"], 8.0) and traces == ["a"]
+    assert f(jnp.ones(3), 3.0, "a")["y"][0] == 3.0 and len(traces) == 2  # a new static value

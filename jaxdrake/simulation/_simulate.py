@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._compiled import compiled
 from .._numbers import call_argument
 from ..systems import System
 from ..systems import check_initialised
@@ -28,7 +29,7 @@ from ._status import SimulationError, SimulationStatus
 
 
 
-@eqx.filter_jit
+@compiled
 def _run_simulation(system, solver, controller, source, t0, tf, x0, *args):
     # Shapes are checked while tracing, so a wrong shape is a named Python error before any
     # compilation, and a second call (the compiled program kept) checks and traces nothing.
