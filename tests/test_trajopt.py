@@ -35,7 +35,8 @@ def zoh_min_effort_cost(N, T):
 
 def test_collocation_minimum_effort_matches_closed_form():
     T = 2.0
-    result = min_effort(trajopt.DirectCollocation, 11, T).solve()
+    prog = min_effort(trajopt.DirectCollocation, 11, T)
+    result = prog.solve()
     assert result.success and result.status == trajopt.SolverStatus.SOLVED and result.message == "solved"
     assert abs(result.cost - 12 / T**3) < 1e-4
     assert abs(result.cost - 12 / T**3) < 1e-10  # Simpson on a linear input is exact
@@ -46,6 +47,10 @@ def test_collocation_minimum_effort_matches_closed_form():
     np.testing.assert_allclose(np.asarray(result.states.state(jnp.asarray(s)))[:, 0],
                                1 - 3 * (s / T) ** 2 + 2 * (s / T) ** 3, atol=1e-8)
     assert result.max_defect < 1e-8
+    # the default guess: the straight line, then one Gauss-Newton step, exact for linear dynamics
+    guess = prog.initial_guess()
+    assert np.abs(prog.nlp.constraint_values(guess)).max() < 1e-10
+    np.testing.assert_array_equal(guess[[0, 1, 20, 21]], [1.0, 0.0, 0.0, 0.0])  # the fixed ends stay
 
 
 @pytest.mark.parametrize("rule", ["rk4", "euler"])
@@ -204,7 +209,7 @@ def test_jacobian_sparse_and_matches_finite_differences():
     prog.add_final_cost(lambda T, x: (x[0] - np.pi) ** 2 + T)
     prog.add_path_constraint(lambda t, x, u: x[1] ** 2 + u[0] ** 2, 0.0, 50.0)
     prog.add_periodicity([1])
-    z = prog.initial_guess(duration=2.5) + 0.1 * np.random.default_rng(1).standard_normal(prog.num_variables)
+    z = prog.initial_guess(np.zeros((15, 2)), duration=2.5) + 0.1 * np.random.default_rng(1).standard_normal(prog.num_variables)
     check = prog.nlp.check_derivatives(z)
     assert check["jacobian_error"] < 1e-7 * max(1.0, check["jacobian_scale"])
     assert check["hessian_error"] < 1e-6 * max(1.0, check["hessian_scale"])
