@@ -265,10 +265,7 @@ def test_the_home_page_shows_its_picture_offline(site, browser):
 
 
 # pages whose math KaTeX refuses, with the reason; a fixed one must leave this list
-KNOWN_MATH_ERRORS = {
-    "estimation/index.html": "ExtendedKalmanFilter's docstring (jaxdrake/estimation/_nonlinear.py) writes two "
-                             "$$ displays on consecutive lines, which Markdown joins into one",
-}
+KNOWN_MATH_ERRORS: dict[str, str] = {}
 
 
 @pytest.mark.slow  # ~25 s for the ~40 pages on 2 cores; by default the tutorial and home page tests above

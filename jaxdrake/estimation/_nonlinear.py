@@ -116,6 +116,7 @@ class ExtendedKalmanFilter(_DiscreteGaussianFilter):
 
     $$K = P C^T (C P C^T + V)^{-1},\quad \hat x_{k|k} = \hat x + K (y_k - g(\hat x)),\quad
       P_{k|k} = (I - KC) P (I - KC)^T + K V K^T,$$
+
     $$\hat x_{k+1|k} = \Phi_h(\hat x_{k|k}, u_k),\qquad P_{k+1|k} = F P_{k|k} F^T + W$$
 
     (Joseph's form keeps $P$ symmetric positive semidefinite).
