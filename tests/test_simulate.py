@@ -168,3 +168,26 @@ def test_van_der_pol_limit_cycle_amplitude():
     traj = jd.simulate(VanDerPol(1.0), (0.0, 40.0), jnp.array([0.1, 0.0]), rtol=1e-10, atol=1e-12)
     q = np.asarray(traj.state(np.linspace(30.0, 40.0, 20001)))[:, 0]
     assert q.max() == pytest.approx(2.00861986, abs=1e-6)
+
+
+def test_device_places_a_call_from_python_and_is_ignored_inside_jit():
+    cpu = jax.devices("cpu")[0]
+    x0 = jnp.array([1.0, 0.0])
+    placed = jd.simulate(Pendulum(), (0.0, 1.0), x0, device=cpu)
+    assert placed.final_state.devices() == {cpu}
+    np.testing.assert_array_equal(placed.final_state, jd.simulate(Pendulum(), (0.0, 1.0), x0).final_state)
+    inside = jax.jit(lambda x: jd.simulate(Pendulum(), (0.0, 1.0), x, device=cpu).final_state)(x0)
+    np.testing.assert_array_equal(inside, placed.final_state)
+
+
+@pytest.mark.gpu
+def test_a_call_from_python_runs_on_the_host_when_the_default_device_is_a_gpu():
+    """One simulation is launch-bound on a GPU (H100: the pendulum 3.4x, a double pendulum
+    5.9x slower than the host, benchmarks/placement_benchmark.py): from Python it runs on the
+    host unless a device is named or an argument is committed to the GPU."""
+    gpu = jax.devices("gpu")[0]
+    x0 = jnp.array([1.0, 0.0])
+    assert jd.simulate(Pendulum(), (0.0, 1.0), x0).final_state.devices() == {jax.devices("cpu")[0]}
+    assert jd.simulate(Pendulum(), (0.0, 1.0), x0, device=gpu).final_state.devices() == {gpu}
+    committed = jax.device_put(x0, gpu)
+    assert jd.simulate(Pendulum(), (0.0, 1.0), committed).final_state.devices() == {gpu}

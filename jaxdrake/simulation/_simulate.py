@@ -11,6 +11,8 @@ saltation jump at an impact.
 """
 from __future__ import annotations
 
+import contextlib
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -41,7 +43,7 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
              atol=1e-9, dt=None, max_step_size=None, max_steps: int = 4096,
              max_events: int = 256, event_tol=1e-10, dense: bool = True,
              constraint_projection: bool = False, autodiff: str = "reverse",
-             throw: bool = True) -> SimulatedTrajectory:
+             throw: bool = True, device=None) -> SimulatedTrajectory:
     """Simulate a system over `tspan = (t0, tf)` (the notes' `simulate(sys, [t0 tf], x0)`).
 
     **Arguments:**
@@ -71,6 +73,11 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
       `"forward"` (`jax.jvp` / `jax.jacfwd` work, `jax.grad` does not).
     - `throw`: outside `jit` / `vmap`, raise `SimulationError` on failure; inside, the
       status is on the result (`traj.status`, `traj.success`) either way.
+    - `device`: where a call from Python (outside `jit` / `vmap` / `grad`) runs. None: the
+      host CPU when JAX's default device is an accelerator and no argument is committed to
+      one, since one simulation is a sequence of small dependent steps that a GPU runs
+      kernel by kernel, several times slower than the host; batches belong inside `vmap` /
+      `jd.run_batch`, which run where their caller's program runs. A `jax.Device` chooses.
 
     **Returns:** a `SimulatedTrajectory`.
     """
@@ -125,9 +132,10 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
         controller = ConstantStepSize(arr(dt))
         h0 = dt
     try:
-        traj = _run_simulation(system, solver, controller, source, t0, tf, x0, arr(h0),
-                               arr(np.inf if max_step_size is None else max_step_size), arr(event_tol),
-                               max_steps, max_events, dense, constraint_projection, autodiff)
+        with _placement(device, (system, source, x0)):
+            traj = _run_simulation(system, solver, controller, source, t0, tf, x0, arr(h0),
+                                   arr(np.inf if max_step_size is None else max_step_size), arr(event_tol),
+                                   max_steps, max_events, dense, constraint_projection, autodiff)
     except jax.errors.JaxRuntimeError as error:
         if "RESOURCE_EXHAUSTED" not in str(error):
             raise
@@ -147,6 +155,21 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
         if not SimulationStatus.is_success(status):
             raise SimulationError(status, _failure_message(system, status, t0, tf, traj))
     return traj
+
+
+def _placement(device, arguments):
+    """The device context of a call (see `simulate`'s `device`): the given device; else the
+    host CPU for a call from Python whose arguments are concrete and not committed to an
+    accelerator, when the default device is one; else the caller's placement."""
+    if device is not None:
+        return jax.default_device(device)
+    leaves = jax.tree.leaves(arguments)
+    if jax.default_backend() == "cpu" or not _concrete(leaves):
+        return contextlib.nullcontext()
+    if any(isinstance(leaf, jax.Array) and leaf.committed and any(d.platform != "cpu" for d in leaf.devices())
+           for leaf in leaves):
+        return contextlib.nullcontext()
+    return jax.default_device(jax.devices("cpu")[0])
 
 
 def _failure_message(system, status, t0, tf, traj) -> str:
