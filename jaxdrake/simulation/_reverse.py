@@ -2,23 +2,28 @@ r"""Reverse mode of the simulation loop (`simulate(..., autodiff="reverse")`, th
 
 `jax.grad` asks for $\bar p = J^T \bar y$, the cotangent $\bar y$ of the loop's result (the
 final state and the trajectory buffers) pulled back to the differentiated inputs $p$ (the
-perturbed leaves of the system, the input source, x0, t0, tf). Two ways, picked while
-tracing from the number $P$ of differentiated scalars:
+perturbed leaves of the system, the input source, x0, t0, tf, and of values the loop closes
+over: the loop is traced once into a jaxpr whose closed-over values become arguments). Two
+ways, picked while tracing from the number $P$ of differentiated scalars:
 
-- **Forward sensitivities** ($P \le$ `MAX_FORWARD_DIRECTIONS`): the backward pass re-runs
-  the plain loop under `jax.jvp` with the $P$ unit tangents $e_i$ (a `vmap`, in chunks whose
-  tangent buffers fit in `TANGENT_BYTES`) and contracts each output tangent with the
-  cotangent, $\bar p_i = \langle \bar y, J e_i \rangle$. The program holds the loop once
-  and its tangent once: no transpose of the loop, no recomputation of checkpoints, so it
-  compiles in about the time of `jax.jacfwd` (2.5x less than the checkpointed VJP for the
-  acrobot and the Panda) and runs faster for the few-parameter gradients of system
-  identification and design. It is the same derivative (of the computed solution, step
-  sizes held, event times by the implicit-function theorem) as the other way.
-- **The checkpointed loop's VJP** (larger $P$: a neural controller's weights, a long input
-  tape): the loop re-run as `equinox.internal.while_loop(kind="checkpointed")`
-  (recursive checkpointing bounded by `max_steps`) and transposed by JAX.
+- **Forward sensitivities** ($P \le$ `MAX_FORWARD_DIRECTIONS`): the forward pass runs the
+  plain loop under `jax.jvp` along the $P$ unit directions $e_i$ at once (a `vmap`) and keeps
+  the tangents; the backward pass contracts them with the cotangent,
+  $\bar p_i = \langle \bar y, J e_i \rangle$ (where the tangents would not fit in
+  `TANGENT_BYTES`, it re-runs them in chunks instead). The program holds the loop and its
+  tangent: no transpose of the loop, no recomputation of checkpoints, so it compiles 2.3-3.3x
+  faster than the checkpointed VJP (`benchmarks/RESULTS.md`) and runs faster for the
+  few-parameter gradients of system identification and design; it also differentiates
+  inner `while_loop`s that JAX cannot transpose (MJX's solver).
+- **The checkpointed loop's VJP** (larger $P$: a floating robot's x0, a neural controller's
+  weights, a long input tape), whose cost does not grow with $P$: the loop re-run as
+  `equinox.internal.while_loop(kind="checkpointed")` (recursive checkpointing bounded by
+  `max_steps`) and transposed by JAX; when a closed-over value is among the differentiated
+  ones, the traced loop's tangents in chunks instead.
 
-`autodiff="checkpointed"` takes the second way whatever $P$ is.
+Either way it is the same derivative, that of the computed solution (step sizes held, event
+times by the implicit-function theorem). `autodiff="checkpointed"` always takes the
+checkpointed loop's VJP.
 """
 from __future__ import annotations
 
@@ -29,7 +34,7 @@ import numpy as np
 
 from ._result import trajectory_bytes
 
-MAX_FORWARD_DIRECTIONS = 64
+MAX_FORWARD_DIRECTIONS = 32  # Solo-12 from x0 (37): 10x the checkpointed warm time; the Panda (18): faster both ways
 TANGENT_BYTES = 256 * 2**20
 
 

@@ -3,7 +3,7 @@
 The loop is `equinox.internal.while_loop` with the trajectory as in-place buffers. Its
 derivatives (`autodiff`): `"forward"` runs it as it is (`jax.jvp` / `jax.jacfwd`);
 `"reverse"` (the default) makes it a custom VJP (`_reverse.py`: forward sensitivities for up
-to 64 differentiated scalars, else the checkpointed loop's VJP), which forward mode cannot
+to 32 differentiated scalars, else the checkpointed loop's VJP), which forward mode cannot
 enter; `"checkpointed"` always takes JAX's transpose of the checkpointed loop. Step sizes are
 not differentiated (the gradient is that of the discrete scheme on its grid); event times are,
 by the implicit function theorem, so gradients see the shift of a switching instant and the
@@ -67,7 +67,7 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     - `event_tol`: the time tolerance to which event instants are located.
     - `dense`: keep the dense output (else only the final state, for big batches).
     - `constraint_projection`: project the state onto phi(x) = 0 after every step.
-    - `autodiff`: `"reverse"` (default; `jax.grad` / `jax.vjp` work: up to 64 differentiated
+    - `autodiff`: `"reverse"` (default; `jax.grad` / `jax.vjp` work: up to 32 differentiated
       scalars by forward sensitivities, which compile fast, more through the checkpointed
       loop), `"checkpointed"` (`jax.grad` always through the checkpointed loop) or
       `"forward"` (`jax.jvp` / `jax.jacfwd` work, `jax.grad` does not).
