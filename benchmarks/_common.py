@@ -19,6 +19,19 @@ def best_time(fn, repeats: int) -> float:
     return min(times)
 
 
+def median_time(fn, repeats: int, warmup: int = 5) -> float:
+    """The median of `repeats` warm calls of `fn` (after `warmup` calls), in seconds; `fn`'s
+    result is waited for."""
+    for _ in range(warmup):
+        jax.block_until_ready(fn())
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - start)
+    return float(np.median(times))
+
+
 def machine_line() -> str:
     """The processor, JAX's device and version, and the float width, for RESULTS.md."""
     device = jax.devices()[0]

@@ -10,29 +10,15 @@ called as a user calls it in a notebook and the same program (all its outputs) t
 
 from __future__ import annotations
 
-import time
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import jaxdrake as jd
-from _common import argument_parser, machine_line  # benchmarks/_common.py
+from _common import argument_parser, machine_line, median_time  # benchmarks/_common.py
 
 jax.config.update("jax_enable_x64", True)
-
-
-def median_time(fn, repeats: int) -> float:
-    """The median of `repeats` warm calls (after five warm-up calls), in seconds."""
-    for _ in range(5):
-        jax.block_until_ready(fn())
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-    return float(np.median(times))
 
 
 def cases():
@@ -60,7 +46,7 @@ def main():
         python = median_time(python_call, args.repeats)
         inside = median_time(lambda: jitted(x0), args.repeats)
         print(f"{name:16s} {python * 1e3:10.3f}ms {inside * 1e3:9.3f}ms {(python - inside) * 1e3:7.3f}ms", flush=True)
-    traj = jd.simulate(*cases()["pendulum"][:1], (0.0, 1.0), jnp.array([1.0, 0.0]))
+    traj = jd.simulate(jd.models.Pendulum(), (0.0, 1.0), jnp.array([1.0, 0.0]))
     ts = jnp.linspace(0.0, 1.0, 101)
     print(f"{'eval, 101 points':16s} {median_time(lambda: traj.eval(ts), args.repeats) * 1e3:10.3f}ms")
 

@@ -8,24 +8,11 @@ pendulum (issue 44: one simulation on a GPU within 2x the host's time) and a 9-d
 
 from __future__ import annotations
 
-import time
-
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 import jaxdrake as jd
-from _common import argument_parser, machine_line  # benchmarks/_common.py
-
-
-def median_time(fn, repeats: int) -> float:
-    jax.block_until_ready(fn())
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-    return float(np.median(times))
+from _common import argument_parser, machine_line, median_time  # benchmarks/_common.py
 
 
 def main():
