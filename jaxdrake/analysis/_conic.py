@@ -10,17 +10,17 @@ the program is stacking their sparse rows -- no modelling layer in between.
 from __future__ import annotations
 
 import dataclasses
-import enum
 import time
 
 import numpy as np
 import scipy.sparse
 
 from .._extras import require
+from .._status import Reported, StatusCode
 from ..systems import AffineExpression, DecisionSpace, LinearConstraint
 
 
-class ConicStatus(enum.IntEnum):
+class ConicStatus(StatusCode):
     """How a conic solve ended (Clarabel's and SCS's statuses mapped onto one list). OPTIMAL
     and OPTIMAL_INACCURATE (whose answer passed the program's own checks) are successes; a
     failure is raised as `InfeasibleError` / `SolveError` carrying its status."""
@@ -32,17 +32,8 @@ class ConicStatus(enum.IntEnum):
     FAILED = 4
     UNTRUSTED = 5
 
-    @property
-    def message(self) -> str:
-        """What happened and the usual remedy."""
-        return _MESSAGES[self]
 
-    @property
-    def success(self) -> bool:
-        return self in (ConicStatus.OPTIMAL, ConicStatus.OPTIMAL_INACCURATE)
-
-
-_MESSAGES = {
+ConicStatus.describe({
     ConicStatus.OPTIMAL: "optimal",
     ConicStatus.OPTIMAL_INACCURATE: "optimal to reduced accuracy (the solver's own tolerances not all met; "
                                     "the answer passed the program's checks)",
@@ -53,7 +44,7 @@ _MESSAGES = {
                         "the other solver, or rescale the program)",
     ConicStatus.UNTRUSTED: "the solver's answer failed the program's checks (coefficient residuals or Gram "
                            "eigenvalues beyond the tolerance)",
-}
+}, successes=(ConicStatus.OPTIMAL, ConicStatus.OPTIMAL_INACCURATE))
 
 
 class SolveError(RuntimeError):
@@ -73,7 +64,7 @@ class InfeasibleError(SolveError):
 
 
 @dataclasses.dataclass(frozen=True)
-class ConicResult:
+class ConicResult(Reported):
     """A solved program, kept on the host (a frozen dataclass, not a pytree: its numbers are
     read through the program's decision space, on the host): the `program`, the
     `objective_expression` (None for a feasibility program), the `solver`'s name, the `status`
@@ -85,14 +76,7 @@ class ConicResult:
     solver: str
     status: ConicStatus
     solve_time: float
-
-    @property
-    def success(self) -> bool:
-        return self.status.success
-
-    @property
-    def message(self) -> str:
-        return self.status.message
+    status_type = ConicStatus
 
     @property
     def objective(self) -> float | None:

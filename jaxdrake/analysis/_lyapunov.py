@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._progress import progress_bar
+from .._status import Reported
 from ..control import solve_continuous_lyapunov
 from ..systems import Polynomial, PolynomialSystem, System, taylor_polynomial
 from ._conic import ConicProgram, ConicStatus, InfeasibleError, SolveError
@@ -118,7 +119,7 @@ def _in_state_coordinates(V: Polynomial, x0) -> Polynomial:
 
 
 @dataclasses.dataclass(frozen=True)
-class RegionOfAttraction:
+class RegionOfAttraction(Reported):
     r"""A certified region of attraction $\{x : V(x) \le \rho\}$, kept on the host (a frozen
     dataclass, as its `SosResult`): V (a numeric Polynomial in the state x), rho, the
     multiplier, the solve's `result` and the sampled `check`; `status`, `success` and `message`
@@ -129,18 +130,11 @@ class RegionOfAttraction:
     multiplier: Polynomial
     result: SosResult
     check: CertificateCheck
+    status_type = ConicStatus
 
     @property
     def status(self) -> ConicStatus:
         return self.result.status
-
-    @property
-    def success(self) -> bool:
-        return self.result.success
-
-    @property
-    def message(self) -> str:
-        return self.result.message
 
 
 def region_of_attraction(system: System, x0, S=None, *, u0=None, taylor_degree: int = 3,
@@ -292,7 +286,7 @@ def global_lyapunov_function(system: System, x0, degree: int = 2, *, u0=None, ep
 
 
 @dataclasses.dataclass(frozen=True)
-class RegionOfAttractionSearch:
+class RegionOfAttractionSearch(Reported):
     r"""The result of `search_region_of_attraction`, kept on the host: the certified region
     $\{x : V(x) \le 1\}$ (V a numeric Polynomial in x), the inscribed level $\beta$ of the shape
     $p = (x - x_0)^T S (x - x_0)$ (so $\{p \le \beta\} \subseteq \{V \le 1\}$), $\beta$
@@ -303,18 +297,11 @@ class RegionOfAttractionSearch:
     beta: float
     history: list
     result: SosResult
+    status_type = ConicStatus
 
     @property
     def status(self) -> ConicStatus:
         return self.result.status
-
-    @property
-    def success(self) -> bool:
-        return self.result.success
-
-    @property
-    def message(self) -> str:
-        return self.result.message
 
 
 def search_region_of_attraction(system: System, x0, degree: int = 4, *, S=None, u0=None,

@@ -12,7 +12,6 @@ $u = u_0 - K (x - x_0)$ as a system ready for `feedback`.
 
 from __future__ import annotations
 
-import enum
 import functools
 
 import equinox as eqx
@@ -21,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._numbers import array_module, device_array
+from .._status import Reported, StatusCode
 from ..systems import LinearSystem, System
 from ..systems import require_plain_system
 from ._riccati import solve_continuous_are, solve_discrete_are
@@ -61,25 +61,23 @@ def linearize(system: System, x0, u0=None, *, t=0.0, check_equilibrium: bool = T
                         output_frame=system.output_frame)
 
 
-class LQRStatus(enum.IntEnum):
+class LQRStatus(StatusCode):
     """How an `lqr` solve ended (`LQRResult.status`). A call outside `jit` raises instead of
     returning a failure; inside `jit` (or `grad`, `vmap`) the status reports it."""
 
     SUCCESS = 0
     NO_STABILISING_SOLUTION = 1
 
-    @property
-    def message(self) -> str:
-        """What happened and the usual remedy."""
-        return {LQRStatus.SUCCESS: "solved: S is the stabilising solution of the Riccati equation",
-                LQRStatus.NO_STABILISING_SOLUTION:
-                    "the Riccati equation has no stabilising solution (S is not finite or not positive "
-                    "semidefinite): an unstable mode is not controllable through B, or Q does not see a "
-                    "mode on the stability boundary; check the operating point and the inputs, or "
-                    "penalise every state in Q (Q > 0)"}[self]
+
+LQRStatus.describe({
+    LQRStatus.SUCCESS: "solved: S is the stabilising solution of the Riccati equation",
+    LQRStatus.NO_STABILISING_SOLUTION: "the Riccati equation has no stabilising solution (S is not finite or not "
+                                       "positive semidefinite): an unstable mode is not controllable through B, "
+                                       "or Q does not see a mode on the stability boundary; check the operating "
+                                       "point and the inputs, or penalise every state in Q (Q > 0)"})
 
 
-class LQRResult(eqx.Module):
+class LQRResult(eqx.Module, Reported):
     r"""`K` (gain), `S` (cost-to-go $\tilde x^T S \tilde x$), the `linearization` about the
     operating point (`x0`, `u0`), the `controller` system $u = u_0 - K(x - x_0)$ (input: the
     plant's state; output: its input) and the `status` (an `LQRStatus` code; `success` and
@@ -95,16 +93,7 @@ class LQRResult(eqx.Module):
     x0: jax.Array
     u0: jax.Array
     status: jax.Array
-
-    @property
-    def success(self):
-        """True when S is the stabilising solution; works on traced and batched results."""
-        return self.status == LQRStatus.SUCCESS
-
-    @property
-    def message(self) -> str:
-        """What `status` means (one result, not a batch)."""
-        return LQRStatus(int(self.status)).message
+    status_type = LQRStatus
 
 
 def _affine_gain(t, x, y, params):

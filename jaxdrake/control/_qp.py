@@ -47,13 +47,14 @@ on a cached inverse is the method that fits.
 
 from __future__ import annotations
 
-import enum
 from typing import NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from .._status import StatusCode
 
 CHECK_EVERY = 10  # ADMM iterations between residual checks
 _UNROLL = 2  # two iterations per loop trip: ~2x faster than none, and compiles 2x faster than 10
@@ -63,7 +64,7 @@ RHO_LADDER = 10.0 ** (np.arange(-6, 7) / 2)  # multiples of the first rho, each 
 _ALPHA = 1.6
 
 
-class QPStatus(enum.IntEnum):
+class QPStatus(StatusCode):
     """How a QP solve ended (`QPSolution.status`)."""
 
     SOLVED = 0
@@ -71,18 +72,17 @@ class QPStatus(enum.IntEnum):
     PRIMAL_INFEASIBLE = 2
     NONFINITE = 3
 
-    @property
-    def message(self) -> str:
-        return {
-            QPStatus.SOLVED: "solved",
-            QPStatus.MAX_ITERATIONS: "the iteration limit was reached before the tolerance (raise "
-                                     "max_iterations, or loosen tolerance): the last iterate is returned",
-            QPStatus.PRIMAL_INFEASIBLE: "no point satisfies the constraints (the bounds contradict "
-                                        "each other from this state): widen the state bounds or make "
-                                        "them soft",
-            QPStatus.NONFINITE: "the data or the iterates are not finite (NaN or inf in q, or in a "
-                                "bound that must be finite)",
-        }[self]
+
+QPStatus.describe({
+    QPStatus.SOLVED: "solved",
+    QPStatus.MAX_ITERATIONS: "the iteration limit was reached before the tolerance (raise "
+                             "max_iterations, or loosen tolerance): the last iterate is returned",
+    QPStatus.PRIMAL_INFEASIBLE: "no point satisfies the constraints (the bounds contradict "
+                                "each other from this state): widen the state bounds or make "
+                                "them soft",
+    QPStatus.NONFINITE: "the data or the iterates are not finite (NaN or inf in q, or in a "
+                        "bound that must be finite)",
+})
 
 
 class QPSolution(NamedTuple):

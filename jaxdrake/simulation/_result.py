@@ -10,19 +10,22 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._status import Reported
 from ..trajectories import NUM_COEFFICIENTS, Trajectory, check_side, compiled_when_eager, plot_signal, sample_signal, vectorize_in_time
 from ._events import event_transitions
 from ._status import SimulationStatus
 
 
-class SimulatedTrajectory(eqx.Module):
+class SimulatedTrajectory(eqx.Module, Reported):
     r"""The result of `simulate` (the notes' `Trajectory` of a simulation): a pytree, so it can
     be returned from `jit`, batched by `vmap` (index a batch with `traj[i]`) and differentiated.
 
     - `state_trajectory`: x(t) as a `Trajectory` (one piece per accepted step, in the
       solver's dense output; left-continuous at jumps, the notes' timing for discrete states).
     - `modes`: the hybrid mode of each piece.
-    - `t_final`, `status` (a `SimulationStatus`), `num_accepted_steps`, `num_rejected_steps`.
+    - `t_final`, `status` (a `SimulationStatus` code; `success`, True when the final time was
+      reached or a reset stopped it, and `message` from it), `num_accepted_steps`,
+      `num_rejected_steps`.
     - `event_times`, `event_indices`, `event_modes`, `event_states`, `num_events`: the
       events, in fixed-size buffers (`events` gives them on the host).
     - `system`, `inputs`: the simulated system and its input source, so `eval(t)` gives the
@@ -44,6 +47,7 @@ class SimulatedTrajectory(eqx.Module):
     system: Any
     inputs: Any
     dense: bool = eqx.field(static=True, default=True)
+    status_type = SimulationStatus
 
     # ----- the pieces -----------------------------------------------------------------------
 
@@ -87,11 +91,6 @@ class SimulatedTrajectory(eqx.Module):
         return jax.tree.map(lambda leaf: leaf[i] if isinstance(leaf, jax.Array) else leaf, self)
 
     # ----- the outcome ----------------------------------------------------------------------
-
-    @property
-    def success(self):
-        """True when the simulation reached its final time (or was stopped by a reset)."""
-        return SimulationStatus.is_success(self.status)
 
     @property
     def events(self) -> dict:

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import enum
+from .._status import StatusCode
 
 
-class SimulationStatus(enum.IntEnum):
+class SimulationStatus(StatusCode):
     """Why a simulation stopped. SUCCESS and STOPPED_BY_RESET are not failures."""
 
     SUCCESS = 0
@@ -20,18 +20,9 @@ class SimulationStatus(enum.IntEnum):
     NONFINITE_INPUT = 9
     NAN_PARAMETER = 10
 
-    @property
-    def message(self) -> str:
-        """What happened and the usual remedy."""
-        return _MESSAGES[self]
-
-    @staticmethod
-    def is_success(status):
-        """True for SUCCESS and STOPPED_BY_RESET; works on traced and batched status arrays."""
-        return (status == SimulationStatus.SUCCESS) | (status == SimulationStatus.STOPPED_BY_RESET)
 
 
-_MESSAGES = {
+SimulationStatus.describe({
     SimulationStatus.SUCCESS: "the final time was reached",
     SimulationStatus.STOPPED_BY_RESET: "a reset stopped the simulation",
     SimulationStatus.MAX_STEPS_REACHED: "max_steps was reached before the final time (raise "
@@ -54,7 +45,7 @@ _MESSAGES = {
                                       "(check the input tape or function)",
     SimulationStatus.NAN_PARAMETER: "a parameter of the system is NaN: nothing was simulated (check "
                                     "the values given to the system, e.g. under vmap)",
-}
+}, successes=(SimulationStatus.SUCCESS, SimulationStatus.STOPPED_BY_RESET))
 
 
 class SimulationError(RuntimeError):

@@ -26,6 +26,7 @@ import numpy as np
 
 from .._extras import MissingExtraError, require
 from .._progress import finish, progress_bar
+from .._status import Reported
 from ._status import SolverStatus
 
 
@@ -321,7 +322,7 @@ class NonlinearProgram:
 
 # ----- solvers ------------------------------------------------------------------------------
 
-class SolverResult(eqx.Module):
+class SolverResult(eqx.Module, Reported):
     """What a solver returned, on the host: the point `z`, the `status` (a `SolverStatus`;
     `success` and `message` from it), the final `cost` and `constraint_violation` (largest
     bound or constraint violation), `iterations`, `solve_time` (s), the `solver`'s name and the
@@ -335,14 +336,7 @@ class SolverResult(eqx.Module):
     solve_time: float
     solver: str
     log: list
-
-    @property
-    def success(self) -> bool:
-        return self.status.success
-
-    @property
-    def message(self) -> str:
-        return self.status.message
+    status_type = SolverStatus
 
 
 def constraint_violation(nlp: NonlinearProgram, z) -> float:

@@ -36,10 +36,11 @@ from ..systems import System
 from ..systems import require_plain_system
 from ..trajectories import Trajectory
 from ._nlp import NonlinearProgram, SolverResult, Term, resolve_solver, solve
+from .._status import Reported
 from ._status import SolverStatus
 
 
-class TrajectoryOptimizationResult(eqx.Module):
+class TrajectoryOptimizationResult(eqx.Module, Reported):
     """A solved trajectory program, on the host (the solve is IPOPT's or SciPy's):
 
     - `states`, `inputs`: `Trajectory` objects (cubic / first-order hold for collocation, the
@@ -66,14 +67,7 @@ class TrajectoryOptimizationResult(eqx.Module):
     solver: str
     log: list
     z: np.ndarray
-
-    @property
-    def success(self) -> bool:
-        return self.status.success
-
-    @property
-    def message(self) -> str:
-        return self.status.message
+    status_type = SolverStatus
 
     def __repr__(self):
         return (f"TrajectoryOptimizationResult(success={self.success}, message={self.message!r}, "

@@ -4,12 +4,10 @@ as `jaxdrake.SimulationStatus` does."""
 
 from __future__ import annotations
 
-import enum
-
-import numpy as np
+from .._status import StatusCode
 
 
-class SolverStatus(enum.IntEnum):
+class SolverStatus(StatusCode):
     """How a nonlinear program's solve ended (IPOPT's return codes, and SciPy's mapped onto
     them). SOLVED and SOLVED_TO_ACCEPTABLE_LEVEL are successes."""
 
@@ -30,17 +28,9 @@ class SolverStatus(enum.IntEnum):
     CONSTRAINTS_VIOLATED = 14
     SOLVER_ERROR = 15
 
-    @property
-    def message(self) -> str:
-        """What happened and the usual remedy."""
-        return _SOLVER_MESSAGES[self]
-
-    @property
-    def success(self) -> bool:
-        return self in (SolverStatus.SOLVED, SolverStatus.SOLVED_TO_ACCEPTABLE_LEVEL)
 
 
-_SOLVER_MESSAGES = {
+SolverStatus.describe({
     SolverStatus.SOLVED: "solved",
     SolverStatus.SOLVED_TO_ACCEPTABLE_LEVEL: "solved to acceptable level (IPOPT's looser acceptable_tol, "
                                              "after it stalled short of tol)",
@@ -70,10 +60,10 @@ _SOLVER_MESSAGES = {
                                        "than the tolerance (infeasible from this guess, or it needs more "
                                        "iterations)",
     SolverStatus.SOLVER_ERROR: "the solver failed (see its log: verbose=True)",
-}
+}, successes=(SolverStatus.SOLVED, SolverStatus.SOLVED_TO_ACCEPTABLE_LEVEL))
 
 
-class ILQRStatus(enum.IntEnum):
+class ILQRStatus(StatusCode):
     """How an `ilqr` solve ended. Only SUCCESS is a success."""
 
     SUCCESS = 0
@@ -81,13 +71,8 @@ class ILQRStatus(enum.IntEnum):
     MAXIMUM_ITERATIONS = 2
     GOAL_NOT_REACHED = 3
 
-    @property
-    def message(self) -> str:
-        """What happened and the usual remedy."""
-        return _ILQR_MESSAGES[self]
 
-
-_ILQR_MESSAGES = {
+ILQRStatus.describe({
     ILQRStatus.SUCCESS: "converged: the cost stopped changing (tol) with the goal met (constraint_tol)",
     ILQRStatus.NONFINITE: "the cost or the knot states are not finite (NaN or inf): a non-finite x0, a rollout "
                           "that blew up or a cost undefined there (a shorter time step, a smaller input guess, "
@@ -97,12 +82,9 @@ _ILQR_MESSAGES = {
     ILQRStatus.GOAL_NOT_REACHED: "the final state misses the goal by more than constraint_tol after "
                                  "max_outer multiplier updates (raise max_outer or penalty, lengthen the "
                                  "horizon, or widen the input bounds)",
-}
+})
 
 
-def messages(status_type: type[enum.IntEnum], status):
+def messages(status_type: type[StatusCode], status):
     """The message of a status code, or an array of them (the shape of `status`) for a batch."""
-    codes = np.asarray(status)
-    if codes.ndim == 0:
-        return status_type(int(codes)).message
-    return np.vectorize(lambda code: status_type(int(code)).message, otypes=[object])(codes)
+    return status_type.message_of(status)
