@@ -148,3 +148,26 @@ def test_a_progress_bar_appears_only_for_long_work_and_ends_full_when_work_conve
     _progress.finish(quick, 10)
     assert capsys.readouterr().err == ""
     assert _progress.progress_bar(False, 10, "off", "step") is None
+
+
+def test_every_status_code_carries_a_message_and_its_successes():
+    """The result convention's one owner (jaxdrake._status): every status enum of the library
+    is a StatusCode whose codes all have a message, and is_success agrees with success on
+    arrays of codes (as inside jit / vmap)."""
+    import jax.numpy as jnp
+
+    from jaxdrake._status import StatusCode
+
+    def subclasses(cls):
+        for sub in cls.__subclasses__():
+            yield sub
+            yield from subclasses(sub)
+
+    kinds = {c.__name__ for c in subclasses(StatusCode)}
+    assert {"SimulationStatus", "SolverStatus", "ILQRStatus", "ConicStatus", "LQRStatus", "QPStatus"} <= kinds
+    for kind in subclasses(StatusCode):
+        codes = list(kind)
+        assert all(isinstance(code.message, str) and code.message for code in codes), kind
+        successes = kind.is_success(jnp.asarray([int(code) for code in codes]))
+        assert list(map(bool, successes)) == [code.success for code in codes], kind
+        assert list(kind.message_of(jnp.asarray([int(c) for c in codes]))) == [c.message for c in codes]
