@@ -156,6 +156,9 @@ def test_every_status_code_carries_a_message_and_its_successes():
     arrays of codes (as inside jit / vmap)."""
     import jax.numpy as jnp
 
+    import jaxdrake.analysis  # noqa: F401  (the packages that define status enums, some lazily imported)
+    import jaxdrake.control  # noqa: F401
+    import jaxdrake.trajopt  # noqa: F401
     from jaxdrake._status import StatusCode
 
     def subclasses(cls):
