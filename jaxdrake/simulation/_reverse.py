@@ -72,7 +72,8 @@ def _backward(tangents, cotangent, perturbed, vjp_arg, status):
     if tangents is not None:  # stored by the forward pass
         flat = jax.vmap(lambda t: _contract(cotangent, t))(tangents)
     elif directions.forward or directions.in_closure:
-        # a closed-over value is differentiated: only the traced jaxpr may be re-run
+        # tangents over the memory bound, or a closed-over value among many differentiated
+        # ones (only the traced jaxpr may be re-run then): the tangents again, in chunks
         flat = jax.lax.map(lambda e: _contract(cotangent, jax.jvp(directions.run, (directions.values,),
                                                                    (directions.split(e),))[1]),
                            directions.basis(), batch_size=directions.chunk())
