@@ -4,12 +4,14 @@ from ._xla import prefer_fast_cpu_compilation, use_compilation_cache
 
 prefer_fast_cpu_compilation()
 
-from . import analysis, control, estimation, geometry, models, multibody, planning, simulation, systems, trajectories, viz  # noqa: E402
+from . import (analysis, control, estimation, geometry, models, mujoco, multibody, planning, polynomials, simulation,
+               systems, trajectories, viz)  # noqa: E402
 from .control import linearize
-from .multibody import CouplerConstraint, LoopConstraint, MujocoSystem, RigidBodySystem
+from .multibody import CouplerConstraint, LoopConstraint, RigidBodySystem
+from .mujoco import MujocoSystem
+from .polynomials import Polynomial
 from .simulation import SimulatedTrajectory, SimulationError, SimulationStatus, simulate
-from .systems import (Diagram, DiagramBuilder, Frame, HybridSystem, LinearSystem, Polynomial,
-                      PolynomialSystem, StochasticSystem,
+from .systems import (Diagram, DiagramBuilder, Frame, HybridSystem, LinearSystem, PolynomialSystem, StochasticSystem,
                       System, TrajectorySource, Transition, add_frame_conversion, and_guards, cascade, feedback,
                       not_guard, parallel)
 from .systems import (Adder, ConstantVectorSource, Demultiplexer, DiscreteTimeDelay, FirstOrderLowPassFilter, Gain,
@@ -37,7 +39,7 @@ __all__ = ["Adder", "ConstantVectorSource", "Demultiplexer", "DiscreteTimeDelay"
            "ZeroOrderHold",
            "Diagram", "DiagramBuilder", "Frame", "HybridSystem", "LinearSystem", "SimulationError",
            "CouplerConstraint", "LoopConstraint", "MujocoSystem", "Polynomial", "PolynomialSystem", "RigidBodySystem", "SimulatedTrajectory", "SimulationStatus", "StochasticSystem", "System", "Trajectory", "TrajectorySource", "Transition",
-           "add_frame_conversion", "analysis", "and_guards", "cascade", "control", "estimation", "feedback", "geometry", "lcm", "linearize", "models", "multibody", "not_guard",
-           "parallel", "planning", "ros", "run_batch", "simulate", "simulation", "systems", "trajectories", "trajopt",
+           "add_frame_conversion", "analysis", "and_guards", "cascade", "control", "estimation", "feedback", "geometry", "lcm", "linearize", "models", "mujoco", "multibody", "not_guard",
+           "parallel", "planning", "polynomials", "ros", "run_batch", "simulate", "simulation", "systems", "trajectories", "trajopt",
            "use_compilation_cache", "viz"]
 

@@ -12,7 +12,7 @@ from jaxdrake.analysis import (InfeasibleError, SosProgram, common_lyapunov_func
                                global_lyapunov_function, region_of_attraction, sample_sublevel_set,
                                search_region_of_attraction, trig_polynomial_system,
                                verify_region_of_attraction)
-from jaxdrake.systems import Polynomial
+from jaxdrake.polynomials import Polynomial
 
 RNG = np.random.default_rng(3)
 
@@ -174,7 +174,7 @@ def test_conic_program_solves_an_lmi_and_an_lp_to_their_closed_forms(solver, den
     triangle layout (Clarabel's upper, SCS's lower); the program's maps dense (small programs)
     and sparse."""
     from jaxdrake.analysis import ConicProgram
-    from jaxdrake.systems import _affine
+    from jaxdrake.polynomials import _affine
 
     monkeypatch.setattr(_affine, "DENSE_COLUMNS", dense_columns)
 

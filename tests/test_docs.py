@@ -93,7 +93,8 @@ def test_the_api_pages_put_the_entry_points_first_with_their_types(site):
     signature = html.unescape(re.sub(r"<[^>]+>", "", simulation[start:simulation.index("</code>", start)]))
     assert "simulate(system: System," in signature and signature.rstrip().endswith("-> SimulatedTrajectory")
     # the split into entry points and the rest loses no public class or function with a docstring
-    for package in ("simulation", "systems", "trajectories", "control", "trajopt", "viz", "multibody"):
+    for package in ("simulation", "systems", "trajectories", "control", "trajopt", "viz", "multibody", "polynomials",
+                    "mujoco"):
         page = (site / f"api/{package}/index.html").read_text()
         module = importlib.import_module(f"jaxdrake.{package}")
         documented = [name for name in module.__all__ if _has_docstring(getattr(module, name))]

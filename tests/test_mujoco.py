@@ -117,7 +117,7 @@ def test_derived_constants_equal_c_mujocos_mj_set_const(change):
     those of C MuJoCo's mj_setConst; under vmap over the changed body's mass and inertia too."""
     from mujoco import mjx
 
-    from jaxdrake.multibody._mujoco import DERIVED_CONSTANTS, set_const
+    from jaxdrake.mujoco import DERIVED_CONSTANTS, set_const
 
     path = str(DATA / "mj_set_const.xml")
     scales = (1.0, 0.5, 2.0)

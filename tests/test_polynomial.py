@@ -11,7 +11,8 @@ import pytest
 
 import jaxdrake as jd
 from jaxdrake.analysis import taylor_polynomial_system, to_trig_coordinates, trig_polynomial_system
-from jaxdrake.systems import Polynomial, PolynomialSystem, taylor_polynomial
+from jaxdrake.polynomials import Polynomial, taylor_polynomial
+from jaxdrake.systems import PolynomialSystem
 
 RNG = np.random.default_rng(7)
 
@@ -54,7 +55,7 @@ def test_taylor_coefficients_match_closed_forms():
 
 
 def test_decision_coefficients_are_linear_and_bilinear_products_refused():
-    from jaxdrake.systems._affine import DecisionSpace
+    from jaxdrake.polynomials import DecisionSpace
 
     space = DecisionSpace()
     x, y = Polynomial.variables_of(2)
@@ -159,8 +160,8 @@ def test_affine_expressions_evaluate_like_the_numbers_they_stand_for(dense_colum
     side, indexing, matrix maps) gives, at any value of the decision vector, what the same
     arithmetic gives on the numbers: with dense maps (a small program), sparse ones, and a
     dense expression meeting a sparse one (the program grew past the dense limit)."""
-    from jaxdrake.systems import _affine
-    from jaxdrake.systems._affine import DecisionSpace
+    from jaxdrake.polynomials import _affine
+    from jaxdrake.polynomials import DecisionSpace
 
     monkeypatch.setattr(_affine, "DENSE_COLUMNS", dense_columns)
 

@@ -17,7 +17,7 @@ import scipy.sparse
 
 from .._extras import require
 from .._status import Reported, StatusCode
-from ..systems import AffineExpression, DecisionSpace, LinearConstraint
+from ..polynomials import AffineExpression, DecisionSpace, LinearConstraint
 
 
 class ConicStatus(StatusCode):

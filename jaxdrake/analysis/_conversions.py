@@ -19,7 +19,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..multibody import RigidBodySystem
-from ..systems import Frame, Polynomial, PolynomialSystem, System, monomial_basis, taylor_polynomial
+from ..polynomials import Polynomial, monomial_basis, taylor_polynomial
+from ..systems import Frame, PolynomialSystem, System
 
 
 def taylor_polynomial_system(system: System, x0, u0=None, degree: int = 3) -> PolynomialSystem:

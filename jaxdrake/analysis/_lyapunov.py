@@ -13,7 +13,8 @@ import numpy as np
 from .._progress import progress_bar
 from .._status import Reported
 from ..control import solve_continuous_lyapunov
-from ..systems import Polynomial, PolynomialSystem, System, taylor_polynomial
+from ..polynomials import Polynomial, taylor_polynomial
+from ..systems import PolynomialSystem, System
 from ._conic import ConicProgram, ConicStatus, InfeasibleError, SolveError
 from ._sos import CertificateCheck, SosProgram, SosResult
 

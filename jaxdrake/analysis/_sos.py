@@ -24,8 +24,7 @@ import functools
 import numpy as np
 import scipy.sparse
 
-from ..systems import Polynomial, monomial_basis
-from ..systems import AffineExpression, unique_rows
+from ..polynomials import AffineExpression, Polynomial, monomial_basis, unique_rows
 from ._conic import ConicProgram, ConicResult, InfeasibleError
 
 

@@ -14,7 +14,7 @@ from ..trajectories import Trajectory
 from ._diagram import DiagramBuilder
 from ._frame import Frame, frame_conversion
 from ._linear import LinearSystem
-from ._polynomial import PolynomialSystem, combine_polynomial_systems
+from ._polynomial_system import PolynomialSystem, combine_polynomial_systems
 from ._source import TrajectorySource
 from ._system import System, check_initialised
 

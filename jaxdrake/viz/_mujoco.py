@@ -11,7 +11,7 @@ from __future__ import annotations
 import equinox as eqx
 import numpy as np
 
-from ..multibody import MujocoSystem, import_mujoco, mujoco_renderer
+from ..mujoco import MujocoSystem, import_mujoco, mujoco_renderer
 from ._visualizer import DRAW_PERIOD, Visualizer
 
 

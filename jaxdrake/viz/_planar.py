@@ -8,7 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..models import Acrobot, BouncingBall, CartPole, CompassGait, DoublePendulum, Pendulum, PlanarQuadrotor, RimlessWheel
-from ..multibody import JointType, MujocoSystem, RigidBodySystem, body_poses, frame_pose
+from ..multibody import JointType, RigidBodySystem, body_poses, frame_pose
+from ..mujoco import MujocoSystem
 from ..systems import System
 from ._meshcat import MeshcatVisualizer
 from ._mujoco import MujocoVisualizer

@@ -56,7 +56,7 @@ def puppet_model(links, visuals, materials, mesh_file, skeleton, neutral):
     frame}) gives a sphere per link and a capsule to each attached link (`skeleton_radii`).
     `neutral`: the links' 4x4 world poses at the neutral configuration (the floor goes under
     a robot that hangs below its base there)."""
-    from ..multibody import import_mujoco
+    from ..mujoco import import_mujoco
 
     mujoco, _ = import_mujoco()
     spec = mujoco.MjSpec()
@@ -156,7 +156,7 @@ def render_frames(model, camera, transforms, height: int, width: int, follow: bo
     """RGB images (n, height, width, 3) of the puppet with its links at `transforms` (n, links, 4, 4),
     through `camera` aimed at everything the frames draw (`aim`): one view for the whole movie,
     or, where it must `follow` a floating robot, a view that moves with its root link."""
-    from ..multibody import import_mujoco, mujoco_renderer
+    from ..mujoco import import_mujoco, mujoco_renderer
 
     mujoco, _ = import_mujoco()
     transforms = np.asarray(transforms, float)

@@ -44,7 +44,7 @@ import numpy as np
 
 from .._extras import MissingExtraError
 from ..systems import Frame, System
-from ._mjcf import check_model_files
+from ..multibody import check_model_files
 
 _POSITIONS = {0: ("x", "y", "z", "qw", "qx", "qy", "qz"), 1: ("qw", "qx", "qy", "qz"), 2: ("",), 3: ("",)}
 _VELOCITIES = {0: ("vx", "vy", "vz", "wx", "wy", "wz"), 1: ("wx", "wy", "wz"), 2: ("dot",), 3: ("dot",)}
@@ -159,7 +159,7 @@ class MujocoSystem(System):
     def from_xml(cls, text_or_path, assets=None, *, output: str = "state", warm_start: bool = False) -> "MujocoSystem":
         """From MJCF text or a file path (an `.xml` MJCF or a `.urdf`); `assets`: {file name: bytes}.
         The files a model names are read only from inside its folder (the working directory for
-        text) or from `assets`; its XML without DTD or entities (`_mjcf.check_model_files`)."""
+        text) or from `assets`; its XML without DTD or entities (`multibody.check_model_files`)."""
         mujoco, _ = import_mujoco()
         text = str(text_or_path)
         if text.lstrip().startswith("<"):

@@ -207,6 +207,11 @@ class AffineExpression:
     __hash__ = None
 
 
+def is_decision(c) -> bool:
+    """Whether `c` is an affine expression of decision variables, not a number."""
+    return isinstance(c, AffineExpression)
+
+
 def _times_column(A, b, column):
     """The one-row (A, b) times the numbers `column`: one row per number."""
     if scipy.sparse.issparse(A):
