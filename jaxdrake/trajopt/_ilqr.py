@@ -21,13 +21,11 @@ so `jax.vmap` over initial states, goals or parameters solves many problems at o
 members run until the last has finished). It returns a status, never raises inside `jit`.
 
 The stages, module-level functions over an `ILQRProblem` (what every stage reads), in the order
-they run:
-
-- outer loop over `ILQRState` (`keep_going` / `outer_iteration`): `solve_subproblem` for the
-  current multiplier and penalty, then `update_multiplier`;
-- inner loop over `DDPState` (`ddp_iteration`): `backward_pass` (the gains, from
-  `expand_steps`' local models, one `backward_step` per knot), `line_search` (a
-  `forward_pass` per step length), `update_regularization`, `subproblem_converged`.
+they run: one loop over `ILQRState` (`iteration`, while `running`), each step a `ddp_iteration`
+(`backward_pass`: the gains, from `expand_steps`' local models, one `backward_step` per knot;
+`line_search`: a `forward_pass` per step length; `update_regularization`;
+`subproblem_converged`) and, where that ended the current subproblem, `update_multiplier`
+(which starts the next one if `keep_going`).
 """
 
 from __future__ import annotations
@@ -48,6 +46,7 @@ from ..trajectories import Trajectory
 from ._status import ILQRStatus, messages
 
 _ALPHAS = 0.5 ** np.arange(10)
+_FRESH_REGULARIZATION = 1e-6  # rho at the start of each subproblem
 _BOX_QP_ITERATIONS = 8  # projected Newton steps per box QP, at most (m + 1: exact in one when m = 1)
 
 
@@ -174,9 +173,13 @@ def _ilqr(system, x0, inputs, time_step, running_cost, final_cost, final_state, 
         final_tol=max(tol, 100 * float(jnp.finfo(dtype).eps)),  # never below what the float width resolves
         constraint_tol=constraint_tol, penalty_growth=penalty_growth)
     U = jnp.clip(inputs, problem.u_lo, problem.u_hi)
-    start = ILQRState(knot_states=problem.rollout(U), knot_inputs=U, multiplier=jnp.zeros(n, dtype),
-                      penalty=jnp.asarray(penalty, dtype), iterations=jnp.asarray(0), updates=jnp.asarray(0))
-    s = jax.lax.while_loop(functools.partial(keep_going, problem), functools.partial(outer_iteration, problem), start)
+    X, multiplier, penalty = problem.rollout(U), jnp.zeros(n, dtype), jnp.asarray(penalty, dtype)
+    start = ILQRState(knot_states=X, knot_inputs=U, multiplier=multiplier, penalty=penalty,
+                      cost=problem.augmented_cost(X, U, multiplier, penalty),
+                      regularization=jnp.asarray(_FRESH_REGULARIZATION, dtype), iterations=jnp.asarray(0),
+                      updates=jnp.asarray(0), running=jnp.asarray(True))
+    start = dataclasses.replace(start, running=keep_going(problem, start))
+    s = jax.lax.while_loop(lambda s: s.running, functools.partial(iteration, problem), start)
     cost = problem.objective(s.knot_states, s.knot_inputs)
     violation = problem.violation(s.knot_states)
     finite = jnp.isfinite(cost) & jnp.all(jnp.isfinite(s.knot_states))
@@ -275,25 +278,19 @@ class ILQRProblem(eqx.Module):
 
 
 class ILQRState(eqx.Module):
-    """The augmented-Lagrangian (outer) loop's state."""
+    """The solver's state: one iLQR iteration per step of the one loop, the augmented-Lagrangian
+    updates folded in between (a batch then waits for its slowest member's total, not for the
+    sum over subproblems of each one's slowest)."""
 
     knot_states: jax.Array  # X (N+1, n)
     knot_inputs: jax.Array  # U (N, m)
     multiplier: jax.Array  # lambda (n,), of the goal constraint
     penalty: jax.Array  # mu
+    cost: jax.Array  # the augmented cost of the knots for lambda, mu
+    regularization: jax.Array  # rho, added to the value Hessian for the gains
     iterations: jax.Array  # iLQR iterations so far, all subproblems together
     updates: jax.Array  # multiplier updates so far (subproblems solved)
-
-
-class DDPState(eqx.Module):
-    """The iterate of one subproblem's (inner) loop."""
-
-    knot_states: jax.Array
-    knot_inputs: jax.Array
-    cost: jax.Array  # the augmented cost of the knots
-    regularization: jax.Array  # rho, added to the value Hessian for the gains
-    iterations: jax.Array  # as ILQRState's: the budget is shared
-    done: jax.Array
+    running: jax.Array  # False once the solve has ended: the state no longer changes
 
 
 class StepModel(eqx.Module):
@@ -427,40 +424,37 @@ def subproblem_converged(cost, new_cost, improved, gains: Gains, regularization,
     return small | (gains.ok & flat) | (~improved & (regularization >= 1e10))
 
 
-def ddp_iteration(problem: ILQRProblem, s: DDPState, multiplier, penalty, tolerance) -> DDPState:
-    """One iteration of the subproblem: `backward_pass`, `line_search`, `update_regularization`,
-    `subproblem_converged`."""
-    gains = backward_pass(problem, s.knot_states, s.knot_inputs, multiplier, penalty, s.regularization)
-    X, U, cost, improved = line_search(problem, s.knot_states, s.knot_inputs, s.cost, gains, multiplier, penalty)
+def ddp_iteration(problem: ILQRProblem, s: ILQRState):
+    """One iteration of the current subproblem: `backward_pass`, `line_search`,
+    `update_regularization`; returns the new state and whether the subproblem is over
+    (`subproblem_converged` at `inner_tolerance`, or the budget spent)."""
+    gains = backward_pass(problem, s.knot_states, s.knot_inputs, s.multiplier, s.penalty, s.regularization)
+    X, U, cost, improved = line_search(problem, s.knot_states, s.knot_inputs, s.cost, gains, s.multiplier, s.penalty)
     regularization = update_regularization(s.regularization, improved)
-    done = subproblem_converged(s.cost, cost, improved, gains, regularization, tolerance)
-    return DDPState(knot_states=X, knot_inputs=U, cost=cost, regularization=regularization,
-                    iterations=s.iterations + 1, done=done)
-
-
-def solve_subproblem(problem: ILQRProblem, s: ILQRState) -> ILQRState:
-    r"""Minimize the augmented cost for the current $\lambda$, $\mu$ by `ddp_iteration`s from the
-    current knots, with fresh regularization ($\rho = 10^{-6}$), until `subproblem_converged`
-    at `inner_tolerance` or the iteration budget is spent."""
-    tolerance = problem.inner_tolerance(s.updates)
-    start = DDPState(knot_states=s.knot_states, knot_inputs=s.knot_inputs,
-                     cost=problem.augmented_cost(s.knot_states, s.knot_inputs, s.multiplier, s.penalty),
-                     regularization=jnp.asarray(1e-6, problem.dtype), iterations=s.iterations, done=jnp.asarray(False))
-    d = jax.lax.while_loop(lambda d: ~d.done & (d.iterations < problem.max_iterations),
-                           lambda d: ddp_iteration(problem, d, s.multiplier, s.penalty, tolerance), start)
-    return dataclasses.replace(s, knot_states=d.knot_states, knot_inputs=d.knot_inputs, iterations=d.iterations)
+    converged = subproblem_converged(s.cost, cost, improved, gains, regularization, problem.inner_tolerance(s.updates))
+    s = dataclasses.replace(s, knot_states=X, knot_inputs=U, cost=cost, regularization=regularization,
+                            iterations=s.iterations + 1)
+    return s, converged | (s.iterations >= problem.max_iterations)
 
 
 def update_multiplier(problem: ILQRProblem, s: ILQRState) -> ILQRState:
     r"""The method of multipliers: $\lambda \leftarrow \lambda + \mu\, c(x_N)$, then
-    $\mu \leftarrow \min(\text{penalty\_growth}\,\mu, 10^8)$."""
-    return dataclasses.replace(s, multiplier=s.multiplier + s.penalty * problem.goal_constraint(s.knot_states[-1]),
-                               penalty=jnp.minimum(s.penalty * problem.penalty_growth, 1e8), updates=s.updates + 1)
+    $\mu \leftarrow \min(\text{penalty\_growth}\,\mu, 10^8)$; the next subproblem starts from
+    the same knots with their augmented cost for the new $\lambda$, $\mu$ and fresh
+    regularization ($\rho = 10^{-6}$), if `keep_going`."""
+    multiplier = s.multiplier + s.penalty * problem.goal_constraint(s.knot_states[-1])
+    penalty = jnp.minimum(s.penalty * problem.penalty_growth, 1e8)
+    s = dataclasses.replace(s, multiplier=multiplier, penalty=penalty, updates=s.updates + 1,
+                            cost=problem.augmented_cost(s.knot_states, s.knot_inputs, multiplier, penalty),
+                            regularization=jnp.full_like(s.regularization, _FRESH_REGULARIZATION))
+    return dataclasses.replace(s, running=keep_going(problem, s))
 
 
-def outer_iteration(problem: ILQRProblem, s: ILQRState) -> ILQRState:
-    """One augmented-Lagrangian iteration: `solve_subproblem`, then `update_multiplier`."""
-    return update_multiplier(problem, solve_subproblem(problem, s))
+def iteration(problem: ILQRProblem, s: ILQRState) -> ILQRState:
+    """One step of the loop: a `ddp_iteration`, then `update_multiplier` if it ended the
+    subproblem (selected per member, so `jax.vmap` keeps one loop)."""
+    s, over = ddp_iteration(problem, s)
+    return jax.tree.map(functools.partial(jnp.where, over), update_multiplier(problem, s), s)
 
 
 def keep_going(problem: ILQRProblem, s: ILQRState):
