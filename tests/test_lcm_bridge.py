@@ -155,6 +155,20 @@ def test_sigint_stops_a_node_cleanly(tmp_path):
     assert len(events["PendulumState"]) > 10  # the log was closed properly and replays
 
 
+def test_sigint_stops_a_lockstep_node_while_it_waits_for_its_input():
+    """No controller answers: the node waits up to its 30-s input timeout each tick, and a
+    signal still ends it at once (its handler runs between slices of the wait)."""
+    with LoopbackRelay() as relay:
+        node = node_process("plant", relay.url, "--rate", "100", "--lockstep", "--input-timeout", "30")
+        wait_until_running(node)
+        start = time.perf_counter()
+        node.send_signal(signal.SIGINT)
+        out, _ = node.communicate(timeout=60)
+        waited = time.perf_counter() - start
+    assert node.returncode == 0 and "stopped: 1 ticks" in out, out
+    assert waited < 5.0, waited  # 29 s before: the wait for the input was one uninterrupted call
+
+
 def test_node_refuses_a_missing_url():
     with pytest.raises(ValueError, match="an LCM URL looks like"):
         LcmNode(_lcm_nodes.plant(), "")

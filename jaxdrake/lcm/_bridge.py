@@ -46,6 +46,11 @@ log = logging.getLogger("jaxdrake.lcm")
 HOST_ONLY_URL = "udpm://239.255.76.67:7667?ttl=0"  # LCM's usual group; ttl=0: never leaves the host
 
 
+# the longest wait for a message between checks of the stop flag: a signal's handler runs only
+# once LCM's wait returns (over tcpq a signal does not cut the wait short)
+_STOP_CHECK_PERIOD = 0.1
+
+
 def _no_delay(node):
     """Set TCP_NODELAY on a tcpq client's socket: LCM's C client leaves Nagle's algorithm on,
     which holds small messages back ~40 ms."""
@@ -264,7 +269,7 @@ class LcmNode:
             if remaining <= 0:
                 self._check_stale(time.perf_counter())
                 break
-            self.handle(max(remaining, 0.001))
+            self.handle(min(max(remaining, 0.001), _STOP_CHECK_PERIOD))
         self._advance_one_tick()
 
     def handle(self, timeout: float = 0.0):
