@@ -24,8 +24,9 @@ def device_array(values, dtype=None):
 
 def call_argument(values, dtype=None):
     """`values` as an argument of a compiled call: host numbers as numpy arrays (the call
-    transfers them with its other arguments, no `device_put` each), JAX arrays and tracers
-    through `jnp.asarray`."""
+    transfers them with its other arguments, no `device_put` each) of the width JAX would give
+    them (float32 without `jax_enable_x64`), JAX arrays and tracers through `jnp.asarray`."""
     if isinstance(values, jax.Array):
         return jnp.asarray(values, dtype)
-    return np.asarray(values, dtype)
+    values = np.asarray(values, dtype)
+    return values.astype(jax.dtypes.canonicalize_dtype(values.dtype), copy=False)

@@ -21,7 +21,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._numbers import device_array
+from .._numbers import call_argument
 from ._frame import Frame
 from ._system import System
 
@@ -194,7 +194,7 @@ class HybridSystem(System):
 
     def full_state(self, x0):
         """The padded state from x0: the padded state itself, or the initial mode's own state."""
-        x = device_array(x0)
+        x = call_argument(x0)
         n = self.modes[self.initial_mode].num_states
         if n != self.num_states and x.ndim <= 1 and x.size == n:
             return self.pad_state(self.initial_mode, x.reshape(n))

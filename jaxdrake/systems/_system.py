@@ -20,7 +20,7 @@ import jax.extend
 import jax.numpy as jnp
 import numpy as np
 
-from .._numbers import device_array
+from .._numbers import call_argument
 from ._frame import Frame
 
 
@@ -182,8 +182,9 @@ class System(eqx.Module):
         """The state vector, shape (num_states,), from an initial state as a user gives it (a
         scalar for one state); another shape is an error naming the state frame. `simulate`
         calls it on its x0. A hybrid system also takes its initial mode's own state, a diagram
-        a mapping from subsystems to their states (`Diagram.initial_state_with`)."""
-        x = device_array(x0)
+        a mapping from subsystems to their states (`Diagram.initial_state_with`). Host numbers
+        stay on the host (a numpy array), JAX arrays and tracers stay JAX arrays."""
+        x = call_argument(x0)
         if x.shape == () and self.num_states == 1:
             x = x.reshape(1)
         if x.shape != (self.num_states,):
