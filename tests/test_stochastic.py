@@ -167,3 +167,32 @@ def test_float32_stochastic_simulation_runs():
         traj = jd.simulate(LinearGaussianExample(), (0.0, 1.0), jnp.zeros(1, jnp.float32),
                            key=jax.random.key(0), dense=False)
         assert traj.final_state.dtype == jnp.float32 and bool(traj.success)
+
+
+class _KeyedOffset(jd.System):
+    """x' = -x + c with the constant c = 0.1 n, n ~ N(0, 1) drawn from a typed PRNG key that
+    the system holds as a parameter."""
+
+    key: jax.Array
+
+    def __init__(self, key):
+        self.key = key
+        super().__init__(num_continuous_states=1)
+
+    def dynamics(self, t, x, u):
+        return -x + 0.1 * jax.random.normal(self.key, (1,))
+
+
+def test_a_typed_prng_key_may_be_a_system_parameter():
+    """simulate, vmap over keys and grad run on a system holding a typed key (it was refused
+    by the NaN-parameter check); x(1) = c + (x0 - c) e^-1 for each key's c."""
+    keys = jax.random.split(jax.random.key(3), 4)
+    offsets = np.array([0.1 * float(jax.random.normal(k, (1,))[0]) for k in keys])
+    finals = jax.vmap(lambda k: jd.simulate(_KeyedOffset(k), (0.0, 1.0), jnp.ones(1), rtol=1e-10,
+                                            atol=1e-12).final_state[0])(keys)
+    np.testing.assert_allclose(finals, offsets + (1.0 - offsets) * np.exp(-1.0), rtol=1e-8)
+    one = jd.simulate(_KeyedOffset(keys[0]), (0.0, 1.0), jnp.ones(1), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(one.final_state[0], finals[0], rtol=1e-12)
+    slope = jax.grad(lambda a: jd.simulate(_KeyedOffset(keys[0]), (0.0, 1.0), a * jnp.ones(1), rtol=1e-10,
+                                           atol=1e-12).final_state[0])(1.0)
+    np.testing.assert_allclose(slope, np.exp(-1.0), rtol=1e-8)

@@ -193,6 +193,8 @@ def _check_no_nan_parameters(system):
     for path, leaf in jax.tree_util.tree_leaves_with_path(system):
         if not isinstance(leaf, (float, np.ndarray, jax.Array)) or not _concrete(leaf):
             continue
+        if jax.dtypes.issubdtype(getattr(leaf, "dtype", None), jax.dtypes.prng_key):
+            continue  # a typed PRNG key (a noise parameter): no numbers to check
         value = np.asarray(leaf)  # host values as they are; no device array is made
         if np.issubdtype(value.dtype, np.inexact) and np.isnan(value).any():
             raise ValueError(f"{system.name}: the parameter {system.name}{jax.tree_util.keystr(path)} is NaN "
