@@ -2,8 +2,8 @@
 pendulum, of a PD-controlled pendulum (a diagram) and of the bouncing ball (events), each
 called as a user calls it in a notebook and the same program (all its outputs) through
 `jax.jit`'s own dispatch; and
-`traj.eval` at 101 points. Targets (issue 40): a warm call within 0.3 ms of its jitted time;
-`eval` at 101 points <= 1 ms.
+`traj.eval` at 101 points; `linearize` and `lqr` of the cart-pole likewise. Targets (issue
+40): a warm call within 0.3 ms of its jitted time; `eval` at 101 points <= 1 ms.
 
     python benchmarks/call_overhead_benchmark.py [--repeats 200]
 """
@@ -49,6 +49,16 @@ def main():
     traj = jd.simulate(jd.models.Pendulum(), (0.0, 1.0), jnp.array([1.0, 0.0]))
     ts = jnp.linspace(0.0, 1.0, 101)
     print(f"{'eval, 101 points':16s} {median_time(lambda: traj.eval(ts), args.repeats) * 1e3:10.3f}ms")
+    # linearize and lqr of the cart-pole about its upright equilibrium, host numbers in
+    cartpole, upright, u0 = jd.models.CartPole(), np.array([0.0, np.pi, 0.0, 0.0]), np.zeros(1)
+    operations = {"linearize": lambda x0: jd.linearize(cartpole, x0, u0),
+                  "lqr": lambda x0: jd.control.lqr(cartpole, np.eye(4), np.eye(1), x0=x0, u0=u0)}
+    for name, operation in operations.items():
+        jitted = jax.jit(lambda x0: eqx.filter(operation(x0), eqx.is_array))
+        python = median_time(lambda: eqx.filter(operation(upright), eqx.is_array), args.repeats)
+        inside = median_time(lambda: jitted(jnp.asarray(upright)), args.repeats)
+        print(f"{name + ', cart-pole':16s} {python * 1e3:10.3f}ms {inside * 1e3:9.3f}ms "
+              f"{(python - inside) * 1e3:7.3f}ms", flush=True)
 
 
 if __name__ == "__main__":

@@ -19,14 +19,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._numbers import array_module, device_array
+from .._compiled import compiled
+from .._numbers import array_module, call_argument
 from .._status import Reported, StatusCode
 from ..systems import LinearSystem, System
 from ..systems import require_plain_system
 from ._riccati import solve_continuous_are, solve_discrete_are
 
 
-@eqx.filter_jit  # compiled once per system structure: a second call costs milliseconds
+@compiled  # compiled once per system structure: a second call costs a dictionary look-up
 def _linearization(system: System, t, x0, u0):
     """(f(x0, u0) - [x0 if discrete], A, B, C, D) at the operating point."""
     discrete = system.has_discrete_state
@@ -44,10 +45,11 @@ def linearize(system: System, x0, u0=None, *, t=0.0, check_equilibrium: bool = T
     $|f(x_0, u_0)| \\le$ tolerance (continuous) or $|f_d(x_0, u_0) - x_0| \\le$ tolerance
     (discrete); otherwise a ValueError gives the residual."""
     require_plain_system(system, "linearize", "linearize a mode (or the nominal deterministic system) instead")
-    x0 = jnp.asarray(x0, dtype=float).reshape(system.num_states)
-    u0 = jnp.zeros(system.num_inputs) if u0 is None else jnp.asarray(u0, dtype=float).reshape(system.num_inputs)
+    # host numbers stay numpy arrays until the compiled call (no device transfer each)
+    x0 = call_argument(x0, float).reshape(system.num_states)
+    u0 = call_argument(np.zeros(system.num_inputs) if u0 is None else u0, float).reshape(system.num_inputs)
     discrete = system.has_discrete_state
-    residual, A, B, C, D = _linearization(system, device_array(t, float), x0, u0)
+    residual, A, B, C, D = _linearization(system, call_argument(t, float), x0, u0)
     if check_equilibrium and not isinstance(residual, jax.core.Tracer):
         worst = float(np.max(np.abs(np.asarray(residual)))) if residual.size else 0.0
         if worst > tolerance:

@@ -369,7 +369,7 @@ class System(eqx.Module):
 
 def _argument_shapes(num_states: int, num_inputs: int):
     """Abstract (t, x, u) of the default float width: what a system's functions are traced with."""
-    dtype = jnp.zeros(()).dtype
+    dtype = jnp.result_type(float)
     return (jax.ShapeDtypeStruct((), dtype), jax.ShapeDtypeStruct((num_states,), dtype),
             jax.ShapeDtypeStruct((num_inputs,), dtype))
 
@@ -390,7 +390,7 @@ def infer_num_outputs(functions: "Functions", kwargs: dict, *noise: jax.ShapeDty
     num_states = kwargs.get("num_continuous_states", 0) + kwargs.get("num_discrete_states", 0)
     args = _argument_shapes(num_states, kwargs.get("num_inputs", 0)) + noise
     try:
-        shape = jax.eval_shape(lambda *a: functions.call(functions.output, *a), *args).shape
+        shape = _output_shape(functions, args)
     except Exception:  # noqa: BLE001 -- not traceable on its own: a declared size stands
         if declared is None:
             raise
@@ -404,6 +404,25 @@ def infer_num_outputs(functions: "Functions", kwargs: dict, *noise: jax.ShapeDty
                          "leave it out to have it inferred, or make them agree")
     kwargs["num_outputs"] = shape[0]
     return kwargs
+
+
+_OUTPUT_SHAPES: dict = {}
+
+
+def _output_shape(functions: "Functions", args) -> tuple:
+    """The shape of `functions.output(*args[, params])`, traced once per output function,
+    abstract arguments and parameters' structure and shapes (a controller rebuilt with new
+    gains, as `lqr` does every call, traces nothing again)."""
+    params = jax.tree.map(lambda v: jax.ShapeDtypeStruct(np.shape(v), jnp.result_type(v))
+                          if eqx.is_array_like(v) else v, functions.params)
+    key = (functions.output, tuple(args), jax.tree.structure(params), tuple(jax.tree.leaves(params)))
+    try:
+        return _OUTPUT_SHAPES[key]
+    except TypeError:  # an unhashable parameter: trace without remembering
+        return jax.eval_shape(lambda *a: functions.call(functions.output, *a), *args).shape
+    except KeyError:
+        shape = jax.eval_shape(lambda *a: functions.call(functions.output, *a), *args).shape
+        return _OUTPUT_SHAPES.setdefault(key, shape)
 
 
 class Functions(eqx.Module):
