@@ -407,6 +407,7 @@ def infer_num_outputs(functions: "Functions", kwargs: dict, *noise: jax.ShapeDty
 
 
 _OUTPUT_SHAPES: dict = {}
+_MAX_OUTPUT_SHAPES = 256  # remembered at most (the oldest forgotten first): functions made in a loop
 
 
 def _output_shape(functions: "Functions", args) -> tuple:
@@ -422,6 +423,8 @@ def _output_shape(functions: "Functions", args) -> tuple:
         return jax.eval_shape(lambda *a: functions.call(functions.output, *a), *args).shape
     except KeyError:
         shape = jax.eval_shape(lambda *a: functions.call(functions.output, *a), *args).shape
+        if len(_OUTPUT_SHAPES) >= _MAX_OUTPUT_SHAPES:
+            del _OUTPUT_SHAPES[next(iter(_OUTPUT_SHAPES))]
         return _OUTPUT_SHAPES.setdefault(key, shape)
 
 
