@@ -156,3 +156,22 @@ def test_full_state_and_check_shapes_are_the_contract_simulate_asks():
     for system in (wrong, jd.HybridSystem([wrong], []), jd.cascade(Pendulum(), wrong)):
         with pytest.raises(ValueError, match=r"FunctionSystem.dynamics returned shape \(3,\), expected \(2,\)"):
             system.check_shapes(t, jnp.zeros(system.num_states))
+
+
+def test_output_sizes_inferred_once_still_follow_the_parameters():
+    """The inferred number of outputs is remembered per output function and parameter shapes
+    (lqr rebuilds its controller every call), yet a parameter that sets the size (a Python
+    number, an array's shape) gives each system its own."""
+    def zeros(t, x, u, n):
+        return jnp.zeros(n)
+
+    def project(t, x, u, P):
+        return P @ u
+
+    sizes = [jd.System.from_functions(output=zeros, params=n, num_states=0, num_inputs=1).num_outputs
+             for n in (3, 4, 3)]
+    shapes = [jd.System.from_functions(output=project, params=jnp.ones((k, 1)), num_states=0,
+                                       num_inputs=1).num_outputs for k in (2, 5, 2)]
+    assert sizes == [3, 4, 3] and shapes == [2, 5, 2]
+    with pytest.raises(ValueError, match="output returns 4 values but num_outputs=3"):
+        jd.System.from_functions(output=zeros, params=4, num_states=0, num_inputs=1, num_outputs=3)

@@ -414,8 +414,9 @@ def _output_shape(functions: "Functions", args) -> tuple:
     """The shape of `functions.output(*args[, params])`, traced once per output function,
     abstract arguments and parameters' structure and shapes (a controller rebuilt with new
     gains, as `lqr` does every call, traces nothing again)."""
+    # arrays by shape and dtype; any other leaf (a Python number may set a size) by its value
     params = jax.tree.map(lambda v: jax.ShapeDtypeStruct(np.shape(v), jnp.result_type(v))
-                          if eqx.is_array_like(v) else v, functions.params)
+                          if eqx.is_array(v) else v, functions.params)
     key = (functions.output, tuple(args), jax.tree.structure(params), tuple(jax.tree.leaves(params)))
     try:
         return _OUTPUT_SHAPES[key]
