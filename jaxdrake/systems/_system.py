@@ -418,12 +418,16 @@ def _output_shape(functions: "Functions", args) -> tuple:
     params = jax.tree.map(lambda v: jax.ShapeDtypeStruct(np.shape(v), jnp.result_type(v))
                           if eqx.is_array(v) else v, functions.params)
     key = (functions.output, tuple(args), jax.tree.structure(params), tuple(jax.tree.leaves(params)))
+
+    def traced():
+        return jax.eval_shape(lambda *a: functions.call(functions.output, *a), *args).shape
+
     try:
         return _OUTPUT_SHAPES[key]
     except TypeError:  # an unhashable parameter: trace without remembering
-        return jax.eval_shape(lambda *a: functions.call(functions.output, *a), *args).shape
+        return traced()
     except KeyError:
-        shape = jax.eval_shape(lambda *a: functions.call(functions.output, *a), *args).shape
+        shape = traced()
         if len(_OUTPUT_SHAPES) >= _MAX_OUTPUT_SHAPES:
             del _OUTPUT_SHAPES[next(iter(_OUTPUT_SHAPES))]
         return _OUTPUT_SHAPES.setdefault(key, shape)

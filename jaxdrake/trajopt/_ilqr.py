@@ -25,7 +25,7 @@ they run: one loop over `ILQRState` (`iteration`, while `running`), each step a 
 (`backward_pass`: the gains, from `expand_steps`' local models, one `backward_step` per knot;
 `line_search`: a `forward_pass` per step length; `update_regularization`;
 `subproblem_converged`) and, where that ended the current subproblem, `update_multiplier`
-(which starts the next one if `keep_going`).
+(then `start_subproblem` for the next one, if `keep_going`).
 """
 
 from __future__ import annotations
@@ -173,12 +173,10 @@ def _ilqr(system, x0, inputs, time_step, running_cost, final_cost, final_state, 
         final_tol=max(tol, 100 * float(jnp.finfo(dtype).eps)),  # never below what the float width resolves
         constraint_tol=constraint_tol, penalty_growth=penalty_growth)
     U = jnp.clip(inputs, problem.u_lo, problem.u_hi)
-    X, multiplier, penalty = problem.rollout(U), jnp.zeros(n, dtype), jnp.asarray(penalty, dtype)
-    start = ILQRState(knot_states=X, knot_inputs=U, multiplier=multiplier, penalty=penalty,
-                      cost=problem.augmented_cost(X, U, multiplier, penalty),
-                      regularization=jnp.asarray(_FRESH_REGULARIZATION, dtype), iterations=jnp.asarray(0),
-                      updates=jnp.asarray(0), running=jnp.asarray(True))
-    start = dataclasses.replace(start, running=keep_going(problem, start))
+    start = start_subproblem(problem, ILQRState(
+        knot_states=problem.rollout(U), knot_inputs=U, multiplier=jnp.zeros(n, dtype),
+        penalty=jnp.asarray(penalty, dtype), cost=jnp.zeros((), dtype), regularization=jnp.zeros((), dtype),
+        iterations=jnp.asarray(0), updates=jnp.asarray(0), running=jnp.asarray(True)))
     s = jax.lax.while_loop(lambda s: s.running, functools.partial(iteration, problem), start)
     cost = problem.objective(s.knot_states, s.knot_inputs)
     violation = problem.violation(s.knot_states)
@@ -439,13 +437,17 @@ def ddp_iteration(problem: ILQRProblem, s: ILQRState):
 
 def update_multiplier(problem: ILQRProblem, s: ILQRState) -> ILQRState:
     r"""The method of multipliers: $\lambda \leftarrow \lambda + \mu\, c(x_N)$, then
-    $\mu \leftarrow \min(\text{penalty\_growth}\,\mu, 10^8)$; the next subproblem starts from
-    the same knots with their augmented cost for the new $\lambda$, $\mu$ and fresh
-    regularization ($\rho = 10^{-6}$), if `keep_going`."""
+    $\mu \leftarrow \min(\text{penalty\_growth}\,\mu, 10^8)$, and `start_subproblem`."""
     multiplier = s.multiplier + s.penalty * problem.goal_constraint(s.knot_states[-1])
     penalty = jnp.minimum(s.penalty * problem.penalty_growth, 1e8)
-    s = dataclasses.replace(s, multiplier=multiplier, penalty=penalty, updates=s.updates + 1,
-                            cost=problem.augmented_cost(s.knot_states, s.knot_inputs, multiplier, penalty),
+    return start_subproblem(problem, dataclasses.replace(s, multiplier=multiplier, penalty=penalty,
+                                                         updates=s.updates + 1))
+
+
+def start_subproblem(problem: ILQRProblem, s: ILQRState) -> ILQRState:
+    r"""The subproblem of the current $\lambda$, $\mu$ from the current knots: their augmented
+    cost, fresh regularization ($\rho = 10^{-6}$), and whether to run it at all (`keep_going`)."""
+    s = dataclasses.replace(s, cost=problem.augmented_cost(s.knot_states, s.knot_inputs, s.multiplier, s.penalty),
                             regularization=jnp.full_like(s.regularization, _FRESH_REGULARIZATION))
     return dataclasses.replace(s, running=keep_going(problem, s))
 
