@@ -11,6 +11,8 @@ from collections import OrderedDict
 import equinox as eqx
 import jax
 
+from ._numbers import call_argument
+
 MAX_PROGRAMS = 256  # per function: the least recently used program is dropped beyond
 
 
@@ -56,3 +58,17 @@ def _program(fn, treedef, is_dynamic, static):
         return arrays
 
     return program, output_static
+
+
+def compiled_method(method):
+    """`method(self, *args)` through `compiled`, the instance an argument: called outside
+    `jit` (or under an eager `jax.vmap`) it runs one program kept per instance structure and
+    argument shapes, not thousands of operations one by one; inside a trace it is inlined.
+    Numbers and lists become arrays (a new value never recompiles); strings stay static."""
+    program = compiled(method)
+
+    @functools.wraps(method)
+    def call(self, *args):
+        return program(self, *(a if isinstance(a, str) else call_argument(a) for a in args))
+
+    return call
