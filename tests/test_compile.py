@@ -150,6 +150,30 @@ def test_lqr_linearize_and_tvlqr_called_outside_jit_trace_the_plant_once():
     assert counter.traces == after_tvlqr
 
 
+def test_rigid_body_queries_outside_jit_run_one_kept_program(monkeypatch):
+    """A plant's energy called outside jit, under an eager vmap and then in a Python loop,
+    traces the tree algorithms once (the shape of one state): one kept program, not the
+    algorithms' operations one by one."""
+    from jaxdrake.multibody import _algorithms as alg
+
+    counter = Counter()
+    kinetic_energy = alg.kinetic_energy
+
+    def counted(*args):
+        counter.traces += 1
+        return kinetic_energy(*args)
+
+    monkeypatch.setattr(alg, "kinetic_energy", counted)
+    plant = jd.models.Acrobot()
+    xs = jnp.asarray(np.random.default_rng(0).uniform(-1, 1, (5, 4)))
+    batched = jax.vmap(plant.energy)(xs)
+    jax.vmap(plant.energy)(xs + 1.0)
+    looped = [plant.energy(x) for x in xs] + [plant.energy(np.asarray(xs[0]).tolist())]
+    assert counter.traces == 1
+    np.testing.assert_allclose(batched, looped[:5], rtol=1e-14)
+    assert float(looped[5]) == float(looped[0])
+
+
 CACHED_RUN = """
 import sys, jax, jax.numpy as jnp
 import jaxdrake as jd
