@@ -245,6 +245,7 @@ def _without_cross_term(A, B, Q, R, N):
     return A - B @ jnp.linalg.solve(R, N.T), Q - N @ jnp.linalg.solve(R, N.T)
 
 
+@jax.jit  # one kept program: called outside jit, its while loop is not compiled anew each call
 def solve_continuous_are(A, B, Q, R, N=None):
     """The stabilising solution S of the CARE (see the module doc); differentiable."""
     A, B, Q, R = (jnp.asarray(M, float) for M in (A, B, Q, R))
@@ -252,6 +253,7 @@ def solve_continuous_are(A, B, Q, R, N=None):
     return _care(A_bar, B, Q_bar, R)
 
 
+@jax.jit  # one kept program: called outside jit, its while loop is not compiled anew each call
 def solve_discrete_are(A, B, Q, R, N=None):
     """The stabilising solution S of the DARE (see the module doc); differentiable."""
     A, B, Q, R = (jnp.asarray(M, float) for M in (A, B, Q, R))
