@@ -3,7 +3,9 @@ pendulum, of a PD-controlled pendulum (a diagram) and of the bouncing ball (even
 called as a user calls it in a notebook and the same program (all its outputs) through
 `jax.jit`'s own dispatch; and
 `traj.eval` at 101 points; `linearize` and `lqr` of the cart-pole likewise. Targets (issue
-40): a warm call within 0.3 ms of its jitted time; `eval` at 101 points <= 1 ms.
+40): a warm call within 0.3 ms of its jitted time; `eval` at 101 points <= 1 ms. Last, calls a
+notebook makes on a Solo-12 (example-robot-data) and a Riccati solve, first call (with its
+compilation) beside the warm one.
 
     python benchmarks/call_overhead_benchmark.py [--repeats 200]
 """
@@ -59,6 +61,31 @@ def main():
         inside = median_time(lambda: jitted(jnp.asarray(upright)), args.repeats)
         print(f"{name + ', cart-pole':16s} {python * 1e3:10.3f}ms {inside * 1e3:9.3f}ms "
               f"{(python - inside) * 1e3:7.3f}ms", flush=True)
+
+    first_and_warm_calls(args.repeats)
+
+
+def first_and_warm_calls(repeats):
+    """First call (compiling) and warm call of a plant's queries outside jit, and of a CARE."""
+    import importlib.metadata
+    import pathlib
+    import time
+
+    robots = pathlib.Path(str(importlib.metadata.distribution("example-robot-data").locate_file(
+        "cmeel.prefix/share/example-robot-data/robots")))
+    solo = jd.RigidBodySystem.from_urdf(robots / "solo_description/robots/solo12.urdf", floating_base=True)
+    xs = jnp.asarray(np.random.default_rng(0).uniform(-0.3, 0.3, (101, solo.num_states))).at[:, 3].add(1.0)
+    u = np.zeros(solo.num_inputs)
+    A, B = np.random.default_rng(1).normal(size=(2, 6, 6))
+    calls = {"vmap(solo.energy), 101 states": lambda: jax.vmap(solo.energy)(xs),
+             "solo.dynamics(t, x, u)": lambda: solo.dynamics(0.0, xs[0], u),
+             "solve_continuous_are, 6 states": lambda: jd.control.solve_continuous_are(A, B, np.eye(6), np.eye(6))}
+    print(f"{'call':32s} {'first call':>11s} {'warm':>10s}")
+    for name, call in calls.items():
+        start = time.perf_counter()
+        jax.block_until_ready(call())
+        first = time.perf_counter() - start
+        print(f"{name:32s} {first:10.3f}s {median_time(call, repeats) * 1e3:8.3f}ms", flush=True)
 
 
 if __name__ == "__main__":
