@@ -79,6 +79,8 @@ def first_and_warm_calls(repeats):
     A, B = np.random.default_rng(1).normal(size=(2, 6, 6))
     calls = {"vmap(solo.energy), 101 states": lambda: jax.vmap(solo.energy)(xs),
              "solo.dynamics(t, x, u)": lambda: solo.dynamics(0.0, xs[0], u),
+             "mass_matrix(solo.tree, q)": lambda: jd.multibody.mass_matrix(solo.tree, xs[0, :19]),
+             "frame_jacobian(solo.tree, q, foot)": lambda: jd.multibody.frame_jacobian(solo.tree, xs[0, :19], "FL_FOOT"),
              "solve_continuous_are, 6 states": lambda: jd.control.solve_continuous_are(A, B, np.eye(6), np.eye(6))}
     print(f"{'call':32s} {'first call':>11s} {'warm':>10s}")
     for name, call in calls.items():

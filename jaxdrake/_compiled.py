@@ -60,15 +60,16 @@ def _program(fn, treedef, is_dynamic, static):
     return program, output_static
 
 
-def compiled_method(method):
-    """`method(self, *args)` through `compiled`, the instance an argument: called outside
-    `jit` (or under an eager `jax.vmap`) it runs one program kept per instance structure and
-    argument shapes, not thousands of operations one by one; inside a trace it is inlined.
-    Numbers and lists become arrays (a new value never recompiles); strings stay static."""
-    program = compiled(method)
+def compiled_query(fn):
+    """`fn(owner, *args)` through `compiled`, its first argument (a plant, a kinematic tree)
+    passed as it is: called outside `jit` (or under an eager `jax.vmap`) it runs one program
+    kept per owner structure and argument shapes, not thousands of operations one by one;
+    inside a trace it is inlined. Numbers and lists become arrays (a new value never
+    recompiles); strings stay static. For methods and functions alike."""
+    program = compiled(fn)
 
-    @functools.wraps(method)
-    def call(self, *args):
-        return program(self, *(a if isinstance(a, str) else call_argument(a) for a in args))
+    @functools.wraps(fn)
+    def call(owner, *args):
+        return program(owner, *(a if isinstance(a, str) else call_argument(a) for a in args))
 
     return call

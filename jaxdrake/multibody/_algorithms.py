@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._compiled import compiled_query
 from ._spatial import quaternion_matrix, skew
 from ._tree import KinematicTree
 
@@ -532,6 +533,7 @@ def rnea(tree: KinematicTree, q, v, a, *, gravity: bool = True):
     return _lane_batched(_rnea, gravity=gravity)(tree, q, v, a)
 
 
+@compiled_query
 def mass_matrix(tree: KinematicTree, q):
     r"""H(q) by composite rigid bodies: with $I^c_i$ the inertia of body i's subtree,
     $H_{kl} = s_k^T I^c_{b(k)} s_l$ when coordinate l's body is an ancestor of (or is)
@@ -576,6 +578,7 @@ class BodyMotion(NamedTuple):
     origin: jax.Array
 
 
+@compiled_query
 def body_motion(tree: KinematicTree, q, v) -> BodyMotion:
     """Poses, velocities and motion subspaces from one forward-kinematics pass (`BodyMotion`)."""
     R, p, V, columns = _in_one_lane(_contact_kinematics, tree, q, v)
@@ -606,6 +609,7 @@ def _offset(tree, q):
     return q[:3] if tree.layout.floating else jnp.zeros(3, q.dtype)
 
 
+@compiled_query
 def body_poses(tree: KinematicTree, q):
     """World rotation and position of every body frame: arrays (n, 3, 3) and (n, 3)."""
     R, p, _, _ = _in_one_lane(_kinematics, tree, q)
@@ -625,6 +629,7 @@ def frame_pose(tree: KinematicTree, q, frame: str, *, poses=None):
     return Rs[body] @ R_f, Rs[body] @ p_f + ps[body]
 
 
+@compiled_query
 def frame_jacobian(tree: KinematicTree, q, frame: str):
     r"""The 6 x nv Jacobian of a named frame, world-aligned: $[\omega; \dot p] = J(q)\, v$ with
     $\omega$ the frame's angular velocity and $\dot p$ the velocity of its origin, both in
@@ -654,12 +659,14 @@ def _frame_index(tree, frame):
 # ----- energy and the configuration derivative ------------------------------------------------
 
 
+@compiled_query
 def kinetic_energy(tree: KinematicTree, q, v):
     r"""$\tfrac12 \sum_i V_i^T I_i V_i$."""
     R, p, _, _, _, V = _velocities(tree, q[:, None], v[:, None], unroll=_UNROLLED_DEPTHS)
     return 0.5 * jnp.sum(V * _apply_inertia(_world_inertias(tree, R, p), V))
 
 
+@compiled_query
 def potential_energy(tree: KinematicTree, q):
     """-sum_i m_i g . c_i, c_i the world position of body i's centre of mass."""
     Rs, ps = body_poses(tree, q)

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._compiled import compiled_method
+from .._compiled import compiled_query
 from .._numbers import device_array
 from ..geometry import HalfSpace
 from ..systems import Frame, System
@@ -254,14 +254,14 @@ class RigidBodySystem(System):
 
     # ----- the manipulator equations -------------------------------------------------------
 
-    @compiled_method
+    @compiled_query
     def manipulator_dynamics(self, q, v):
         """(H, C v, G, B) with H(q) qdd + C(q, v) v + G(q) = B u (the notes' signs)."""
         t = self.tree
         return (alg.mass_matrix(t, q), alg.bias_forces(t, q, v, gravity=False),
                 alg.gravity_forces(t, q), self.B)
 
-    @compiled_method
+    @compiled_query
     def inverse_dynamics(self, q, v, qdd):
         """The generalized force H qdd + C v + G + b o v - tau_lim - tau_contact that produces
         qdd (damping, joint-limit and contact forces included; constraint forces not)."""
@@ -270,7 +270,7 @@ class RigidBodySystem(System):
 
     # ----- contact ---------------------------------------------------------------------------
 
-    @compiled_method
+    @compiled_query
     def contact_force(self, q, v):
         r"""The generalized force of all contacts, $\sum_c J_c^T f_c$ (zero without contact)."""
         if self.contact is None:
@@ -347,7 +347,7 @@ class RigidBodySystem(System):
         down = _limit_push(k, d, qi - upper, vi)
         return jnp.zeros(self.tree.nv, v.dtype).at[iv].add(up - down)
 
-    @compiled_method
+    @compiled_query
     def forward_dynamics(self, q, v, u):
         """qdd (the time derivative of v) under input u, damping, joint limits, contact and
         constraint forces."""
@@ -366,7 +366,7 @@ class RigidBodySystem(System):
         sol = jnp.linalg.solve(kkt, jnp.concatenate([rhs, -Jdot_v - 2 * w * (J @ v) - w * w * phi]))
         return sol[: self.tree.nv]
 
-    @compiled_method
+    @compiled_query
     def dynamics(self, t, x, u):
         q, v = x[: self.tree.nq], x[self.tree.nq:]
         return jnp.concatenate([alg.configuration_derivative(self.tree, q, v),
@@ -468,13 +468,13 @@ class RigidBodySystem(System):
 
     # ----- energy ---------------------------------------------------------------------------
 
-    @compiled_method
+    @compiled_query
     def energy(self, x):
         """Kinetic plus potential energy."""
         q, v = x[: self.tree.nq], x[self.tree.nq:]
         return alg.kinetic_energy(self.tree, q, v) + alg.potential_energy(self.tree, q)
 
-    @compiled_method
+    @compiled_query
     def frame_pose(self, q, frame: str):
         """World (R, p) of a named frame (a URDF link)."""
         return alg.frame_pose(self.tree, q, frame)
