@@ -174,6 +174,31 @@ def test_rigid_body_queries_outside_jit_run_one_kept_program(monkeypatch):
     assert float(looped[5]) == float(looped[0])
 
 
+def test_tree_algorithms_outside_jit_run_one_kept_program(monkeypatch):
+    """`jd.multibody.mass_matrix` called outside jit at new configurations (a numpy array, a
+    list) traces CRBA once, and equals the closed-form H(q) of a double pendulum of uniform rods."""
+    from jaxdrake.multibody import _algorithms as alg
+
+    counter = Counter()
+    crba = alg._mass_matrix
+
+    def counted(*args, **kwargs):
+        counter.traces += 1
+        return crba(*args, **kwargs)
+
+    monkeypatch.setattr(alg, "_mass_matrix", counted)
+    plant = jd.models.DoublePendulum()  # two uniform rods: m = 1, l = 1, centre at l/2, I = m l^2 / 12
+    m, l, lc, inertia = 1.0, 1.0, 0.5, 1.0 / 12
+    for q in (np.array([0.3, -0.7]), [1.1, 0.4], np.array([-2.0, 2.5])):
+        H = jd.multibody.mass_matrix(plant.tree, q)
+        c2 = np.cos(q[1])
+        h12 = inertia + m * (lc ** 2 + l * lc * c2)
+        expected = [[2 * inertia + m * lc ** 2 + m * (l ** 2 + lc ** 2 + 2 * l * lc * c2), h12],
+                    [h12, inertia + m * lc ** 2]]
+        np.testing.assert_allclose(H, expected, rtol=1e-12)
+    assert counter.traces == 1
+
+
 CACHED_RUN = """
 import sys, jax, jax.numpy as jnp
 import jaxdrake as jd
