@@ -4,7 +4,7 @@ called as a user calls it in a notebook and the same program (all its outputs) t
 `jax.jit`'s own dispatch; and
 `traj.eval` at 101 points; `linearize` and `lqr` of the cart-pole likewise. Targets (issue
 40): a warm call within 0.3 ms of its jitted time; `eval` at 101 points <= 1 ms. Last, calls a
-notebook makes on a Solo-12 (example-robot-data) and a Riccati solve, first call (with its
+notebook makes on a Solo-12 (example-robot-data), a Riccati solve and a QP, first call (with its
 compilation) beside the warm one.
 
     python benchmarks/call_overhead_benchmark.py [--repeats 200]
@@ -66,7 +66,7 @@ def main():
 
 
 def first_and_warm_calls(repeats):
-    """First call (compiling) and warm call of a plant's queries outside jit, and of a CARE."""
+    """First call (compiling) and warm call of a plant's queries outside jit, a CARE and a QP."""
     import importlib.metadata
     import pathlib
     import time
@@ -77,11 +77,13 @@ def first_and_warm_calls(repeats):
     xs = jnp.asarray(np.random.default_rng(0).uniform(-0.3, 0.3, (101, solo.num_states))).at[:, 3].add(1.0)
     u = np.zeros(solo.num_inputs)
     A, B = np.random.default_rng(1).normal(size=(2, 6, 6))
+    workspace = jd.control.qp_workspace(A @ A.T + np.eye(6), B)
     calls = {"vmap(solo.energy), 101 states": lambda: jax.vmap(solo.energy)(xs),
              "solo.dynamics(t, x, u)": lambda: solo.dynamics(0.0, xs[0], u),
              "mass_matrix(solo.tree, q)": lambda: jd.multibody.mass_matrix(solo.tree, xs[0, :19]),
              "frame_jacobian(solo.tree, q, foot)": lambda: jd.multibody.frame_jacobian(solo.tree, xs[0, :19], "FL_FOOT"),
-             "solve_continuous_are, 6 states": lambda: jd.control.solve_continuous_are(A, B, np.eye(6), np.eye(6))}
+             "solve_continuous_are, 6 states": lambda: jd.control.solve_continuous_are(A, B, np.eye(6), np.eye(6)),
+             "solve_qp, 6 variables": lambda: jd.control.solve_qp(workspace, B[0], -np.ones(6), np.ones(6))}
     print(f"{'call':32s} {'first call':>11s} {'warm':>10s}")
     for name, call in calls.items():
         start = time.perf_counter()

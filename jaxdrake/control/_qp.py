@@ -285,6 +285,7 @@ def _polish(P, q, A, lower, upper, z, y, tol):
     return x, y, at_lower, at_upper, ok
 
 
+@jax.jit  # one kept program: called outside jit, its ADMM and polish loops are not compiled anew each call
 def solve_qp(ws: QPWorkspace, q, lower, upper, warm_x=None, warm_y=None) -> QPSolution:
     """Solve $\\min \\tfrac12 x^T P x + q^T x$, lower <= A x <= upper (±inf allowed) with the
     workspace's P and A, from the warm start (warm_x, warm_y) (zeros by default). Inside
