@@ -1,7 +1,8 @@
 """`compiled`: `equinox.filter_jit`'s contract (arrays traced, every other leaf static,
 any pytree returned) at the cost of a dictionary look-up per call, for the entry points a
 notebook calls in a loop (`simulate`: the filter's own bookkeeping cost ~0.8 ms a call, five
-times the pendulum's program)."""
+times the pendulum's program); `compiled_query` for a function or method of an object (a
+plant, a kinematic tree) that users call outside `jit`."""
 
 from __future__ import annotations
 

@@ -283,7 +283,7 @@ class RigidBodySystem(System):
         if self.contact is None:
             raise ValueError(f"{self.name} has no collision geometry: load it with from_urdf(..., contact=True) "
                              "or add some with with_collision_geometry / with_ground")
-        return _contact_results(self, jnp.asarray(x))
+        return _contact_results(self, x)
 
     def with_collision_geometry(self, link: str, shape, *, rotation=np.eye(3), translation=(0.0, 0.0, 0.0),
                                 name: str | None = None, material: ContactMaterial | None = None,
@@ -456,7 +456,7 @@ class RigidBodySystem(System):
         tree, x = self.tree, np.asarray(x, float)
         if x.shape != (self.num_states,) or not np.all(np.isfinite(x)):
             return None
-        H = np.asarray(_mass_matrix(tree, jnp.asarray(x[: tree.nq])))
+        H = np.asarray(alg.mass_matrix(tree, x[: tree.nq]))
         eigenvalues, vectors = np.linalg.eigh((H + H.T) / 2)
         if np.all(np.isfinite(H)) and eigenvalues[0] > 1e-12 * max(eigenvalues[-1], 1e-300):
             return None
@@ -578,17 +578,11 @@ def _neutral_joint_inertias(tree):
     return H
 
 
-@eqx.filter_jit
+@compiled_query
 def _contact_results(plant, x):
     """`contact_results`, compiled once per plant structure (eager, the narrow phase and the
     kinematics cost seconds op by op; inside a trace this is inlined)."""
     return plant.contact.results(plant.tree, x[: plant.tree.nq], x[plant.tree.nq:])
-
-
-@jax.jit
-def _mass_matrix(tree, q):
-    """H(q), compiled (for `failure_hint`, outside any trace)."""
-    return alg.mass_matrix(tree, q)
 
 
 __all__ = ["CouplerConstraint", "LoopConstraint", "RigidBodySystem", "URDFError"]
