@@ -62,15 +62,17 @@ def _program(fn, treedef, is_dynamic, static):
 
 
 def compiled_query(fn):
-    """`fn(owner, *args)` through `compiled`, its first argument (a plant, a kinematic tree)
-    passed as it is: called outside `jit` (or under an eager `jax.vmap`) it runs one program
-    kept per owner structure and argument shapes, not thousands of operations one by one;
-    inside a trace it is inlined. Numbers and lists become arrays (a new value never
-    recompiles); strings stay static. For methods and functions alike."""
-    program = compiled(fn)
+    """`fn(owner, *args, **named)` through `compiled`, its first argument (a plant, a kinematic
+    tree, a trajectory) passed as it is: called outside `jit` (or under an eager `jax.vmap`)
+    it runs one program kept per owner structure and argument shapes, not thousands of
+    operations one by one; inside a trace it is inlined. Numbers and lists become arrays (a new
+    value never recompiles); strings, None and keyword arguments stay static. For methods and
+    functions alike."""
+    program = compiled(lambda owner, named, *args: fn(owner, *args, **dict(named)))
 
     @functools.wraps(fn)
-    def call(owner, *args):
-        return program(owner, *(a if isinstance(a, str) else call_argument(a) for a in args))
+    def call(owner, *args, **named):
+        return program(owner, tuple(sorted(named.items())),
+                       *(a if a is None or isinstance(a, str) else call_argument(a) for a in args))
 
     return call

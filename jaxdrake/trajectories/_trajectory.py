@@ -15,7 +15,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._numbers import array_module, device_array
+from .._compiled import compiled_query
+from .._numbers import array_module, call_argument, device_array
 
 NUM_COEFFICIENTS = 5  # pieces are polynomials of degree <= 4 in the normalized time theta
 
@@ -47,23 +48,16 @@ def vectorize_in_time(fn, t, dtype):
 
 
 def compiled_when_eager(method):
-    """Run `method(self, t, *options)` called outside any trace as one compiled program (kept
-    per trajectory structure, shape of t and options), not op by op: eager evaluation compiles
-    every primitive for every new shape of t, ~20 ms each. Under `jit` / `vmap` / `grad` the
-    method is traced as written."""
+    """`method(self, t, *options)` as a `compiled_query`, t first made an array of the
+    trajectory's dtype: called outside any trace, one compiled program (kept per trajectory
+    structure, shape of t and options), not op by op (eager evaluation compiles every
+    primitive for every new shape of t, ~20 ms each)."""
+    query = compiled_query(method)
 
     @functools.wraps(method)
     def wrapper(self, t, *options, **named):
-        t = jnp.asarray(t, self.t_start.dtype)
-        if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves((self, t))):
-            return method(self, t, *options, **named)
-        return _compiled_method(method, self, t, options, tuple(sorted(named.items())))
+        return query(self, call_argument(t, self.t_start.dtype), *options, **named)
     return wrapper
-
-
-@eqx.filter_jit
-def _compiled_method(method, self, t, options, named):
-    return method(self, t, *options, **dict(named))
 
 
 @jax.jit
