@@ -376,3 +376,59 @@ def test_contact_results_of_a_resting_ball_are_k_times_depth():
     np.testing.assert_allclose(np.asarray(res.force), [[0.0, 0.0, -k * 5e-4]], atol=1e-9)  # on the floor (B)
     np.testing.assert_allclose(np.asarray(res.point), [[0.0, 0.0, -2.5e-4]], atol=1e-15)   # the witnesses' midpoint
     assert ball.contact.names[res.geometry_a[0]] == "ball_surface" and ball.contact.names[res.geometry_b[0]] == "ground"
+
+
+def test_the_stiff_linearization_is_the_contact_springs_dampers_and_friction_slopes():
+    hopper = _ours("hopper_landing")
+    nq = hopper.tree.nq
+    x = jnp.asarray(_random_state("hopper_landing", hopper, np.random.default_rng(3)))
+    q, v = x[:nq], x[nq:]
+    assert int(jnp.sum(hopper.contact_results(x).active)) >= 1
+    derivatives = jax.jit(lambda plant, q, v: plant.contact.force_derivatives(plant.tree, q, v))
+    K, D = derivatives(hopper, q, v)
+    # D is the contact force's derivative in v, exactly: points, normals and Jacobians depend on q alone
+    D_exact = jax.jacfwd(lambda v: hopper.contact_force(q, v))(v)
+    np.testing.assert_allclose(np.asarray(D), np.asarray(D_exact), rtol=1e-10, atol=1e-10 * float(jnp.max(jnp.abs(D))))
+    # a frictionless ball at rest on a half-space, moved: the force's line passes through the centre
+    # and nothing moves, so what K leaves out (the motion of the points and Jacobians) is zero; turned:
+    # the base's force in its own axes turns, a term of the force's size (here ~40 N) left out
+    ball = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True, contact=True).with_ground(
+        material=_material(1e6, 50.0, 0.0, 0.0))
+    quat = np.random.default_rng(4).normal(size=4)
+    q = jnp.concatenate([jnp.array([0.1, -0.2, 0.098]), jnp.asarray(quat / np.linalg.norm(quat))])
+    v = jnp.zeros(6)
+    K, D = derivatives(ball, q, v)
+    along = lambda e: jax.jvp(lambda q: ball.contact_force(q, v), (q,),  # noqa: E731
+                              (jd.multibody.configuration_derivative(ball.tree, q, e),))[1]
+    K_exact = jax.vmap(along, out_axes=1)(jnp.eye(6))
+    np.testing.assert_allclose(np.asarray(K[:, :3]), np.asarray(K_exact[:, :3]), rtol=1e-10, atol=1e-6)
+    assert float(jnp.max(jnp.abs(K))) > 1e4 and float(jnp.max(jnp.abs(K[:, 3:] - K_exact[:, 3:]))) < 1e2
+
+
+DUMBBELL_START = np.asarray([0.0, 0.0, 0.3, 0.1, 0.2, 0.0, 0.97467943, 0.5, 0.0, 0.0, 1.0, -2.0, 0.5]) / np.r_[
+    1, 1, 1, [np.linalg.norm([0.1, 0.2, 0.0, 0.97467943])] * 4, np.ones(6)]
+
+
+def _dumbbell_final(x0, solver, rtol):
+    """The dumbbell rolling down its slope onto the floor (onsets and releases), at 0.6 s."""
+    return jd.simulate(_ours("dumbbell_on_a_slope"), (0.0, 0.6), x0, solver=solver, rtol=rtol, atol=rtol / 10,
+                       max_steps=40000, dense=False, autodiff="forward").final_state
+
+
+def test_a_rosenbrock_step_on_the_stiff_linearization_converges():
+    dumbbell, x0 = _ours("dumbbell_on_a_slope"), jnp.asarray(DUMBBELL_START)
+    np.testing.assert_array_equal(np.asarray(dumbbell.stiff_linearization().dynamics(0.0, x0, jnp.zeros(0))),
+                                  np.asarray(dumbbell.dynamics(0.0, x0, jnp.zeros(0))))   # the same values
+    reference = _dumbbell_final(x0, "dopri5", 1e-11)
+    w_method = jd.simulation.Rosenbrock23(jacobian="stiff")
+    errors = [float(jnp.max(jnp.abs(_dumbbell_final(x0, w_method, rtol) - reference))) for rtol in (1e-6, 1e-8)]
+    assert errors[0] < 2e-4 and errors[1] < 2e-5 and errors[1] < errors[0] / 5, errors   # second order, any matrix
+
+
+@pytest.mark.slow   # 37 s
+def test_forward_mode_through_the_stiff_linearization_equals_dopri5s_sensitivities():
+    x0 = jnp.asarray(DUMBBELL_START)   # the custom derivative, differentiated once more
+    J = jax.jit(jax.jacfwd(functools.partial(_dumbbell_final, solver=jd.simulation.Rosenbrock23(jacobian="stiff"),
+                                             rtol=1e-8)))(x0)
+    J_reference = jax.jit(jax.jacfwd(functools.partial(_dumbbell_final, solver="dopri5", rtol=1e-10)))(x0)
+    np.testing.assert_allclose(np.asarray(J), np.asarray(J_reference), atol=1e-3 * float(jnp.max(jnp.abs(J_reference))))

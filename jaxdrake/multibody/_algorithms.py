@@ -684,3 +684,17 @@ def configuration_derivative(tree: KinematicTree, q, v):
     quat_dot = 0.5 * jnp.stack([w * wx + y * wz - z * wy, w * wy + z * wx - x * wz,
                                 w * wz + x * wy - y * wx, -(x * wx + y * wy + z * wz)])
     return jnp.concatenate([quaternion_matrix(q[3:7]) @ v[:3], quat_dot, v[6:]])
+
+
+def velocity_of_configuration_change(tree: KinematicTree, q, dq):
+    r"""The velocity-coordinate change $\delta\nu$ with configuration_derivative(q, $\delta\nu$)
+    = dq (the inverse of that linear map; for a floating base, of a quaternion change tangent
+    to the unit sphere): $\delta\nu_{lin} = R^T dp$ and $\delta\omega = 2\,\mathrm{vec}(
+    \bar{\mathbf q} \otimes d\mathbf q)$."""
+    if not tree.layout.floating:
+        return dq
+    x, y, z, w = q[3], q[4], q[5], q[6]
+    dx, dy, dz, dw = dq[3], dq[4], dq[5], dq[6]
+    omega = 2.0 * jnp.stack([w * dx - dw * x - y * dz + z * dy, w * dy - dw * y - z * dx + x * dz,
+                             w * dz - dw * z - x * dy + y * dx])
+    return jnp.concatenate([quaternion_matrix(q[3:7]).T @ dq[:3], omega, dq[7:]])

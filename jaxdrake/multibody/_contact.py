@@ -198,27 +198,60 @@ class ContactModel(eqx.Module):
 
     def _results(self, motion: alg.BodyMotion) -> ContactResults:
         (depth, pa, pb, n), ia, ib = self.point_pairs(motion)
-        ia_, ib_ = np.asarray(ia, int), np.asarray(ib, int)
         C = 0.5 * (pa + pb)
         V, ps = _with_world(motion.velocity, jnp.zeros(6)), _with_world(motion.position, jnp.zeros(3))
-        body_a, body_b = np.asarray(self.bodies)[ia_] + 1, np.asarray(self.bodies)[ib_] + 1
+        body_a, body_b = self._pair_bodies(ia, ib)
         point_velocity = lambda b: V[b, 3:] + jnp.cross(V[b, :3], C - ps[b])  # noqa: E731
         v_AcBc = point_velocity(body_b) - point_velocity(body_a)
-        vn = jnp.sum(v_AcBc * n, -1)
-        k, d = _combined_stiffness_dissipation(self.stiffness[ia_], self.stiffness[ib_],
-                                               self.dissipation[ia_], self.dissipation[ib_])
-        touching = depth > 0
-        x = jnp.where(touching, depth, 0.0)
-        fn = k * x * (1.0 + d * vn)
-        active = touching & (fn > 0)
-        fn = jnp.where(active, fn, 0.0)
-        vt = v_AcBc - vn[:, None] * n
-        slip, t_hat = norm_and_direction(vt, jnp.zeros_like(vt).at[:, 0].set(1.0))  # mu(0) = 0: no force
-        mu = stribeck(slip, _harmonic(self.mu_static[ia_], self.mu_static[ib_]),
-                      _harmonic(self.mu_dynamic[ia_], self.mu_dynamic[ib_]), self.stiction_tolerance)
-        f_A = fn[:, None] * n + (mu * fn)[:, None] * t_hat
+        f_A, (active, fn, slip, vn) = _force_on_a(depth, v_AcBc, n, *self._pair_parameters(ia, ib))
         return ContactResults(active=active, depth=depth, point=C, normal=n, force=-f_A, normal_force=fn, slip_speed=slip,
                               separation_speed=vn, geometry_a=ia, geometry_b=ib)
+
+    def _pair_bodies(self, ia, ib):
+        """Rows of `_with_world` arrays (0: the world) of the bodies of every candidate's A and B."""
+        bodies = np.asarray(self.bodies)
+        return bodies[np.asarray(ia, int)] + 1, bodies[np.asarray(ib, int)] + 1
+
+    def _pair_parameters(self, ia, ib):
+        """(k, d, mu_static, mu_dynamic, v_s) of every candidate, combined by Drake's rules."""
+        ia_, ib_ = np.asarray(ia, int), np.asarray(ib, int)
+        k, d = _combined_stiffness_dissipation(self.stiffness[ia_], self.stiffness[ib_],
+                                               self.dissipation[ia_], self.dissipation[ib_])
+        return (k, d, _harmonic(self.mu_static[ia_], self.mu_static[ib_]),
+                _harmonic(self.mu_dynamic[ia_], self.mu_dynamic[ib_]), self.stiction_tolerance)
+
+    def force_derivatives(self, tree, q, v):
+        r"""The stiff part of the contact force's derivative: (K, D), nv x nv, with
+        $d\tau_c \approx K\,\delta\nu + D\,dv$ for a change $\delta\nu$ of the configuration
+        in velocity coordinates (`alg.velocity_of_configuration_change`) and dv of the velocity.
+
+        With $G_c = J_{B_c} - J_{A_c}$ (3 x nv) the Jacobian of candidate c's relative velocity
+        $v_{A_cB_c} = G_c v$, $\tau_c = -\sum_c G_c^T f_{A,c}(x_c, v_{A_cB_c})$; holding the
+        contact point, normal and $G_c$ fixed, $K = -\sum_c G_c^T (\partial f_A/\partial x)\,
+        \hat n^T G_c$ (the depth x grows at $\hat n \cdot v_{A_cB_c}$) and
+        $D = -\sum_c G_c^T (\partial f_A / \partial v_{A_cB_c}) G_c$: the Hunt-Crossley spring
+        and damper and the friction's slope, the terms that make contact stiff. Left out: the
+        motion of the points, normals and Jacobians (forces times curvatures, not stiffnesses)."""
+        motion = alg.body_motion(tree, q, v)
+        (depth, pa, pb, n), ia, ib = self.point_pairs(motion)
+        C = 0.5 * (pa + pb)
+        L = tree.layout
+        moves = np.zeros((tree.num_bodies + 1, tree.nv))   # row 0: the world; else the ancestor mask
+        moves[1 + np.arange(tree.num_bodies)] = L.subtree[L.dof_body][:, L.position].T
+        body_a, body_b = self._pair_bodies(ia, ib)
+        lever = C - motion.origin                                                     # (P, 3)
+        columns = motion.columns                                                      # (nv, 6)
+        J = columns[None, :, 3:] + jnp.cross(columns[None, :, :3], lever[:, None, :])  # (P, nv, 3)
+        G = J * jnp.asarray(moves[body_b] - moves[body_a], J.dtype)[:, :, None]
+        v_AcBc = jnp.einsum("pki,k->pi", G, v)
+        params = self._pair_parameters(ia, ib)
+        force = lambda x, w, nn, *p: _force_on_a(x, w, nn, *p)[0]  # noqa: E731
+        in_axes = (0, 0, 0) + tuple(0 if jnp.ndim(p) else None for p in params)
+        F_x = jax.vmap(jax.jacfwd(force, 0), in_axes)(depth, v_AcBc, n, *params)      # (P, 3)
+        F_v = jax.vmap(jax.jacfwd(force, 1), in_axes)(depth, v_AcBc, n, *params)      # (P, 3, 3)
+        K = -jnp.einsum("pki,pi,pj,plj->kl", G, F_x, n, G)
+        D = -jnp.einsum("pki,pij,plj->kl", G, F_v, G)
+        return K, D
 
     def generalized_forces(self, tree, q, v):
         r"""$\tau_c = \sum J^T f$ of all contact forces at (q, v), and the `ContactResults` (one
@@ -226,11 +259,25 @@ class ContactModel(eqx.Module):
         motion = alg.body_motion(tree, q, v)
         res = self._results(motion)
         ps = _with_world(motion.position, jnp.zeros(3))
-        ia_, ib_ = np.asarray(res.geometry_a, int), np.asarray(res.geometry_b, int)
+        body_a, body_b = self._pair_bodies(res.geometry_a, res.geometry_b)
         F = jnp.zeros((tree.num_bodies + 1, 6), res.force.dtype)
-        for bodies, f in ((np.asarray(self.bodies)[ia_] + 1, -res.force), (np.asarray(self.bodies)[ib_] + 1, res.force)):
+        for bodies, f in ((body_a, -res.force), (body_b, res.force)):
             F = F.at[bodies].add(jnp.concatenate([jnp.cross(res.point - ps[bodies], f), f], 1))
         return alg.external_forces(tree, motion, F[1:]), res
+
+
+def _force_on_a(depth, v_AcBc, n, k, d, mu_static, mu_dynamic, stiction_tolerance):
+    """The force on A at C (module docstring) of candidates at depth x along n, with B's point
+    moving at v_AcBc relative to A's; and (active, f_n, slip speed, v_n)."""
+    vn = jnp.sum(v_AcBc * n, -1)
+    touching = depth > 0
+    fn = k * jnp.where(touching, depth, 0.0) * (1.0 + d * vn)
+    active = touching & (fn > 0)
+    fn = jnp.where(active, fn, 0.0)
+    vt = v_AcBc - vn[..., None] * n
+    slip, t_hat = norm_and_direction(vt, jnp.zeros_like(vt).at[..., 0].set(1.0))  # mu(0) = 0: no force
+    mu = stribeck(slip, mu_static, mu_dynamic, stiction_tolerance)
+    return fn[..., None] * n + (mu * fn)[..., None] * t_hat, (active, fn, slip, vn)
 
 
 def _with_world(per_body, world_value):

@@ -13,6 +13,7 @@ that drift decays.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import pathlib
 import warnings
 
@@ -125,6 +126,7 @@ class RigidBodySystem(System):
     contact: ContactModel | None = None
     collision: URDFCollisions | None = eqx.field(static=True, default=None)  # what `contact` was built from
     stiction_tolerance: float = eqx.field(static=True, default=DEFAULT_STICTION_TOLERANCE)  # seeds contact models built later
+    linearization: str = eqx.field(static=True, default="exact")  # "stiff": see stiff_linearization
 
     def __init__(self, tree: KinematicTree, actuated_joints=None, *, loops=(), couplers=(),
                  constraint_stiffness: float = 20.0, effort_limits: bool = True,
@@ -351,6 +353,24 @@ class RigidBodySystem(System):
     def forward_dynamics(self, q, v, u):
         """qdd (the time derivative of v) under input u, damping, joint limits, contact and
         constraint forces."""
+        if self.linearization == "stiff":
+            return _stiffly_linearized_forward_dynamics(self, q, v, u)
+        return self._forward_dynamics(q, v, u)
+
+    def stiff_linearization(self) -> "RigidBodySystem":
+        r"""A copy whose `forward_dynamics` has the same values and the derivative
+        $d\dot v = H(q)^{-1}\,d\tau$ of the applied forces $\tau = B u - b \circ v +
+        \tau_{lim}(q, v) + \tau_c(q, v)$ alone, the contact force's by
+        `ContactModel.force_derivatives` (its springs, dampers and friction slopes): left out
+        are the derivatives of H, of the Coriolis and gravity terms, and of the contact points'
+        motion, which are not stiff. For the matrix of `Rosenbrock23(jacobian="stiff")` only;
+        derivatives with respect to the plant's parameters stay exact. A plant with loop or
+        coupler constraints keeps its exact derivative."""
+        if self.loops or self.couplers:
+            return self
+        return _replace_fields(self, linearization="stiff")
+
+    def _forward_dynamics(self, q, v, u):
         tau = self.B @ u - self.tree.damping * v + self.joint_limit_torque(q, v) + self.contact_force(q, v)
         if not (self.loops or self.couplers):
             return alg.aba(self.tree, q, v, tau)
@@ -576,6 +596,31 @@ def _neutral_joint_inertias(tree):
             arm = np.cross(a, centre[subtree] - p[i])
             H[tree.v_starts[i]] = np.einsum("i,nij,j->", a, inertia[subtree], a) + np.sum(mass[subtree] * np.sum(arm ** 2, 1))
     return H
+
+
+@jax.custom_jvp
+def _stiffly_linearized_forward_dynamics(plant, q, v, u):
+    """`plant.forward_dynamics` with the derivative of `RigidBodySystem.stiff_linearization`."""
+    return plant._forward_dynamics(q, v, u)
+
+
+@functools.partial(_stiffly_linearized_forward_dynamics.defjvp, symbolic_zeros=True)
+def _stiff_derivative(primals, tangents):
+    plant, q, v, u = primals
+    d_plant, dq, dv, du = tangents
+    zero = lambda t, like: jnp.zeros_like(like) if isinstance(t, jax.custom_derivatives.SymbolicZero) else t  # noqa: E731
+    dq, dv, du = zero(dq, q), zero(dv, v), zero(du, u)
+    tree = plant.tree
+    dtau = plant.B @ du - tree.damping * dv + jax.jvp(plant.joint_limit_torque, (q, v), (dq, dv))[1]
+    if plant.contact is not None:
+        K, D = plant.contact.force_derivatives(tree, q, v)
+        dtau = dtau + K @ alg.velocity_of_configuration_change(tree, q, dq) + D @ dv
+    dqdd = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(alg.mass_matrix(tree, q)), dtau)
+    of_plant = alg._jvp_of_live(lambda p: p._forward_dynamics(q, v, u), (plant,), (d_plant,))
+    if of_plant is None:
+        return plant._forward_dynamics(q, v, u), dqdd
+    qdd, exact_in_parameters = of_plant
+    return qdd, dqdd + exact_in_parameters
 
 
 @compiled_query

@@ -26,6 +26,7 @@ call, the root finder's unrolled and looped iterations, the differentiable Newto
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import equinox as eqx
 import equinox.internal as eqxi
@@ -276,12 +277,12 @@ class Loop(eqx.Module):
         target = self.next_stop(s)
         priming = ~s.k0_valid if self.fsal else jnp.asarray(False)
         if self.num_continuous:
-            def vector_field(t, xc):
-                return self.system.mode_dynamics(s.mode, t, jnp.concatenate([xd, xc]),
-                                                 self.input(t, s.saturation, source))
+            def vector_field(t, xc, system=self.system):
+                return system.mode_dynamics(s.mode, t, jnp.concatenate([xd, xc]), self.input(t, s.saturation, source))
 
+            stiff = functools.partial(vector_field, system=self.system.stiff_linearization())
             result = self.solver.step(vector_field, s.t, xc, lambda k0: self.step_end(s, k0, target)[1] - s.t,
-                                      s.k0 if self.fsal else None)
+                                      s.k0 if self.fsal else None, stiff)
             h_proposed, t_next = self.step_end(s, result.k_first, target)
             xc1, coefficients = result.y1, result.coefficients
             finite = jnp.all(jnp.isfinite(xc1)) & (jnp.all(jnp.isfinite(coefficients)) if self.dense else True)

@@ -50,9 +50,11 @@ class StepResult(eqx.Module):
 class AbstractSolver(eqx.Module):
     """A one-step method for $\\dot y = f(t, y)$.
 
-    `step(f, t0, y0, step_size, k0=None)` takes the step of size `h = step_size(k0)`, where
-    $k_0 = f(t_0, y_0)$ is the method's first evaluation (given as `k0` to a first-same-as-last
-    method, which then skips it) and returns a `StepResult`. `error_order` q means the error
+    `step(f, t0, y0, step_size, k0=None, f_stiff=None)` takes the step of size `h =
+    step_size(k0)`, where $k_0 = f(t_0, y_0)$ is the method's first evaluation (given as `k0`
+    to a first-same-as-last method, which then skips it) and returns a `StepResult`. `f_stiff`:
+    the same vector field with a cheaper derivative that keeps its stiff terms (the systems'
+    `stiff_linearization`), for a method that forms a Jacobian and is asked to use it. `error_order` q means the error
     estimate is $O(h^{q+1})$, which sets the exponent of the step-size controller. `fsal`
     ("first same as last"): the last stage is $f(t_0 + h, y_1)$, the next step's first.
     """
@@ -63,7 +65,7 @@ class AbstractSolver(eqx.Module):
     fsal: ClassVar[bool] = False
 
     @abc.abstractmethod
-    def step(self, f, t0, y0, step_size, k0=None) -> StepResult:
+    def step(self, f, t0, y0, step_size, k0=None, f_stiff=None) -> StepResult:
         ...
 
 
@@ -89,7 +91,7 @@ class AbstractExplicitRungeKutta(AbstractSolver):
     e: ClassVar[np.ndarray | None] = None
     dense: ClassVar[np.ndarray]
 
-    def step(self, f, t0, y0, step_size, k0=None):
+    def step(self, f, t0, y0, step_size, k0=None, f_stiff=None):
         # the vector field traced once, then evaluated from its jaxpr at every stage
         vector_field = jax.make_jaxpr(f)(t0, y0)
         evaluate = jax.extend.core.jaxpr_as_fun(vector_field)
@@ -263,15 +265,30 @@ class Rosenbrock23(AbstractSolver):
     $k_3 = W^{-1}(f(t_0 + h, y_1) - e_{32}(k_2 - f_1) - 2(k_1 - f_0) + h d T)$. No Newton
     iterations: $f_0$, $T$ and $J$ from one linearization, one LU factorization per step, and
     the two further evaluations in a loop.
+
+    `jacobian="stiff"`: J from the systems' `stiff_linearization` (a `RigidBodySystem`:
+    $\\partial \\dot v/\\partial(q, v) \\approx H^{-1}\\,\\partial\\tau/\\partial(q, v)$ of its
+    contact, limit, damping and input forces, without the derivatives of H, Coriolis and
+    gravity terms). The step stays second order with any matrix in place of J (a W-method:
+    Shampine & Reichelt's formula; Hairer & Wanner, *Solving ODEs II*, IV.7); what the
+    approximation leaves out must not be stiff. Solo-12 landing: a Jacobian 10x cheaper to
+    evaluate and much cheaper to compile (benchmarks/RESULTS.md).
     """
 
     adaptive: ClassVar[bool] = True
     order: ClassVar[int] = 2
     error_order: ClassVar[int] = 2
+    jacobian: str = eqx.field(static=True, default="exact")
 
-    def step(self, f, t0, y0, step_size, k0=None):
+    def __check_init__(self):
+        if self.jacobian not in ("exact", "stiff"):
+            raise ValueError(f"Rosenbrock23(jacobian={self.jacobian!r}): use 'exact' (the vector field's "
+                             "Jacobian) or 'stiff' (the systems' cheaper stiff_linearization)")
+
+    def step(self, f, t0, y0, step_size, k0=None, f_stiff=None):
         d = _ROS_D
-        f0, tangent = jax.linearize(f, t0, y0)
+        linearized = f_stiff if (self.jacobian == "stiff" and f_stiff is not None) else f
+        f0, tangent = jax.linearize(linearized, t0, y0)
         dfdt = tangent(jnp.ones_like(t0), jnp.zeros_like(y0))
         J = jax.vmap(lambda v: tangent(jnp.zeros_like(t0), v), out_axes=1)(
             jnp.eye(y0.shape[0], dtype=y0.dtype))

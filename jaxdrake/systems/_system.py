@@ -173,6 +173,14 @@ class System(eqx.Module):
         to its error message."""
         return None
 
+    def stiff_linearization(self) -> "System":
+        """This system with every part that offers one switched to a cheaper derivative that
+        keeps its stiff terms, with the same dynamics values: what a linearly implicit step
+        (`Rosenbrock23(jacobian="stiff")`) builds its matrix from. A `RigidBodySystem` offers
+        one; by default a system passes the request on to the subsystems it holds."""
+        is_part = lambda s: isinstance(s, System) and s is not self  # noqa: E731
+        return jax.tree.map(lambda s: s.stiff_linearization() if is_part(s) else s, self, is_leaf=is_part)
+
     def check_initial_state(self, x0) -> None:
         """Warn about a (concrete) start state that the system can tell is questionable (a
         rigid-body plant: a joint past its position limit); nothing by default. `simulate`
