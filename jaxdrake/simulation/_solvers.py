@@ -278,6 +278,7 @@ class Rosenbrock23(AbstractSolver):
     adaptive: ClassVar[bool] = True
     order: ClassVar[int] = 2
     error_order: ClassVar[int] = 2
+    fsal: ClassVar[bool] = True   # f(t0 + h, y1), the error estimate's third evaluation
     jacobian: str = eqx.field(static=True, default="exact")
 
     def __check_init__(self):
@@ -288,7 +289,8 @@ class Rosenbrock23(AbstractSolver):
     def step(self, f, t0, y0, step_size, k0=None, f_stiff=None):
         d = _ROS_D
         linearized = f_stiff if (self.jacobian == "stiff" and f_stiff is not None) else f
-        f0, tangent = jax.linearize(linearized, t0, y0)
+        f_linearized, tangent = jax.linearize(linearized, t0, y0)
+        f0 = f_linearized if k0 is None else k0   # given k0, the linearization's own value is dead code
         dfdt = tangent(jnp.ones_like(t0), jnp.zeros_like(y0))
         J = jax.vmap(lambda v: tangent(jnp.zeros_like(t0), v), out_axes=1)(
             jnp.eye(y0.shape[0], dtype=y0.dtype))
@@ -310,7 +312,7 @@ class Rosenbrock23(AbstractSolver):
         scale = h / (1.0 - 2.0 * d)
         zeros = jnp.zeros((NUM_COEFFICIENTS - 3,) + y0.shape, y0.dtype)
         coefficients = jnp.concatenate([jnp.stack([y0, scale * (k1 - 2.0 * d * k2), scale * (k2 - k1)]), zeros])
-        return StepResult(h, f0, y1, error, coefficients, None)
+        return StepResult(h, f0, y1, error, coefficients, f2)
 
 
 SOLVERS = {"dopri5": Dopri5, "rk4": RK4, "midpoint": Midpoint, "euler": Euler, "rosenbrock23": Rosenbrock23}
