@@ -60,3 +60,10 @@ def failures(values) -> int:
     """How many members (rows of `values`) are not finite: failed runs, not to be timed."""
     values = np.atleast_2d(np.asarray(values))  # one final state: one member
     return int(np.sum(~np.isfinite(values.reshape(values.shape[0], -1)).all(axis=1)))
+
+
+def solver_named(name: str):
+    """A solver of `jd.simulate` from a benchmark's command line: its own names, and
+    "rosenbrock23/stiff" for `Rosenbrock23(jacobian="stiff")`."""
+    import jaxdrake as jd
+    return jd.simulation.Rosenbrock23(jacobian="stiff") if name == "rosenbrock23/stiff" else name

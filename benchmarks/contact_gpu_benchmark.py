@@ -52,7 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxdrake as jd
-from _common import machine_line  # benchmarks/_common.py
+from _common import machine_line, solver_named  # benchmarks/_common.py
 from contact_benchmark import SPHERES, solo_without_mesh_collisions  # the same scene as the CPU benchmark
 
 LEGS = ("FL", "FR", "HL", "HR")
@@ -231,7 +231,8 @@ def main():
     parser.add_argument("--duration", type=float, default=1.0)
     parser.add_argument("--ours", nargs="*", default=["rosenbrock23:1e-2:1e-2:1e-2", "rosenbrock23:1e-2:1e-2",
                                                       "dopri5:1e-2:1e-3:1e-2"],
-                        help="solver:rtol:atol[:stiction tolerance in m/s, default Drake's 1e-4]")
+                        help="solver:rtol:atol[:stiction tolerance in m/s, default Drake's 1e-4]; solver "
+                             "rosenbrock23/stiff: Rosenbrock23(jacobian='stiff')")
     parser.add_argument("--mjx", nargs="*", default=["default", "iter:4:8", "fast", "system"],
                         help="default / fast / iter:N:L: lax.scan(mjx.step) with MuJoCo's / Playground's / N "
                              "solver and L line-search iterations; system: MujocoSystem (default options) "
@@ -304,7 +305,7 @@ def main():
         if solver not in compiled:  # one program per solver: tolerances and stiction are traced
             def simulate(x, rtol, atol, stiction, dense=False, max_steps=args.max_steps, solver=solver):
                 loop = closed_loop(eqx.tree_at(lambda p: p.contact.stiction_tolerance, plant, stiction))
-                return jd.simulate(loop, (0.0, duration), x, solver=solver, rtol=rtol, atol=atol,
+                return jd.simulate(loop, (0.0, duration), x, solver=solver_named(solver), rtol=rtol, atol=atol,
                                    max_steps=max_steps, dense=dense, throw=False)
 
             timed_run = jax.jit(jax.vmap(lambda *a: (lambda r: (r.final_state, r.num_rejected_steps, r.status))(
