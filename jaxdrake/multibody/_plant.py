@@ -104,9 +104,11 @@ class RigidBodySystem(System):
       their generalized force $\sum J^T f$ added to the dynamics. `contact` holds the
       geometry's leaves (stiffness, dissipation, friction, sizes, poses) that you may
       replace; `contact_results(x)` gives the points and forces. Solvers: Drake's stiction
-      tolerance (1e-4 m/s) makes resting friction stiff; `solver="rosenbrock23"` (L-stable)
-      takes long steps through it but compiles the dynamics' Jacobian (Solo-12: 20-45 s first
-      call), `dopri5` compiles in seconds and suits a stiction tolerance of ~1 cm/s
+      tolerance (1e-4 m/s) makes resting friction stiff; `jd.simulation.Rosenbrock23(
+      jacobian="stiff")` takes long steps through it on the cheap matrix of
+      `stiff_linearization` (Solo-12's drop: 6x faster than Drake's RK3 at equal error, ~6 s
+      first call); `solver="rosenbrock23"` (the exact Jacobian) costs 3-4x more per step and
+      compiles for 10-20 s; `dopri5` suits a stiction tolerance of ~1 cm/s
       (`stiction_tolerance=`); see benchmarks/RESULTS.md.
 
     The tree's masses, inertias, lengths and axes are pytree leaves: `jax.grad` with respect

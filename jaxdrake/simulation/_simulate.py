@@ -59,7 +59,9 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     - `key`: a JAX PRNG key, for a stochastic system (required then, refused otherwise): the
       noise path is a function of the key alone; `jax.vmap` over keys gives a Monte-Carlo batch.
     - `solver`: `"dopri5"` (adaptive, default), `"rosenbrock23"` (adaptive, for stiff
-      systems), `"rk4"`, `"midpoint"` or `"euler"` (fixed step `dt`), or a solver instance.
+      systems), `"rk4"`, `"midpoint"` or `"euler"` (fixed step `dt`), or a solver instance
+      (`Rosenbrock23(jacobian="stiff")`: for rigid bodies in stiff contact, its matrix from
+      the systems' `stiff_linearization`).
     - `rtol`, `atol`: tolerances of the adaptive solvers; `dt`: the fixed step (or the first
       step of an adaptive one); `max_step_size`: an upper bound on steps.
     - `max_steps`: the bound on loop iterations (accepted + rejected steps) and the size of
