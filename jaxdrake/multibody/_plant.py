@@ -600,28 +600,40 @@ def _neutral_joint_inertias(tree):
     return H
 
 
-@jax.custom_jvp
 def _stiffly_linearized_forward_dynamics(plant, q, v, u):
     """`plant.forward_dynamics` with the derivative of `RigidBodySystem.stiff_linearization`."""
-    return plant._forward_dynamics(q, v, u)
+    arrays, static = eqx.partition(plant, eqx.is_array)  # numbers stay static, as in the plant's queries
+    return _stiff_forward_dynamics(static, arrays, q, v, u)
 
 
-@functools.partial(_stiffly_linearized_forward_dynamics.defjvp, symbolic_zeros=True)
-def _stiff_derivative(primals, tangents):
-    plant, q, v, u = primals
-    d_plant, dq, dv, du = tangents
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _stiff_forward_dynamics(static, arrays, q, v, u):
+    return _exact(static, arrays).forward_dynamics(q, v, u)
+
+
+def _exact(static, arrays):
+    """The plant with its exact derivative: its queries' programs (traced once per structure)
+    are the ones the other evaluations of the dynamics use."""
+    return _replace_fields(eqx.combine(arrays, static), linearization="exact")
+
+
+@functools.partial(_stiff_forward_dynamics.defjvp, symbolic_zeros=True)
+def _stiff_derivative(static, primals, tangents):
+    arrays, q, v, u = primals
+    d_arrays, dq, dv, du = tangents
     zero = lambda t, like: jnp.zeros_like(like) if isinstance(t, jax.custom_derivatives.SymbolicZero) else t  # noqa: E731
     dq, dv, du = zero(dq, q), zero(dv, v), zero(du, u)
+    plant = _exact(static, arrays)
     tree = plant.tree
     dtau = plant.B @ du - tree.damping * dv + jax.jvp(plant.joint_limit_torque, (q, v), (dq, dv))[1]
     if plant.contact is not None:
         K, D = plant.contact.force_derivatives(tree, q, v)
         dtau = dtau + K @ alg.velocity_of_configuration_change(tree, q, dq) + D @ dv
     dqdd = jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(alg.mass_matrix(tree, q)), dtau)
-    of_plant = alg._jvp_of_live(lambda p: p._forward_dynamics(q, v, u), (plant,), (d_plant,))
-    if of_plant is None:
-        return plant._forward_dynamics(q, v, u), dqdd
-    qdd, exact_in_parameters = of_plant
+    of_parameters = alg._jvp_of_live(lambda a: _exact(static, a).forward_dynamics(q, v, u), (arrays,), (d_arrays,))
+    if of_parameters is None:
+        return plant.forward_dynamics(q, v, u), dqdd
+    qdd, exact_in_parameters = of_parameters
     return qdd, dqdd + exact_in_parameters
 
 
