@@ -432,19 +432,3 @@ def test_forward_mode_through_the_stiff_linearization_equals_dopri5s_sensitiviti
                                              rtol=1e-8)))(x0)
     J_reference = jax.jit(jax.jacfwd(functools.partial(_dumbbell_final, solver="dopri5", rtol=1e-10)))(x0)
     np.testing.assert_allclose(np.asarray(J), np.asarray(J_reference), atol=1e-3 * float(jnp.max(jnp.abs(J_reference))))
-
-
-def test_the_default_solver_of_a_plant_with_contact_is_the_stiff_rosenbrock_step_at_moderate_tolerances():
-    ball = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True, contact=True).with_ground()
-    assert ball.is_stiff and not jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True).is_stiff
-    held = jd.feedback(ball, jd.System.from_functions(output=lambda t, x, y: jnp.zeros(0), num_states=0,
-                                                      num_inputs=13, num_outputs=0))
-    assert held.is_stiff   # a diagram asks its parts
-    x0 = jnp.array([0.0, 0.0, 0.11, 0, 0, 0, 1, 1.0, 0, -0.5, 0, 0, 0])   # lands, slides
-
-    def final(solver, rtol, system=ball):
-        return np.asarray(jd.simulate(system, (0.0, 0.05), x0, solver=solver, rtol=rtol, atol=rtol / 100,
-                                      dense=False).final_state)
-
-    np.testing.assert_array_equal(final(None, 1e-4), final(jd.simulation.Rosenbrock23(jacobian="stiff"), 1e-4))
-    np.testing.assert_array_equal(final(None, 1e-8), final("dopri5", 1e-8))   # tight: fifth order pays

@@ -104,13 +104,12 @@ class RigidBodySystem(System):
       their generalized force $\sum J^T f$ added to the dynamics. `contact` holds the
       geometry's leaves (stiffness, dissipation, friction, sizes, poses) that you may
       replace; `contact_results(x)` gives the points and forces. Solvers: Drake's stiction
-      tolerance (1e-4 m/s) makes resting friction stiff (`is_stiff`); `simulate`'s default
-      solver for it (at rtol >= 1e-7), `jd.simulation.Rosenbrock23(jacobian="stiff")`, takes
-      long steps through it on the cheap matrix of `stiff_linearization` (Solo-12's drop: 6x
-      faster than Drake's RK3 at equal error, ~6 s first call); `solver="rosenbrock23"` (the
-      exact Jacobian) costs 3-4x more per step and compiles for 10-20 s; `dopri5` suits a
-      stiction tolerance of ~1 cm/s (`stiction_tolerance=`) and tight tolerances; see
-      benchmarks/RESULTS.md.
+      tolerance (1e-4 m/s) makes resting friction stiff; `jd.simulation.Rosenbrock23(
+      jacobian="stiff")` takes long steps through it on the cheap matrix of
+      `stiff_linearization` (Solo-12's drop: 6x faster than Drake's RK3 at equal error, ~6 s
+      first call); `solver="rosenbrock23"` (the exact Jacobian) costs 3-4x more per step and
+      compiles for 10-20 s; `dopri5` suits a stiction tolerance of ~1 cm/s
+      (`stiction_tolerance=`); see benchmarks/RESULTS.md.
 
     The tree's masses, inertias, lengths and axes are pytree leaves: `jax.grad` with respect
     to a link mass works (system identification); build the system outside `jit`.
@@ -372,10 +371,6 @@ class RigidBodySystem(System):
         if self.loops or self.couplers:
             return self
         return _replace_fields(self, linearization="stiff")
-
-    @property
-    def is_stiff(self) -> bool:
-        return self.contact is not None
 
     def _forward_dynamics(self, q, v, u):
         tau = self.B @ u - self.tree.damping * v + self.joint_limit_torque(q, v) + self.contact_force(q, v)

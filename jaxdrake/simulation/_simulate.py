@@ -26,10 +26,9 @@ from ._controller import ConstantStepSize, IController
 from ._inputs import NoisyInput, leaves_to_arrays, make_source
 from ._loop import run_simulation
 from ._result import SimulatedTrajectory, trajectory_bytes
-from ._solvers import Rosenbrock23, make_solver
+from ._solvers import make_solver
 from ._status import SimulationError, SimulationStatus
 
-STIFF_DEFAULT_MIN_RTOL = 1e-7  # below it, a stiff system's default solver is dopri5 (`_default_solver`)
 
 
 @compiled
@@ -40,7 +39,7 @@ def _run_simulation(system, solver, controller, source, t0, tf, x0, *args):
     return run_simulation(system, solver, controller, source, t0, tf, x0, *args)
 
 
-def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver=None, rtol=1e-6,
+def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="dopri5", rtol=1e-6,
              atol=1e-9, dt=None, max_step_size=None, max_steps: int = 4096,
              max_events: int = 256, event_tol=1e-10, dense: bool = True,
              constraint_projection: bool = False, autodiff: str = "reverse",
@@ -59,13 +58,10 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver=No
       u = 0, as in the notes. Input limits of the system saturate it.
     - `key`: a JAX PRNG key, for a stochastic system (required then, refused otherwise): the
       noise path is a function of the key alone; `jax.vmap` over keys gives a Monte-Carlo batch.
-    - `solver`: `"dopri5"` (adaptive), `"rosenbrock23"` (adaptive, for stiff systems),
-      `"rk4"`, `"midpoint"` or `"euler"` (fixed step `dt`), or a solver instance
+    - `solver`: `"dopri5"` (adaptive, default), `"rosenbrock23"` (adaptive, for stiff
+      systems), `"rk4"`, `"midpoint"` or `"euler"` (fixed step `dt`), or a solver instance
       (`Rosenbrock23(jacobian="stiff")`: for rigid bodies in stiff contact, its matrix from
-      the systems' `stiff_linearization`). Default (None): `"dopri5"`, except for a system
-      stiff by construction (`System.is_stiff`: a plant with contact) at rtol >= 1e-7,
-      which gets `Rosenbrock23(jacobian="stiff")` (second order: tighter tolerances favour
-      dopri5's fifth; DifferentialEquations.jl's default choice also weighs the tolerance).
+      the systems' `stiff_linearization`).
     - `rtol`, `atol`: tolerances of the adaptive solvers; `dt`: the fixed step (or the first
       step of an adaptive one); `max_step_size`: an upper bound on steps.
     - `max_steps`: the bound on loop iterations (accepted + rejected steps) and the size of
@@ -91,7 +87,7 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver=No
         raise TypeError(f"simulate needs a jaxdrake.System, got {type(system).__name__}")
     check_initialised(system)
     _check_no_nan_parameters(system)
-    solver = make_solver(_default_solver(system, rtol) if solver is None else solver)
+    solver = make_solver(solver)
     try:
         t0, tf = tspan
     except (TypeError, ValueError):
@@ -191,13 +187,6 @@ def _failure_message(system, status, t0, tf, traj) -> str:
         hint = None
     return (f"simulating {system.name}{span}{where}: "
             + (f"{hint} (status: {status.name})" if hint else f"{status.message} (status: {status.name})"))
-
-
-def _default_solver(system, rtol):
-    """`simulate`'s solver when none is named (its docstring)."""
-    if system.is_stiff and not (_concrete(rtol) and float(rtol) < STIFF_DEFAULT_MIN_RTOL):
-        return Rosenbrock23(jacobian="stiff")
-    return "dopri5"
 
 
 def _check_no_nan_parameters(system):

@@ -181,14 +181,6 @@ class System(eqx.Module):
         is_part = lambda s: isinstance(s, System) and s is not self  # noqa: E731
         return jax.tree.map(lambda s: s.stiff_linearization() if is_part(s) else s, self, is_leaf=is_part)
 
-    @property
-    def is_stiff(self) -> bool:
-        """Whether the system is stiff by construction (a `RigidBodySystem` with contact:
-        Drake's stiction tolerance makes resting friction stiff), so that `simulate`'s default
-        solver is a linearly implicit one. By default: whether a subsystem it holds is."""
-        is_part = lambda s: isinstance(s, System) and s is not self  # noqa: E731
-        return any(s.is_stiff for s in jax.tree.leaves(self, is_leaf=is_part) if is_part(s))
-
     def check_initial_state(self, x0) -> None:
         """Warn about a (concrete) start state that the system can tell is questionable (a
         rigid-body plant: a joint past its position limit); nothing by default. `simulate`
