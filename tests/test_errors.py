@@ -69,6 +69,18 @@ def test_bad_options():
         jd.simulate(Pendulum(), (0.0, 1.0), rtol=-1.0)
     with pytest.raises(TypeError, match="needs a jaxdrake.System"):
         jd.simulate(lambda t, x: x, (0.0, 1.0))
+    with pytest.raises(TypeError, match=r"is a class: pass an instance, Rosenbrock23\(\)"):
+        jd.simulate(Pendulum(), (0.0, 1.0), solver=jd.simulation.Rosenbrock23)
+    with pytest.raises(ValueError, match="use 'exact' .* or 'stiff'"):
+        jd.simulation.Rosenbrock23(jacobian="approximate")
+
+
+def test_a_rosenbrock_step_out_of_steps_says_what_to_try_next():
+    stiff = jd.simulation.Rosenbrock23(jacobian="stiff")
+    with pytest.raises(jd.SimulationError, match="solver='rosenbrock23' .the exact Jacobian. takes far fewer"):
+        jd.simulate(Pendulum(), (0.0, 100.0), jnp.array([1.0, 0.0]), solver=stiff, max_steps=20)
+    with pytest.raises(jd.SimulationError, match="ran rosenbrock23 already: raise max_steps"):
+        jd.simulate(Pendulum(), (0.0, 100.0), jnp.array([1.0, 0.0]), solver="rosenbrock23", max_steps=20)
 
 
 def test_methods_returning_wrong_shapes_are_named():

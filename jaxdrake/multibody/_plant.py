@@ -365,7 +365,8 @@ class RigidBodySystem(System):
         \tau_{lim}(q, v) + \tau_c(q, v)$ alone, the contact force's by
         `ContactModel.force_derivatives` (its springs, dampers and friction slopes): left out
         are the derivatives of H, of the Coriolis and gravity terms, and of the contact points'
-        motion, which are not stiff. For the matrix of `Rosenbrock23(jacobian="stiff")` only;
+        motion, which are not stiff (except where a steep friction slope meets fast-swinging
+        rounded feet: see `Rosenbrock23`). For the matrix of `Rosenbrock23(jacobian="stiff")` only;
         derivatives with respect to the plant's parameters stay exact. A plant with loop or
         coupler constraints keeps its exact derivative."""
         if self.loops or self.couplers:

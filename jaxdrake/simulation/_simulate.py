@@ -26,7 +26,7 @@ from ._controller import ConstantStepSize, IController
 from ._inputs import NoisyInput, leaves_to_arrays, make_source
 from ._loop import run_simulation
 from ._result import SimulatedTrajectory, trajectory_bytes
-from ._solvers import make_solver
+from ._solvers import Rosenbrock23, make_solver
 from ._status import SimulationError, SimulationStatus
 
 
@@ -155,7 +155,7 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     if throw and _concrete(traj.status):
         status = SimulationStatus(int(traj.status))
         if not SimulationStatus.is_success(status):
-            raise SimulationError(status, _failure_message(system, status, t0, tf, traj))
+            raise SimulationError(status, _failure_message(system, status, t0, tf, traj) + _solver_advice(solver, status))
     return traj
 
 
@@ -187,6 +187,21 @@ def _failure_message(system, status, t0, tf, traj) -> str:
         hint = None
     return (f"simulating {system.name}{span}{where}: "
             + (f"{hint} (status: {status.name})" if hint else f"{status.message} (status: {status.name})"))
+
+
+def _solver_advice(solver, status) -> str:
+    """For too many or too small steps taken by a Rosenbrock step: what to try instead (the
+    status's own message suggests rosenbrock23)."""
+    if status not in (SimulationStatus.MAX_STEPS_REACHED, SimulationStatus.STEP_SIZE_TOO_SMALL):
+        return ""
+    if isinstance(solver, Rosenbrock23) and solver.jacobian == "stiff":
+        return (". This ran Rosenbrock23(jacobian='stiff'), whose matrix leaves out how the contact points' "
+                "motion changes the forces: where that is stiff too (fast-swinging legs with rounded feet at a "
+                "small stiction tolerance) solver='rosenbrock23' (the exact Jacobian) takes far fewer steps")
+    if isinstance(solver, Rosenbrock23):
+        return (". This ran rosenbrock23 already: raise max_steps, loosen rtol / atol, or for contact raise "
+                "the stiction tolerance (stiction_tolerance=) or soften the contact")
+    return ""
 
 
 def _check_no_nan_parameters(system):

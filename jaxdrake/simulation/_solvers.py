@@ -271,8 +271,12 @@ class Rosenbrock23(AbstractSolver):
     contact, limit, damping and input forces, without the derivatives of H, Coriolis and
     gravity terms). The step stays second order with any matrix in place of J (a W-method:
     Shampine & Reichelt's formula; Hairer & Wanner, *Solving ODEs II*, IV.7); what the
-    approximation leaves out must not be stiff. Solo-12 landing: a Jacobian 10x cheaper to
-    evaluate and much cheaper to compile (benchmarks/RESULTS.md).
+    approximation leaves out must not be stiff. Solo-12 landing: a Jacobian 5-8x cheaper to
+    evaluate and much cheaper to compile, the simulation 3-4x faster than with the exact one
+    (benchmarks/RESULTS.md). Where it loses: it leaves out how the contact points' motion
+    changes the forces, which times a steep friction slope is itself stiff on fast-swinging
+    legs with rounded feet (a hopper, a two-link leg at Drake's stiction tolerance: 3-7x the
+    exact Jacobian's steps, or max_steps reached); `"rosenbrock23"` suits those.
     """
 
     adaptive: ClassVar[bool] = True
@@ -324,4 +328,6 @@ def make_solver(solver) -> AbstractSolver:
         return solver
     if isinstance(solver, str) and solver.lower() in SOLVERS:
         return SOLVERS[solver.lower()]()
+    if isinstance(solver, type) and issubclass(solver, AbstractSolver):
+        raise TypeError(f"solver={solver.__name__} is a class: pass an instance, {solver.__name__}()")
     raise ValueError(f"unknown solver {solver!r}; use one of {sorted(SOLVERS)} or a solver instance")
