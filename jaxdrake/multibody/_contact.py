@@ -221,17 +221,21 @@ class ContactModel(eqx.Module):
                 _harmonic(self.mu_dynamic[ia_], self.mu_dynamic[ib_]), self.stiction_tolerance)
 
     def force_derivatives(self, tree, q, v):
-        r"""The stiff part of the contact force's derivative: (K, D), nv x nv, with
-        $d\tau_c \approx K\,\delta\nu + D\,dv$ for a change $\delta\nu$ of the configuration
-        in velocity coordinates (`alg.velocity_of_configuration_change`) and dv of the velocity.
+        r"""The contact force's derivative at the normals held fixed: (K, D), nv x nv, with
+        $d\tau_c \approx K\,\delta\nu + D\,dv$ for a change $\delta\nu$ of the
+        configuration in velocity coordinates (`alg.velocity_of_configuration_change`) and dv of
+        the velocity.
 
-        With $G_c = J_{B_c} - J_{A_c}$ (3 x nv) the Jacobian of candidate c's relative velocity
-        $v_{A_cB_c} = G_c v$, $\tau_c = -\sum_c G_c^T f_{A,c}(x_c, v_{A_cB_c})$; holding the
-        contact point, normal and $G_c$ fixed, $K = -\sum_c G_c^T (\partial f_A/\partial x)\,
-        \hat n^T G_c$ (the depth x grows at $\hat n \cdot v_{A_cB_c}$) and
-        $D = -\sum_c G_c^T (\partial f_A / \partial v_{A_cB_c}) G_c$: the Hunt-Crossley spring
-        and damper and the friction's slope, the terms that make contact stiff. Left out: the
-        motion of the points, normals and Jacobians (forces times curvatures, not stiffnesses)."""
+        With $G_c(q) = J_{B}(C_c) - J_{A}(C_c)$ (3 x nv) the Jacobian of candidate c's relative
+        velocity $v_{A_cB_c} = G_c v$ at its contact point C, $\tau_c = -\sum_c G_c^T
+        f_{A,c}(x_c, G_c v)$: $D = -\sum_c G_c^T F_v G_c$ and $K = -\sum_c [G_c^T (F_x \hat
+        n^T G_c + F_v\, \partial_\nu(G_c) v) + \partial_\nu(G_c)^T f_{A,c}]$, with $F_x, F_v$
+        the force law's derivatives in the depth (which grows at $\hat n \cdot v_{A_cB_c}$)
+        and the relative velocity. $\partial_\nu G$: the bodies' motion subspaces turn,
+        $\partial S_k / \partial \nu_j = S_j \times S_k$ for a coordinate j that carries k's
+        axis, and C moves with the centres of curvature of the two surfaces, weighted as
+        rolling contact has it (a sphere's centre on a flat face or half-space, a box's corner
+        itself). Left out: the normal's turning and the depth's share in C's motion."""
         motion = alg.body_motion(tree, q, v)
         (depth, pa, pb, n), ia, ib = self.point_pairs(motion)
         C = 0.5 * (pa + pb)
@@ -239,17 +243,45 @@ class ContactModel(eqx.Module):
         moves = np.zeros((tree.num_bodies + 1, tree.nv))   # row 0: the world; else the ancestor mask
         moves[1 + np.arange(tree.num_bodies)] = L.subtree[L.dof_body][:, L.position].T
         body_a, body_b = self._pair_bodies(ia, ib)
-        lever = C - motion.origin                                                     # (P, 3)
-        columns = motion.columns                                                      # (nv, 6)
-        J = columns[None, :, 3:] + jnp.cross(columns[None, :, :3], lever[:, None, :])  # (P, nv, 3)
-        G = J * jnp.asarray(moves[body_b] - moves[body_a], J.dtype)[:, :, None]
+        mask_a, mask_b = (jnp.asarray(moves[b], C.dtype) for b in (body_a, body_b))    # (P, nv)
+        w, u = motion.columns[:, :3], motion.columns[:, 3:]                             # (nv, 3) each
+        at = lambda point: u[None] + jnp.cross(w[None], (point - motion.origin)[:, None, :])  # noqa: E731
+        J = at(C)                                                                       # (P, nv, 3)
+        G = J * (mask_b - mask_a)[:, :, None]
+        # C's motion: the centres of curvature (radius rho: a sphere's or capsule's; 0 at a
+        # polyhedron's corner; B's face or half-space flat), weighted rho_B : rho_A
+        rounded = lambda idx: np.isin(np.asarray(self.kinds)[np.asarray(idx, int)], ("sphere", "capsule"))  # noqa: E731
+        rho_a = jnp.where(rounded(ia), self.size[np.asarray(ia, int), 0], 0.0)
+        rho_b = self.size[np.asarray(ib, int), 0]
+        weight_b = jnp.where(rounded(ib), rho_a / jnp.where(rounded(ib), rho_a + rho_b, 1.0), 0.0)
+        dC = ((1.0 - weight_b)[:, None, None] * at(pa + rho_a[:, None] * n) * mask_a[:, :, None]
+              + weight_b[:, None, None] * at(pb - rho_b[:, None] * n) * mask_b[:, :, None])   # (P, nv_j, 3)
         v_AcBc = jnp.einsum("pki,k->pi", G, v)
         params = self._pair_parameters(ia, ib)
         force = lambda x, w, nn, *p: _force_on_a(x, w, nn, *p)[0]  # noqa: E731
         in_axes = (0, 0, 0) + tuple(0 if jnp.ndim(p) else None for p in params)
+        f_A = force(depth, v_AcBc, n, *params)                                         # (P, 3)
         F_x = jax.vmap(jax.jacfwd(force, 0), in_axes)(depth, v_AcBc, n, *params)      # (P, 3)
         F_v = jax.vmap(jax.jacfwd(force, 1), in_axes)(depth, v_AcBc, n, *params)      # (P, 3, 3)
-        K = -jnp.einsum("pki,pi,pj,plj->kl", G, F_x, n, G)
+        # the turning subspaces, summed before they are crossed (no (P, nv, nv, 3) tensor):
+        # (S_j x S_k) paired with the relative twist's coordinates and with the forces' wrenches
+        turns = jnp.asarray(_axis_carried_by(tree), C.dtype)                            # (nv_j, nv_k)
+        relative = mask_b - mask_a                                                      # (P, nv)
+        lever = C - motion.origin
+        T = jnp.einsum("jk,pk,kc->pjc", turns * v[None], relative, motion.columns)       # sum_k turns v_k m_k S_k
+        Tw, Tu = T[..., :3], T[..., 3:]
+        dw_v = jnp.cross(w[None], Tw)                                                   # (P, nv_j, 3)
+        du_v = jnp.cross(w[None], Tu) + jnp.cross(u[None], Tw)
+        omega_rel = jnp.einsum("pk,k,kc->pc", relative, v, w)
+        dv_AcBc = du_v + jnp.cross(dw_v, lever[:, None, :]) + jnp.cross(omega_rel[:, None, :], dC)   # (P, nv_j, 3)
+        wrench = jnp.einsum("pk,pc->kc", relative, jnp.concatenate([jnp.cross(lever, f_A), f_A], 1))  # (nv_k, 6)
+        # (S_j x S_k) . W_k = (w_j x w_k) . W_k,ang + (w_j x u_k + u_j x w_k) . W_k,lin
+        turned = (jnp.einsum("jc,kc->jk", w, jnp.cross(w, wrench[:, :3]))
+                  + jnp.einsum("jc,kc->jk", w, jnp.cross(u, wrench[:, 3:]))
+                  + jnp.einsum("jc,kc->jk", u, jnp.cross(w, wrench[:, 3:]))) * turns
+        moved = jnp.einsum("pk,kc,pjc->kj", relative, w, jnp.cross(dC, f_A[:, None, :]))
+        K = -(jnp.einsum("pki,pi,pl,pjl->kj", G, F_x, n, G) + jnp.einsum("pki,pil,pjl->kj", G, F_v, dv_AcBc)
+              + turned.T + moved)
         D = -jnp.einsum("pki,pij,plj->kl", G, F_v, G)
         return K, D
 
@@ -278,6 +310,20 @@ def _force_on_a(depth, v_AcBc, n, k, d, mu_static, mu_dynamic, stiction_toleranc
     slip, t_hat = norm_and_direction(vt, jnp.zeros_like(vt).at[..., 0].set(1.0))  # mu(0) = 0: no force
     mu = stribeck(slip, mu_static, mu_dynamic, stiction_tolerance)
     return fn[..., None] * n + (mu * fn)[..., None] * t_hat, (active, fn, slip, vn)
+
+
+def _axis_carried_by(tree) -> np.ndarray:
+    """(nv, nv): 1 where velocity coordinate j moves the body that carries coordinate k's axis
+    (a joint's axis is fixed in its parent body; a floating base's six, in its own frame, in
+    the base itself), so that there $\partial S_k/\partial\nu_j = S_j \times S_k$."""
+    L = tree.layout
+    carried = np.zeros((tree.nv, tree.nv))
+    for k in range(tree.nv):
+        body = int(L.order[L.dof_body[k]])
+        carrier = body if (L.floating and L.dof_body[k] == 0) else tree.parents[body]
+        if carrier >= 0:
+            carried[:, k] = L.subtree[L.dof_body, L.position[carrier]]
+    return carried
 
 
 def _with_world(per_body, world_value):
