@@ -313,7 +313,7 @@ def _force_on_a(depth, v_AcBc, n, k, d, mu_static, mu_dynamic, stiction_toleranc
 
 
 def _axis_carried_by(tree) -> np.ndarray:
-    """(nv, nv): 1 where velocity coordinate j moves the body that carries coordinate k's axis
+    r"""(nv, nv): 1 where velocity coordinate j moves the body that carries coordinate k's axis
     (a joint's axis is fixed in its parent body; a floating base's six, in its own frame, in
     the base itself), so that there $\partial S_k/\partial\nu_j = S_j \times S_k$."""
     L = tree.layout
