@@ -363,10 +363,10 @@ class RigidBodySystem(System):
         r"""A copy whose `forward_dynamics` has the same values and the derivative
         $d\dot v = H(q)^{-1}\,d\tau$ of the applied forces $\tau = B u - b \circ v +
         \tau_{lim}(q, v) + \tau_c(q, v)$ alone, the contact force's by
-        `ContactModel.force_derivatives` (its springs, dampers and friction slopes): left out
-        are the derivatives of H, of the Coriolis and gravity terms, and of the contact points'
-        motion, which are not stiff (except where a steep friction slope meets fast-swinging
-        rounded feet: see `Rosenbrock23`). For the matrix of `Rosenbrock23(jacobian="stiff")` only;
+        `ContactModel.force_derivatives` (its springs, dampers and friction slopes, and how the
+        contact points' motion changes them): left out are the derivatives of H, of the
+        Coriolis and gravity terms, which are not stiff, and the normals' turning. For the
+        matrix of `Rosenbrock23(jacobian="stiff")` only;
         derivatives with respect to the plant's parameters stay exact. A plant with loop or
         coupler constraints keeps its exact derivative."""
         if self.loops or self.couplers:

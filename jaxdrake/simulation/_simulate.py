@@ -195,9 +195,9 @@ def _solver_advice(solver, status) -> str:
     if status not in (SimulationStatus.MAX_STEPS_REACHED, SimulationStatus.STEP_SIZE_TOO_SMALL):
         return ""
     if isinstance(solver, Rosenbrock23) and solver.jacobian == "stiff":
-        return (". This ran Rosenbrock23(jacobian='stiff'), whose matrix leaves out how the contact points' "
-                "motion changes the forces: where that is stiff too (fast-swinging legs with rounded feet at a "
-                "small stiction tolerance) solver='rosenbrock23' (the exact Jacobian) takes far fewer steps")
+        return (". This ran Rosenbrock23(jacobian='stiff'), whose matrix leaves out some of the dynamics' "
+                "derivative (the normals' turning, the derivatives of H and the Coriolis terms): solver='rosenbrock23' "
+                "(the exact Jacobian) may take fewer steps")
     if isinstance(solver, Rosenbrock23):
         return (". This ran rosenbrock23 already: raise max_steps, loosen rtol / atol, or for contact raise "
                 "the stiction tolerance (stiction_tolerance=) or soften the contact")

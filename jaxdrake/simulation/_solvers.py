@@ -273,10 +273,9 @@ class Rosenbrock23(AbstractSolver):
     Shampine & Reichelt's formula; Hairer & Wanner, *Solving ODEs II*, IV.7); what the
     approximation leaves out must not be stiff. Solo-12 landing: a Jacobian 5-8x cheaper to
     evaluate and much cheaper to compile, the simulation 3-4x faster than with the exact one
-    (benchmarks/RESULTS.md). Where it loses: it leaves out how the contact points' motion
-    changes the forces, which times a steep friction slope is itself stiff on fast-swinging
-    legs with rounded feet (a hopper, a two-link leg at Drake's stiction tolerance: 3-7x the
-    exact Jacobian's steps, or max_steps reached); `"rosenbrock23"` suits those.
+    (benchmarks/RESULTS.md). Where it loses: on fast-swinging legs with rounded feet (a
+    hopper: 1.5-3x the exact Jacobian's steps) what it leaves out (the normal's turning, the
+    derivatives of H and of the Coriolis terms) costs steps; `"rosenbrock23"` may be faster there.
     """
 
     adaptive: ClassVar[bool] = True
