@@ -17,14 +17,14 @@ differentiable.
   derivative (forward mode, jax.jvp: one parameter).
 
 About 40 s on a 2-core CPU, mostly compiling (Solo-12's simulation 4-10 s, its MeshCat scene
-5 s, the box's value-and-derivative program 10 s, the ball 4-5 s). Solo-12 runs the linearly
-implicit `Rosenbrock23(jacobian="stiff")` (its matrix from the contact springs, dampers and
-friction slopes alone: `RigidBodySystem.stiff_linearization`) with a stiction tolerance of
-0.03 m/s and a Hunt-Crossley dissipation of 2 s/m: 457 accepted steps, 0.16 s once compiled
-(dopri5: 3761 steps, 0.96 s). With Drake's stiction tolerance (1e-4 m/s) the light lower legs
-make friction stiff (eigenvalues -4e4 to -1e6 /s): the same solver then takes 6934 steps and
-rejects 5381 where the feet cross the stick-slip band (4.5 s once compiled, 10.6 s first);
-dopri5 crawls (10^5 steps reach t = 0.2 s).
+5 s, the box's value-and-derivative program 10 s, the ball 4-5 s). Solo-12 keeps Drake's
+stiction tolerance (1e-4 m/s), with which the light lower legs make friction stiff
+(eigenvalues -4e4 to -1e6 /s; dopri5 crawls: 10^5 steps reach t = 0.2 s), and rubber-like
+feet (Hunt-Crossley dissipation 2 s/m). It runs the linearly implicit
+`Rosenbrock23(jacobian="stiff")`, whose matrix comes from the contact's springs, dampers,
+friction slopes and the contact points' motion alone (`RigidBodySystem.stiff_linearization`):
+1272 accepted and 562 rejected steps, about 1 s once compiled. With a stiction tolerance of
+3 cm/s it would take 425 steps (0.2-0.3 s), dopri5 3761.
 
 Needs the example-robot-data package (installed with the test extras) and the viz extra.
 
@@ -95,10 +95,7 @@ def solo12():
     for i, (link, centre, radius) in enumerate(SPHERES):
         plant = plant.with_collision_geometry(link, jd.geometry.Sphere(radius), translation=centre,
                                               name=f"sphere{i}", material=RUBBER)
-    plant = plant.with_ground(material=RUBBER)
-    # from_urdf's stiction_tolerance applies to the file's own collisions (contact=True); geometry
-    # added afterwards starts from Drake's 1e-4 m/s: set the leaf
-    return eqx.tree_at(lambda p: p.contact.stiction_tolerance, plant, jnp.asarray(0.03))
+    return plant.with_ground(material=RUBBER)   # Drake's stiction tolerance, 1e-4 m/s
 
 
 def crouched_stance(plant):
