@@ -250,10 +250,10 @@ class ContactModel(eqx.Module):
         G = J * (mask_b - mask_a)[:, :, None]
         # C's motion: the centres of curvature (radius rho: a sphere's or capsule's; 0 at a
         # polyhedron's corner; B's face or half-space flat), weighted rho_B : rho_A
-        rounded = lambda idx: np.isin(np.asarray(self.kinds)[np.asarray(idx, int)], ("sphere", "capsule"))  # noqa: E731
-        rho_a = jnp.where(rounded(ia), self.size[np.asarray(ia, int), 0], 0.0)
+        rounded_a, rounded_b = (np.isin(np.asarray(self.kinds)[np.asarray(i, int)], ("sphere", "capsule")) for i in (ia, ib))
+        rho_a = jnp.where(rounded_a, self.size[np.asarray(ia, int), 0], 0.0)
         rho_b = self.size[np.asarray(ib, int), 0]
-        weight_b = jnp.where(rounded(ib), rho_a / jnp.where(rounded(ib), rho_a + rho_b, 1.0), 0.0)
+        weight_b = jnp.where(rounded_b, rho_a / jnp.where(rounded_b, rho_a + rho_b, 1.0), 0.0)
         dC = ((1.0 - weight_b)[:, None, None] * at(pa + rho_a[:, None] * n) * mask_a[:, :, None]
               + weight_b[:, None, None] * at(pb - rho_b[:, None] * n) * mask_b[:, :, None])   # (P, nv_j, 3)
         v_AcBc = jnp.einsum("pki,k->pi", G, v)
