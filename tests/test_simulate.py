@@ -89,6 +89,32 @@ def test_stiff_van_der_pol_with_rosenbrock():
         jd.simulate(VanDerPol(mu), (0.0, 3000.0), jnp.array([2.0, 0.0]), max_steps=500)
 
 
+def test_rosenbrock_forms_its_matrix_once_per_accepted_step():
+    """A rejected step leaves the state where it was, so its retry reuses the matrix: one
+    formation per accepted step, at its start (counted where the derivative rule runs)."""
+    mu, formed = 1000.0, []
+
+    @jax.custom_jvp
+    def van_der_pol(x):
+        return jnp.stack([x[1], mu * (1 - x[0] ** 2) * x[1] - x[0]])
+
+    @van_der_pol.defjvp
+    def _(primals, tangents):
+        (x,), (dx,) = primals, tangents
+        jax.debug.callback(lambda: formed.append(1))
+        J = jnp.array([[0.0, 1.0], [-2 * mu * x[0] * x[1] - 1, mu * (1 - x[0] ** 2)]])
+        return van_der_pol(x), J @ dx
+
+    system = jd.System.from_functions(dynamics=lambda t, x, u: van_der_pol(x), num_states=2)
+    traj = jd.simulate(system, (0.0, 1000.0), jnp.array([2.0, 0.0]), solver="rosenbrock23", rtol=1e-4,
+                       atol=1e-6, max_steps=4096)
+    assert int(traj.num_rejected_steps) > 10
+    assert len(formed) == int(traj.num_accepted_steps)
+    reference = jd.simulate(VanDerPol(mu), (0.0, 1000.0), jnp.array([2.0, 0.0]), solver="rosenbrock23", rtol=1e-4,
+                            atol=1e-6, max_steps=4096)
+    np.testing.assert_array_equal(traj.final_state, reference.final_state)
+
+
 @pytest.mark.parametrize("solver,dt,order", [("euler", 1e-3, 1), ("rk4", 5e-2, 4)])
 def test_fixed_step_solvers_converge_at_their_order(solver, dt, order):
     sys = SimpleCTExample()

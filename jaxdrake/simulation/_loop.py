@@ -40,7 +40,7 @@ from ._controller import AbstractStepSizeController
 from ._inputs import InputSource
 from ._result import SimulatedTrajectory
 from ._reverse import run_reverse
-from ._solvers import AbstractSolver
+from ._solvers import AbstractSolver, Linearization
 from ._status import SimulationStatus
 
 
@@ -94,6 +94,7 @@ class LoopState(eqx.Module):
     h: jax.Array  # the next step to attempt; NaN until chosen from the first stage
     k0: jax.Array | None  # f(t, x_c) for a first-same-as-last solver (else None)
     k0_valid: jax.Array | None  # False until the first iteration has evaluated k0
+    linearization: Linearization | None  # a linearly implicit solver's matrix, for a retry
     # clocks
     samples: jax.Array  # per sample rate, the index k of its next instant k * period
     at_breakpoint: jax.Array  # the last step ended on a breakpoint of the input
@@ -125,6 +126,7 @@ class Attempt(eqx.Module):
     finite: jax.Array
     h_next: jax.Array  # the controller's next step
     k_last: jax.Array | None  # f at the end of the step (first-same-as-last)
+    linearization: Linearization | None  # the matrix the step used (a solver that reuses it)
     priming: jax.Array  # a step of size 0 that only evaluates k0 (first-same-as-last)
     event: jax.Array  # a guard crossed inside the step and was located
     which: jax.Array  # the guard that fired (-1: none)
@@ -148,6 +150,12 @@ class Loop(eqx.Module):
     fsal: bool = eqx.field(static=True)
 
     # ----- static facts ---------------------------------------------------------------------
+
+    @property
+    def reuse_linearization(self):
+        """A linearly implicit solver's matrix is kept for the retry of a rejected step where
+        the vector field changes only through accepted steps (as for first-same-as-last)."""
+        return self.fsal and self.solver.reuses_linearization
 
     @property
     def num_discrete(self):
@@ -206,6 +214,7 @@ class Loop(eqx.Module):
             h=jnp.minimum(jnp.asarray(h0, dtype), self.dt_max),
             k0=jnp.zeros(self.num_continuous, dtype) if self.fsal else None,
             k0_valid=jnp.asarray(False) if self.fsal else None,
+            linearization=Linearization.none(self.num_continuous, dtype) if self.reuse_linearization else None,
             samples=(jnp.ceil(t0 / self.periods) if self.periods is not None else jnp.zeros((), dtype)),
             at_breakpoint=jnp.asarray(False), status=status, iterations=jnp.asarray(0),
             rejected=jnp.asarray(0), accepted=jnp.asarray(0), pieces=pieces, events=events)
@@ -282,21 +291,23 @@ class Loop(eqx.Module):
 
             stiff = functools.partial(vector_field, system=self.system.stiff_linearization())
             result = self.solver.step(vector_field, s.t, xc, lambda k0: self.step_end(s, k0, target)[1] - s.t,
-                                      s.k0 if self.fsal else None, stiff)
+                                      s.k0 if self.fsal else None, stiff, s.linearization)
             h_proposed, t_next = self.step_end(s, result.k_first, target)
             xc1, coefficients = result.y1, result.coefficients
             finite = jnp.all(jnp.isfinite(xc1)) & (jnp.all(jnp.isfinite(coefficients)) if self.dense else True)
             accept, h_next, _ = self.controller.adapt(result.h, xc, xc1, result.error, finite)
-            k_last = result.k_last
+            k_last, linearization = result.k_last, result.linearization
         else:
             h_proposed, t_next = self.step_end(s, None, target)
             xc1, coefficients = xc, jnp.zeros((NUM_COEFFICIENTS, 0), dtype)
             finite, accept, h_next, k_last = jnp.asarray(True), jnp.asarray(True), h_proposed, None
+            linearization = None
         coefficients_d = jnp.zeros((NUM_COEFFICIENTS, nd), dtype).at[0].set(xd)
         return Attempt(t_end=t_next, x_end=jnp.concatenate([xd, xc1]),
                        coefficients=jnp.concatenate([coefficients_d, coefficients], axis=1),
                        h_proposed=h_proposed, h=t_next - s.t, accept=accept & ~ready.fired & ~priming,
-                       finite=finite, h_next=h_next, k_last=k_last, priming=priming,
+                       finite=finite, h_next=h_next, k_last=k_last,
+                       linearization=linearization if self.reuse_linearization else None, priming=priming,
                        event=jnp.asarray(False), which=jnp.asarray(-1, jnp.int32))
 
     def locate_event(self, s: LoopState, a: Attempt) -> tuple[LoopState, Attempt]:
@@ -438,7 +449,8 @@ class Loop(eqx.Module):
             k0_valid = jnp.asarray(True)
         return LoopState(
             t=t, x=x, mode=mode, saturation=saturation, h=jax.lax.stop_gradient(h_next), k0=k0,
-            k0_valid=k0_valid, samples=s.samples,
+            k0_valid=k0_valid, linearization=a.linearization.after(accept) if self.reuse_linearization else None,
+            samples=s.samples,
             at_breakpoint=jnp.where(accept, ~a.event & (a.t_end >= self.next_breakpoint(s.t)), s.at_breakpoint),
             status=status, iterations=s.iterations + 1,
             rejected=s.rejected + (~accept & ~ready.fired & ~a.priming), accepted=s.accepted + accept,

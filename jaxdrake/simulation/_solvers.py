@@ -16,6 +16,7 @@ evaluation of its own.
 from __future__ import annotations
 
 import abc
+import dataclasses
 from typing import ClassVar
 
 import equinox as eqx
@@ -37,6 +38,7 @@ class StepResult(eqx.Module):
     - `coefficients`: (NUM_COEFFICIENTS, n), the dense output in the normalized time.
     - `k_last`: $f(t_0 + h, y_1)$ for a first-same-as-last method (the next step's first
       stage), else None.
+    - `linearization`: the matrix the step used, for a method that may reuse it (else None).
     """
 
     h: jax.Array
@@ -45,27 +47,51 @@ class StepResult(eqx.Module):
     error: jax.Array | None
     coefficients: jax.Array
     k_last: jax.Array | None
+    linearization: Linearization | None = None
+
+
+class Linearization(eqx.Module):
+    """$J = \\partial f/\\partial y$ and $T = \\partial f/\\partial t$ as a linearly implicit
+    method formed them at the start of an attempt, kept by the simulation loop: a rejected
+    attempt leaves the state where it was, so the next attempt reuses them (`current`)."""
+
+    jacobian: jax.Array
+    time_derivative: jax.Array
+    current: jax.Array  # formed at the point the next attempt starts from
+
+    @classmethod
+    def none(cls, n, dtype):
+        return cls(jnp.zeros((n, n), dtype), jnp.zeros(n, dtype), jnp.asarray(False))
+
+    def after(self, accepted):
+        """After an attempt: an accepted step moves the state away from it."""
+        return dataclasses.replace(self, current=self.current & ~accepted)
 
 
 class AbstractSolver(eqx.Module):
     """A one-step method for $\\dot y = f(t, y)$.
 
-    `step(f, t0, y0, step_size, k0=None, f_stiff=None)` takes the step of size `h =
-    step_size(k0)`, where $k_0 = f(t_0, y_0)$ is the method's first evaluation (given as `k0`
-    to a first-same-as-last method, which then skips it) and returns a `StepResult`. `f_stiff`:
-    the same vector field with a cheaper derivative that keeps its stiff terms (the systems'
-    `stiff_linearization`), for a method that forms a Jacobian and is asked to use it. `error_order` q means the error
-    estimate is $O(h^{q+1})$, which sets the exponent of the step-size controller. `fsal`
-    ("first same as last"): the last stage is $f(t_0 + h, y_1)$, the next step's first.
+    `step(f, t0, y0, step_size, k0=None, f_stiff=None, linearization=None)` takes the step
+    of size `h = step_size(k0)`, where $k_0 = f(t_0, y_0)$ is the method's first evaluation
+    (given as `k0` to a first-same-as-last method, which then skips it) and returns a
+    `StepResult`. `f_stiff`: the same vector field with a cheaper derivative that keeps its
+    stiff terms (the systems' `stiff_linearization`), for a method that forms a Jacobian and
+    is asked to use it. `linearization`: for a method with `reuses_linearization`, the
+    `Linearization` of an earlier attempt, which it may use instead of forming one (the
+    caller passes it only where the vector field changes through accepted steps alone).
+    `error_order` q means the error estimate is $O(h^{q+1})$, which sets the exponent of the
+    step-size controller. `fsal` ("first same as last"): the last stage is
+    $f(t_0 + h, y_1)$, the next step's first.
     """
 
     adaptive: ClassVar[bool]
     order: ClassVar[int]
     error_order: ClassVar[int]
     fsal: ClassVar[bool] = False
+    reuses_linearization: ClassVar[bool] = False
 
     @abc.abstractmethod
-    def step(self, f, t0, y0, step_size, k0=None, f_stiff=None) -> StepResult:
+    def step(self, f, t0, y0, step_size, k0=None, f_stiff=None, linearization=None) -> StepResult:
         ...
 
 
@@ -91,7 +117,7 @@ class AbstractExplicitRungeKutta(AbstractSolver):
     e: ClassVar[np.ndarray | None] = None
     dense: ClassVar[np.ndarray]
 
-    def step(self, f, t0, y0, step_size, k0=None, f_stiff=None):
+    def step(self, f, t0, y0, step_size, k0=None, f_stiff=None, linearization=None):
         # the vector field traced once, then evaluated from its jaxpr at every stage
         vector_field = jax.make_jaxpr(f)(t0, y0)
         evaluate = jax.extend.core.jaxpr_as_fun(vector_field)
@@ -264,7 +290,8 @@ class Rosenbrock23(AbstractSolver):
     order), and a third-order error estimate $\\tfrac h6(k_1 - 2k_2 + k_3)$,
     $k_3 = W^{-1}(f(t_0 + h, y_1) - e_{32}(k_2 - f_1) - 2(k_1 - f_0) + h d T)$. No Newton
     iterations: $f_0$, $T$ and $J$ from one linearization, one LU factorization per step, and
-    the two further evaluations in a loop.
+    the two further evaluations in a loop. In `simulate`, the retry of a rejected step reuses
+    its J and T (the state has not moved), so they are formed once per accepted step.
 
     `jacobian="stiff"`: J from the systems' `stiff_linearization` (a `RigidBodySystem`:
     $\\partial \\dot v/\\partial(q, v) \\approx H^{-1}\\,\\partial\\tau/\\partial(q, v)$ of its
@@ -282,6 +309,7 @@ class Rosenbrock23(AbstractSolver):
     order: ClassVar[int] = 2
     error_order: ClassVar[int] = 2
     fsal: ClassVar[bool] = True   # f(t0 + h, y1), the error estimate's third evaluation
+    reuses_linearization: ClassVar[bool] = True
     jacobian: str = eqx.field(static=True, default="exact")
 
     def __check_init__(self):
@@ -289,14 +317,24 @@ class Rosenbrock23(AbstractSolver):
             raise ValueError(f"Rosenbrock23(jacobian={self.jacobian!r}): use 'exact' (the vector field's "
                              "Jacobian) or 'stiff' (the systems' cheaper stiff_linearization)")
 
-    def step(self, f, t0, y0, step_size, k0=None, f_stiff=None):
+    def step(self, f, t0, y0, step_size, k0=None, f_stiff=None, linearization=None):
         d = _ROS_D
         linearized = f_stiff if (self.jacobian == "stiff" and f_stiff is not None) else f
-        f_linearized, tangent = jax.linearize(linearized, t0, y0)
-        f0 = f_linearized if k0 is None else k0   # given k0, the linearization's own value is dead code
-        dfdt = tangent(jnp.ones_like(t0), jnp.zeros_like(y0))
-        J = jax.vmap(lambda v: tangent(jnp.zeros_like(t0), v), out_axes=1)(
-            jnp.eye(y0.shape[0], dtype=y0.dtype))
+
+        def form():
+            f_linearized, tangent = jax.linearize(linearized, t0, y0)
+            dfdt = tangent(jnp.ones_like(t0), jnp.zeros_like(y0))
+            J = jax.vmap(lambda v: tangent(jnp.zeros_like(t0), v), out_axes=1)(
+                jnp.eye(y0.shape[0], dtype=y0.dtype))
+            return f_linearized, Linearization(J, dfdt, jnp.asarray(True))
+
+        if linearization is None or k0 is None:
+            f_linearized, linearization = form()
+            f0 = f_linearized if k0 is None else k0   # given k0, the linearization's own value is dead code
+        else:   # after a rejected attempt, the same point's matrix again
+            f0 = k0
+            linearization = jax.lax.cond(linearization.current, lambda: linearization, lambda: form()[1])
+        J, dfdt = linearization.jacobian, linearization.time_derivative
         h = step_size(f0)
         W = jnp.eye(y0.shape[0], dtype=y0.dtype) - (h * d) * J
         lu = jax.scipy.linalg.lu_factor(W)
@@ -315,7 +353,7 @@ class Rosenbrock23(AbstractSolver):
         scale = h / (1.0 - 2.0 * d)
         zeros = jnp.zeros((NUM_COEFFICIENTS - 3,) + y0.shape, y0.dtype)
         coefficients = jnp.concatenate([jnp.stack([y0, scale * (k1 - 2.0 * d * k2), scale * (k2 - k1)]), zeros])
-        return StepResult(h, f0, y1, error, coefficients, f2)
+        return StepResult(h, f0, y1, error, coefficients, f2, linearization)
 
 
 SOLVERS = {"dopri5": Dopri5, "rk4": RK4, "midpoint": Midpoint, "euler": Euler, "rosenbrock23": Rosenbrock23}
