@@ -385,10 +385,17 @@ def test_the_stiff_linearization_is_the_contact_springs_dampers_and_friction_slo
     q, v = x[:nq], x[nq:]
     assert int(jnp.sum(hopper.contact_results(x).active)) >= 1
     derivatives = jax.jit(lambda plant, q, v: plant.contact.force_derivatives(plant.tree, q, v))
-    K, D = derivatives(hopper, q, v)
-    # D is the contact force's derivative in v, exactly: points, normals and Jacobians depend on q alone
-    D_exact = jax.jacfwd(lambda v: hopper.contact_force(q, v))(v)
-    np.testing.assert_allclose(np.asarray(D), np.asarray(D_exact), rtol=1e-10, atol=1e-10 * float(jnp.max(jnp.abs(D))))
+    # D is the contact force's derivative in v, exactly: points, normals and Jacobians depend on q
+    # alone; with spheres on every leg link too (36 candidates, of which the deepest 16 are summed)
+    spheres = hopper
+    for i, link in enumerate(("left_thigh", "left_shin", "right_thigh", "right_shin") * 2):
+        spheres = spheres.with_collision_geometry(link, jd.geometry.Sphere(0.01 + 0.005 * i), translation=(0, 0.02 * i, 0),
+                                                  name=f"extra{i}")
+    assert len(spheres.contact_results(x).depth) > 16 + int(jnp.sum(spheres.contact_results(x).active))
+    for plant in (hopper, spheres):
+        K, D = derivatives(plant, q, v)
+        D_exact = jax.jacfwd(lambda v: plant.contact_force(q, v))(v)
+        np.testing.assert_allclose(np.asarray(D), np.asarray(D_exact), rtol=1e-10, atol=1e-10 * float(jnp.max(jnp.abs(D))))
     # a frictionless ball at rest on a half-space, moved: the force's line passes through the centre
     # and nothing moves, so what K leaves out (the motion of the points and Jacobians) is zero; turned:
     # the base's force in its own axes turns, a term of the force's size (here ~40 N) left out
