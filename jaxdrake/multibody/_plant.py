@@ -106,9 +106,9 @@ class RigidBodySystem(System):
       replace; `contact_results(x)` gives the points and forces. Solvers: Drake's stiction
       tolerance (1e-4 m/s) makes resting friction stiff; `jd.simulation.Rosenbrock23(
       jacobian="stiff")` takes long steps through it on the cheap matrix of
-      `stiff_linearization` (Solo-12's drop: 5-6x faster than Drake's RK3 at equal error, 6-8 s
-      first call); `solver="rosenbrock23"` (the exact Jacobian) costs 3-4x more per step and
-      compiles for 10-20 s; `dopri5` suits a stiction tolerance of ~1 cm/s
+      `stiff_linearization` (Solo-12's drop: 13x faster than Drake's RK3 at errors of 1e-7 to
+      1e-5, 6x at 1e-9; 6-8 s first call); `solver="rosenbrock23"` (the exact Jacobian) costs
+      3-4x more per step and compiles for 10-20 s; `dopri5` suits a stiction tolerance of ~1 cm/s
       (`stiction_tolerance=`); see benchmarks/RESULTS.md.
 
     The tree's masses, inertias, lengths and axes are pytree leaves: `jax.grad` with respect

@@ -298,8 +298,8 @@ class Rosenbrock23(AbstractSolver):
     contact, limit, damping and input forces, without the derivatives of H, Coriolis and
     gravity terms). The step stays second order with any matrix in place of J (a W-method:
     Shampine & Reichelt's formula; Hairer & Wanner, *Solving ODEs II*, IV.7); what the
-    approximation leaves out must not be stiff. Solo-12 landing: a Jacobian 5-8x cheaper to
-    evaluate and much cheaper to compile, the simulation 3-4x faster than with the exact one
+    approximation leaves out must not be stiff. Solo-12 landing: a Jacobian ~10x cheaper to
+    evaluate and much cheaper to compile, the simulation ~4x faster than with the exact one
     (benchmarks/RESULTS.md). Where it loses: on fast-swinging legs with rounded feet (a
     hopper: 1.5-3x the exact Jacobian's steps) what it leaves out (the normal's turning, the
     derivatives of H and of the Coriolis terms) costs steps; `"rosenbrock23"` may be faster there.
