@@ -38,27 +38,29 @@ def compiled(fn):
         programs[key] = entry  # most recently used last
         if len(programs) > MAX_PROGRAMS:
             programs.popitem(last=False)
-        program, output_static = entry
-        return eqx.combine(program(dynamic), output_static[0])
+        program, output = entry
+        arrays = iter(program(dynamic))
+        out_treedef, out_is_array, out_static = output[0]
+        return jax.tree.unflatten(out_treedef, [next(arrays) if a else v for a, v in zip(out_is_array, out_static)])
 
     return call
 
 
 def _program(fn, treedef, is_dynamic, static):
-    """The jitted program of one call signature, and (filled while it is traced) the static
-    part of its output."""
-    output_static = []
+    """The jitted program of one call signature, and (filled while it is traced) the output's
+    structure: its treedef, which leaves are arrays, and the other leaves."""
+    output = []
 
     @jax.jit
     def program(dynamic):
         dynamic, others = iter(dynamic), iter(static)
         leaves = [next(dynamic) if d else next(others) for d in is_dynamic]
-        out = fn(*jax.tree.unflatten(treedef, leaves))
-        arrays, rest = eqx.partition(out, eqx.is_array)
-        output_static[:] = [rest]
-        return arrays
+        out_leaves, out_treedef = jax.tree.flatten(fn(*jax.tree.unflatten(treedef, leaves)))
+        out_is_array = [eqx.is_array(leaf) for leaf in out_leaves]
+        output[:] = [(out_treedef, out_is_array, [None if a else leaf for a, leaf in zip(out_is_array, out_leaves)])]
+        return [leaf for a, leaf in zip(out_is_array, out_leaves) if a]
 
-    return program, output_static
+    return program, output
 
 
 def compiled_query(fn):

@@ -3,6 +3,8 @@ noise samples of a stochastic system."""
 
 from __future__ import annotations
 
+import functools
+
 from collections.abc import Callable
 
 import equinox as eqx
@@ -35,6 +37,12 @@ class _ZeroInput(InputSource):
 
     def __call__(self, t):
         return jnp.zeros(self.num_inputs, self.dtype)
+
+
+@functools.cache
+def _zero_input(num_inputs: int, dtype: np.dtype) -> _ZeroInput:
+    """One instance per size and dtype (immutable; an equinox module costs microseconds to build)."""
+    return _ZeroInput(num_inputs, dtype)
 
 
 class _FunctionInput(InputSource):
@@ -122,7 +130,7 @@ def leaves_to_arrays(tree, dtype):
 def make_source(system, inputs, t0, dtype):
     nu = system.num_inputs
     if inputs is None:
-        return _ZeroInput(nu, np.dtype(dtype))
+        return _zero_input(nu, np.dtype(dtype))
     if nu == 0:
         raise ValueError(f"{system.name} has no inputs, but inputs were given")
     tape = isinstance(inputs, (Trajectory, SimulatedTrajectory))  # a simulation's output is a tape too

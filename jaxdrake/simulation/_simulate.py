@@ -92,9 +92,11 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
         t0, tf = tspan
     except (TypeError, ValueError):
         raise ValueError(f"tspan must be a pair (t0, tf), got {tspan!r}") from None
+    # methods through the class: a method read from a module instance is an equinox
+    # BoundMethod, built anew each time (~35 us, a tenth of a pendulum's call)
     if x0 is None:
-        x0 = system.initial_state()
-    x0 = system.full_state(x0)
+        x0 = type(system).initial_state(system)
+    x0 = type(system).full_state(system, x0)
     # float16 / bfloat16 states are promoted: the step-size control needs float32 at least
     dtype = (jnp.promote_types(x0.dtype, jnp.float32) if jnp.issubdtype(x0.dtype, jnp.floating)
              else jnp.result_type(float))
@@ -105,7 +107,7 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     if _concrete(x0) and not np.all(np.isfinite(x0)):
         raise ValueError(f"x0 is not finite: {x0}")
     if _concrete(x0):
-        system.check_initial_state(np.asarray(x0))  # on the host: no op-by-op device work
+        type(system).check_initial_state(system, np.asarray(x0))  # on the host: no op-by-op device work
     source = make_source(system, inputs, t0, dtype)
     if system.is_stochastic:
         if key is None:
@@ -206,16 +208,22 @@ def _solver_advice(solver, status) -> str:
 
 def _check_no_nan_parameters(system):
     """A NaN among a system's (concrete) parameters, named by its path, before it becomes a
-    'non-finite state' at t0."""
+    'non-finite state' at t0 (the paths, slow to list, only once one is found)."""
+    if not any(_is_nan_parameter(leaf) for leaf in jax.tree.leaves(system)):
+        return
     for path, leaf in jax.tree_util.tree_leaves_with_path(system):
-        if not isinstance(leaf, (float, np.ndarray, jax.Array)) or not _concrete(leaf):
-            continue
-        if jax.dtypes.issubdtype(getattr(leaf, "dtype", None), jax.dtypes.prng_key):
-            continue  # a typed PRNG key (a noise parameter): no numbers to check
-        value = np.asarray(leaf)  # host values as they are; no device array is made
-        if np.issubdtype(value.dtype, np.inexact) and np.isnan(value).any():
+        if _is_nan_parameter(leaf):
             raise ValueError(f"{system.name}: the parameter {system.name}{jax.tree_util.keystr(path)} is NaN "
-                             f"({value})")
+                             f"({np.asarray(leaf)})")
+
+
+def _is_nan_parameter(leaf) -> bool:
+    if not isinstance(leaf, (float, np.ndarray, jax.Array)) or isinstance(leaf, jax.core.Tracer):
+        return False
+    if jax.dtypes.issubdtype(getattr(leaf, "dtype", None), jax.dtypes.prng_key):
+        return False  # a typed PRNG key (a noise parameter): no numbers to check
+    value = np.asarray(leaf)  # host values as they are; no device array is made
+    return bool(np.issubdtype(value.dtype, np.inexact) and np.isnan(value).any())
 
 
 def _concrete(*values) -> bool:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import abc
 import dataclasses
+import functools
 from typing import ClassVar
 
 import equinox as eqx
@@ -364,7 +365,13 @@ def make_solver(solver) -> AbstractSolver:
     if isinstance(solver, AbstractSolver):
         return solver
     if isinstance(solver, str) and solver.lower() in SOLVERS:
-        return SOLVERS[solver.lower()]()
+        return _solver_named(solver.lower())
     if isinstance(solver, type) and issubclass(solver, AbstractSolver):
         raise TypeError(f"solver={solver.__name__} is a class: pass an instance, {solver.__name__}()")
     raise ValueError(f"unknown solver {solver!r}; use one of {sorted(SOLVERS)} or a solver instance")
+
+
+@functools.cache
+def _solver_named(name: str) -> AbstractSolver:
+    """One instance per name (immutable; building an equinox module costs microseconds a call)."""
+    return SOLVERS[name]()
