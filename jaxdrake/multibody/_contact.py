@@ -254,16 +254,15 @@ class ContactModel(eqx.Module):
         rho_a = jnp.where(rounded_a, self.size[np.asarray(ia, int), 0], 0.0)
         rho_b = self.size[np.asarray(ib, int), 0]
         weight_b = jnp.where(rounded_b, rho_a / jnp.where(rounded_b, rho_a + rho_b, 1.0), 0.0)
+        *per_pair, stiction_tolerance = self._pair_parameters(ia, ib)   # k, d, mu_s, mu_d per candidate; v_s
         per_candidate = (depth, pa, pb, n, jnp.asarray(moves[body_a], pa.dtype), jnp.asarray(moves[body_b], pa.dtype),
-                         rho_a, rho_b, weight_b, self._pair_parameters(ia, ib)[:4])
-        against_world = int(np.sum((np.asarray(self.bodies)[np.asarray(ia, int)] < 0)
-                                   | (np.asarray(self.bodies)[np.asarray(ib, int)] < 0)))
-        kept = max(MIN_STIFF_CANDIDATES, against_world)
+                         rho_a, rho_b, weight_b, tuple(per_pair))
+        kept = max(MIN_STIFF_CANDIDATES, int(np.sum((body_a == 0) | (body_b == 0))))   # row 0: the world
         if kept < depth.shape[0]:
             deepest = jax.lax.top_k(jax.lax.stop_gradient(depth), kept)[1]
             per_candidate = jax.tree.map(lambda x: x[deepest], per_candidate)
-        depth, pa, pb, n, mask_a, mask_b, rho_a, rho_b, weight_b, params = per_candidate
-        params = params + (self.stiction_tolerance,)
+        depth, pa, pb, n, mask_a, mask_b, rho_a, rho_b, weight_b, per_pair = per_candidate
+        params = per_pair + (stiction_tolerance,)
         C = 0.5 * (pa + pb)
         w, u = motion.columns[:, :3], motion.columns[:, 3:]                             # (nv, 3) each
         at = lambda point: u[None] + jnp.cross(w[None], (point - motion.origin)[:, None, :])  # noqa: E731
