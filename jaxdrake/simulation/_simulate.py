@@ -12,6 +12,7 @@ saltation jump at an impact.
 from __future__ import annotations
 
 import contextlib
+import math
 
 import equinox as eqx
 import jax
@@ -32,10 +33,13 @@ from ._status import SimulationError, SimulationStatus
 
 
 @compiled
-def _run_simulation(system, solver, controller, source, t0, tf, x0, *args):
+def _run_simulation(system, solver, step_control, source, t0, tf, x0, *args):
     # Shapes are checked while tracing, so a wrong shape is a named Python error before any
     # compilation, and a second call (the compiled program kept) checks and traces nothing.
+    # The step-size controller is built here, not on every call: `step_control` is
+    # (rtol, atol) for an adaptive solver, (dt,) for a fixed step.
     system.check_shapes(t0, x0)
+    controller = IController(*step_control, solver.error_order) if solver.adaptive else ConstantStepSize(*step_control)
     return run_simulation(system, solver, controller, source, t0, tf, x0, *args)
 
 
@@ -100,7 +104,8 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     # float16 / bfloat16 states are promoted: the step-size control needs float32 at least
     dtype = (jnp.promote_types(x0.dtype, jnp.float32) if jnp.issubdtype(x0.dtype, jnp.floating)
              else jnp.result_type(float))
-    x0 = x0.astype(dtype)
+    if x0.dtype != dtype:
+        x0 = x0.astype(dtype)
     if _concrete(t0, tf) and not (np.isfinite(float(t0)) and np.isfinite(float(tf)) and float(tf) > float(t0)):
         raise ValueError(f"tspan must be finite with t0 < tf, got ({float(t0)}, {float(tf)})")
     t0, tf = call_argument(t0, dtype), call_argument(tf, dtype)
@@ -130,14 +135,14 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     arr = lambda v: None if v is None else call_argument(v, dtype)  # noqa: E731
     system = leaves_to_arrays(system, dtype)
     if solver.adaptive:
-        controller = IController(arr(rtol), arr(atol), solver.error_order)
+        step_control = (arr(rtol), arr(atol))
         h0 = dt if dt is not None else (tf - t0 if system.num_continuous_states == 0 else np.nan)
     else:
-        controller = ConstantStepSize(arr(dt))
+        step_control = (arr(dt),)
         h0 = dt
     try:
         with _placement(device, (system, source, x0)):
-            traj = _run_simulation(system, solver, controller, source, t0, tf, x0, arr(h0),
+            traj = _run_simulation(system, solver, step_control, source, t0, tf, x0, arr(h0),
                                    arr(np.inf if max_step_size is None else max_step_size), arr(event_tol),
                                    max_steps, max_events, dense, constraint_projection, autodiff)
     except jax.errors.JaxRuntimeError as error:
@@ -218,12 +223,13 @@ def _check_no_nan_parameters(system):
 
 
 def _is_nan_parameter(leaf) -> bool:
-    if not isinstance(leaf, (float, np.ndarray, jax.Array)) or isinstance(leaf, jax.core.Tracer):
+    if isinstance(leaf, float):
+        return math.isnan(leaf)
+    if not isinstance(leaf, (np.ndarray, jax.Array)) or isinstance(leaf, jax.core.Tracer):
         return False
-    if jax.dtypes.issubdtype(getattr(leaf, "dtype", None), jax.dtypes.prng_key):
-        return False  # a typed PRNG key (a noise parameter): no numbers to check
-    value = np.asarray(leaf)  # host values as they are; no device array is made
-    return bool(np.issubdtype(value.dtype, np.inexact) and np.isnan(value).any())
+    if not jax.dtypes.issubdtype(leaf.dtype, np.inexact):
+        return False  # integers, booleans, typed PRNG keys (a noise parameter)
+    return bool(np.isnan(np.asarray(leaf)).any())  # host values as they are; no device array is made
 
 
 def _concrete(*values) -> bool:
