@@ -365,3 +365,18 @@ def test_lqr_without_a_stabilising_solution_is_a_named_error():
     discrete = jd.LinearSystem([[2.0, 0.0], [0.0, 0.5]], [[0.0], [1.0]], sample_time=0.1)
     with pytest.raises(ValueError, match="unit circle"):
         lqr(discrete, np.eye(2), np.eye(1))
+
+
+def test_float32_lqr_of_the_upright_cart_pole_and_named_operating_point_errors():
+    cartpole, upright = jd.models.CartPole(), np.array([0.0, np.pi, 0.0, 0.0])
+    K64 = np.asarray(jd.control.lqr(cartpole, np.eye(4), np.eye(1), x0=upright).K)
+    with jax.enable_x64(False):   # pi rounded to float32 leaves a derivative of ~2e-6: still an equilibrium
+        K32 = jd.control.lqr(cartpole, np.eye(4), np.eye(1), x0=upright).K
+        assert K32.dtype == jnp.float32
+        with pytest.raises(ValueError, match="not an equilibrium"):
+            jd.control.linearize(cartpole, np.array([0.0, 3.0, 0.0, 0.0]))
+    np.testing.assert_allclose(np.asarray(K32), K64, rtol=1e-3)
+    with pytest.raises(ValueError, match=r"x0 must hold cartpole's 4 states, got shape \(4, 4\).*weights come first"):
+        jd.control.lqr(cartpole, upright, np.zeros(1), np.eye(4), np.eye(1))
+    with pytest.raises(ValueError, match=r"u0 must hold cartpole's 1 input, got shape \(2,\)"):
+        jd.control.linearize(cartpole, upright, np.zeros(2))

@@ -39,19 +39,23 @@ def _linearization(system: System, t, x0, u0):
 
 
 def linearize(system: System, x0, u0=None, *, t=0.0, check_equilibrium: bool = True,
-              tolerance: float = 1e-6) -> LinearSystem:
+              tolerance: float | None = None) -> LinearSystem:
     """The `LinearSystem` (continuous, or discrete with the system's sample time) of the
     deviations from (x0, u0). With `check_equilibrium`, (x0, u0) must be a fixed point:
     $|f(x_0, u_0)| \\le$ tolerance (continuous) or $|f_d(x_0, u_0) - x_0| \\le$ tolerance
-    (discrete); otherwise a ValueError gives the residual."""
+    (discrete); otherwise a ValueError gives the residual. Default tolerance: 1e-6, or 1000
+    machine epsilons where that is more (1.2e-4 in float32, where the cart-pole's upright
+    angle, pi rounded, leaves a derivative of 2e-6)."""
     require_plain_system(system, "linearize", "linearize a mode (or the nominal deterministic system) instead")
     # host numbers stay numpy arrays until the compiled call (no device transfer each)
-    x0 = call_argument(x0, float).reshape(system.num_states)
-    u0 = call_argument(np.zeros(system.num_inputs) if u0 is None else u0, float).reshape(system.num_inputs)
+    x0, u0 = operating_point("linearize", system, call_argument(x0, float),
+                             call_argument(np.zeros(system.num_inputs) if u0 is None else u0, float))
     discrete = system.has_discrete_state
     residual, A, B, C, D = _linearization(system, call_argument(t, float), x0, u0)
     if check_equilibrium and not isinstance(residual, jax.core.Tracer):
         worst = float(np.max(np.abs(np.asarray(residual)))) if residual.size else 0.0
+        if tolerance is None:
+            tolerance = max(1e-6, 1000 * float(np.finfo(np.asarray(residual).dtype).eps))
         if worst > tolerance:
             raise ValueError(f"linearize: ({x0}, {u0}) is not an equilibrium of {system.name}: "
                              f"the {'update moves x by' if discrete else 'derivative is'} up to {worst:.3g} "
@@ -138,6 +142,17 @@ def _require_stabilising(system, lin, K, status):
             "inputs, or penalise every state in Q (Q > 0).")
 
 
+def operating_point(caller: str, system: System, x0, u0):
+    """(x0, u0) as vectors of `system`'s n states and m inputs (any shape of n and m entries,
+    e.g. a column); another size is a ValueError naming the argument and the sizes."""
+    for label, value, size in (("x0", x0, system.num_states), ("u0", u0, system.num_inputs)):
+        if np.size(value) != size:
+            what = ("state" if label == "x0" else "input") + ("" if size == 1 else "s")
+            raise ValueError(f"{caller}: {label} must hold {system.name}'s {size} {what}, got shape {np.shape(value)}"
+                             + (" (the weights come first: lqr(system, Q, R, x0, u0))" if caller == "lqr" else ""))
+    return x0.reshape(system.num_states), u0.reshape(system.num_inputs)
+
+
 def check_weight_shapes(caller: str, system: System, Q, R):
     """Q must be (n, n) and R (m, m) for `system`'s n states and m inputs."""
     for label, M, size in (("Q", Q, system.num_states), ("R", R, system.num_inputs)):
@@ -178,8 +193,8 @@ def lqr(system: System, Q, R, x0=None, u0=None, *, N=None, check_equilibrium: bo
     stabilising solution is a ValueError; inside, the result's `status` says so."""
     n, m = system.num_states, system.num_inputs
     about_origin = x0 is None and u0 is None
-    x0 = jnp.zeros(n) if x0 is None else jnp.asarray(x0, float).reshape(n)
-    u0 = jnp.zeros(m) if u0 is None else jnp.asarray(u0, float).reshape(m)
+    x0, u0 = operating_point("lqr", system, jnp.zeros(n) if x0 is None else jnp.asarray(x0, float),
+                             jnp.zeros(m) if u0 is None else jnp.asarray(u0, float))
     Q, R = (array_module(M).atleast_2d(M).astype(float) for M in (Q, R))  # numbers stay numpy: nothing compiled
     check_weight_shapes("lqr", system, Q, R)
     if N is not None:

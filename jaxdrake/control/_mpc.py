@@ -26,7 +26,7 @@ import numpy as np
 
 from ..simulation import discrete_step
 from ..systems import System, require_plain_system
-from ._lqr import check_cost_weights, check_weight_shapes, linearize
+from ._lqr import check_cost_weights, check_weight_shapes, linearize, operating_point
 from ._qp import QPSolution, QPStatus, QPWorkspace, qp_workspace, solve_qp
 from ._riccati import solve_discrete_are
 
@@ -271,8 +271,8 @@ def linear_mpc(system: System, Q, R, horizon, *, period=None, x0=None, u0=None, 
         raise ValueError(f"{caller}: {system.name} needs states and inputs to be controlled")
     dt = _period(system, period, caller)
     N = _horizon_steps(horizon, dt, caller)
-    x0 = jnp.zeros(n) if x0 is None else jnp.asarray(x0, float).reshape(n)
-    u0 = jnp.zeros(m) if u0 is None else jnp.asarray(u0, float).reshape(m)
+    x0, u0 = operating_point(caller, system, jnp.zeros(n) if x0 is None else jnp.asarray(x0, float),
+                             jnp.zeros(m) if u0 is None else jnp.asarray(u0, float))
     Q, R = jnp.atleast_2d(jnp.asarray(Q, float)), jnp.atleast_2d(jnp.asarray(R, float))
     check_weight_shapes(caller, system, Q, R)
     if terminal_cost is not None:

@@ -273,8 +273,7 @@ class ContactModel(eqx.Module):
         force = lambda x, w, nn, *p: _force_on_a(x, w, nn, *p)[0]  # noqa: E731
         in_axes = (0, 0, 0) + tuple(0 if jnp.ndim(p) else None for p in params)
         f_A = force(depth, v_AcBc, n, *params)                                         # (P, 3)
-        F_x = jax.vmap(jax.jacfwd(force, 0), in_axes)(depth, v_AcBc, n, *params)      # (P, 3)
-        F_v = jax.vmap(jax.jacfwd(force, 1), in_axes)(depth, v_AcBc, n, *params)      # (P, 3, 3)
+        F_x, F_v = jax.vmap(jax.jacfwd(force, (0, 1)), in_axes)(depth, v_AcBc, n, *params)   # (P, 3), (P, 3, 3)
         # sums over the candidates as single matrix products of (P x 3, nv) blocks (a batch of
         # P small products is far slower on a CPU); the 3-vectors' products elementwise.
         # the turning subspaces, summed before they are crossed (no (P, nv, nv, 3) tensor):
