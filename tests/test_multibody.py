@@ -488,7 +488,8 @@ MALFORMED = {
     "cycle": ('<robot name="r"><link name="a"/><link name="b"/>'
               '<joint name="j1" type="revolute"><parent link="a"/><child link="b"/></joint>'
               '<joint name="j2" type="revolute"><parent link="b"/><child link="a"/></joint></robot>',
-              "root link"),
+              "no root link"),
+    "two free bodies": ('<robot name="r"><link name="a"/><link name="b"/></robot>', r"2 root links .*\(one floating base at most\)"),
     "unknown joint type": ('<robot name="r"><link name="a"/><link name="b"/><joint name="j" type="spherical">'
                            '<parent link="a"/><child link="b"/></joint></robot>', "type 'spherical'"),
     "non-positive-definite inertia": (

@@ -333,9 +333,12 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
         links.pop("world", None)
         floating_base = True
     roots = [name for name in links if name not in children]
-    if len(roots) != 1:
-        raise URDFError(f"{path}: a URDF tree has exactly one root link (a link that is no joint's "
-                        f"child); found {roots or 'none (the joints form a cycle)'}")
+    if len(roots) > 1:
+        raise URDFError(f"{path}: {len(roots)} root links (links that are no joint's child): {roots}. In Drake "
+                        "each would float on its own; jaxdrake's tree has one root (one floating base at most): "
+                        "join the others to it by joints, or load each free body from a file of its own")
+    if not roots:
+        raise URDFError(f"{path}: no root link (a link that is no joint's child): the joints form a cycle")
     if floating_base and roots[0] == "world" and "world" not in {l.get("name") for l in root.findall("link")}:
         raise URDFError(f"{path}: the tree hangs from the world (its root joints name the parent "
                         "'world'), so it cannot have a floating base; load it without floating_base")
