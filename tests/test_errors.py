@@ -77,10 +77,13 @@ def test_bad_options():
 
 def test_a_rosenbrock_step_out_of_steps_says_what_to_try_next():
     stiff = jd.simulation.Rosenbrock23(jacobian="stiff")
-    with pytest.raises(jd.SimulationError, match="solver='rosenbrock23' .the exact Jacobian. may take fewer steps"):
+    with pytest.raises(jd.SimulationError, match="solver='rosenbrock23' .the exact Jacobian. may take fewer steps") as info:
         jd.simulate(Pendulum(), (0.0, 100.0), jnp.array([1.0, 0.0]), solver=stiff, max_steps=20)
+    assert "with solver=jd.simulation.Rosenbrock23(jacobian='stiff')" not in str(info.value)   # not the one it ran
     with pytest.raises(jd.SimulationError, match="ran rosenbrock23 already: raise max_steps"):
         jd.simulate(Pendulum(), (0.0, 100.0), jnp.array([1.0, 0.0]), solver="rosenbrock23", max_steps=20)
+    with pytest.raises(jd.SimulationError, match=r"Stiff solvers: solver='rosenbrock23' .*Rosenbrock23\(jacobian='stiff'\)"):
+        jd.simulate(Pendulum(), (0.0, 100.0), jnp.array([1.0, 0.0]), max_steps=20)
 
 
 def test_methods_returning_wrong_shapes_are_named():

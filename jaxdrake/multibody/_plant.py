@@ -193,7 +193,10 @@ class RigidBodySystem(System):
         `contact=True` reads the `<collision>` elements (and Drake's proximity properties and
         collision filter groups) and makes them touch: Drake's continuous point contact with
         `stiction_tolerance` (m/s) and Drake's default properties where the file gives none
-        (stiffness 1e6 N/m, dissipation 50 s/m, friction 1.0). A mesh collides through its
+        (stiffness 1e6 N/m, dissipation 50 s/m; friction 1.0 for a URDF `<collision>`, as
+        Drake's URDF parser gives, 0.5 for a shape added by `with_collision_geometry` or
+        `with_ground`, SceneGraph's default; two shapes touch with $2\mu_A\mu_B/(\mu_A + \mu_B)$,
+        so a URDF foot on the default ground slides with 2/3). A mesh collides through its
         convex hull; a non-convex mesh is refused unless `mesh_hulls=True` (Drake's point contact
         uses the hull silently). Mesh files are read only from the
         URDF's folder, or for `package://NAME/...` from `package_map[NAME]` (kept on the plant:
@@ -293,7 +296,9 @@ class RigidBodySystem(System):
                                 name: str | None = None, material: ContactMaterial | None = None,
                                 ) -> "RigidBodySystem":
         """A copy with one more collision shape on `link` ('world' for the environment), at
-        (`rotation`, `translation`) in the link's frame (Drake's `RegisterCollisionGeometry`)."""
+        (`rotation`, `translation`) in the link's frame (Drake's `RegisterCollisionGeometry`).
+        `material`: a `jd.multibody.ContactMaterial`; its values left None (and no material)
+        take SceneGraph's defaults: stiffness 1e6 N/m, dissipation 50 s/m, friction 0.5 / 0.5."""
         with jax.ensure_compile_time_eval():  # host work, also inside jit / vmap
             return self._with_collision_geometry(link, shape, rotation, translation, name, material)
 
@@ -329,7 +334,8 @@ class RigidBodySystem(System):
     def with_ground(self, height: float = 0.0, *, normal=(0.0, 0.0, 1.0), material: ContactMaterial | None = None,
                     name: str = "ground") -> "RigidBodySystem":
         r"""A copy with a half-space fixed to the world: the points p with $\hat n \cdot p \le$
-        `height` (`normal` need not be unit: a slope)."""
+        `height` (`normal` need not be unit: a slope). `material` as `with_collision_geometry`'s
+        (default friction 0.5: against a URDF `<collision>`'s 1.0, the pair's is 2/3)."""
         n = np.asarray(normal, float)
         if n.shape != (3,) or not np.linalg.norm(n) > 0:
             raise ValueError(f"with_ground: normal must be a non-zero 3-vector, got {normal!r}")

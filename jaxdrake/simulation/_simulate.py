@@ -197,8 +197,8 @@ def _failure_message(system, status, t0, tf, traj) -> str:
 
 
 def _solver_advice(solver, status) -> str:
-    """For too many or too small steps taken by a Rosenbrock step: what to try instead (the
-    status's own message suggests rosenbrock23)."""
+    """For too many or too small steps: which stiff solver to try, or, having run one, what to
+    try next (the status's own message says only "a stiff solver")."""
     if status not in (SimulationStatus.MAX_STEPS_REACHED, SimulationStatus.STEP_SIZE_TOO_SMALL):
         return ""
     if isinstance(solver, Rosenbrock23) and solver.jacobian == "stiff":
@@ -208,7 +208,8 @@ def _solver_advice(solver, status) -> str:
     if isinstance(solver, Rosenbrock23):
         return (". This ran rosenbrock23 already: raise max_steps, loosen rtol / atol, or for contact raise "
                 "the stiction tolerance (stiction_tolerance=) or soften the contact")
-    return ""
+    return (". Stiff solvers: solver='rosenbrock23' (the exact Jacobian); for rigid bodies in stiff contact "
+            "solver=jd.simulation.Rosenbrock23(jacobian='stiff')")
 
 
 def _check_no_nan_parameters(system):

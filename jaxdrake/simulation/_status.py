@@ -27,14 +27,12 @@ SimulationStatus.describe({
     SimulationStatus.STOPPED_BY_RESET: "a reset stopped the simulation",
     SimulationStatus.MAX_STEPS_REACHED: "max_steps was reached before the final time (raise "
                                         "max_steps or loosen rtol / atol; a stiff system, e.g. strong "
-                                        "damping or fast modes, takes far fewer steps with "
-                                        "solver='rosenbrock23'; rigid bodies in stiff contact with "
-                                        "solver=jd.simulation.Rosenbrock23(jacobian='stiff'))",
+                                        "damping, fast modes or stiff contact, takes far fewer steps "
+                                        "with a stiff solver)",
     SimulationStatus.NONFINITE_STATE: "the state became non-finite (NaN or inf)",
     SimulationStatus.STEP_SIZE_TOO_SMALL: "the step size became too small: a finite-time blow-up "
                                           "(the state growing without bound), a singularity of the "
-                                          "dynamics, or a stiff system (try solver='rosenbrock23', or for "
-                                          "rigid bodies in contact jd.simulation.Rosenbrock23(jacobian='stiff'))",
+                                          "dynamics, or a stiff system (try a stiff solver)",
     SimulationStatus.TOO_MANY_EVENTS: "more than max_events events fired (Zeno behaviour or "
                                       "chattering?)",
     SimulationStatus.CONSTRAINT_PROJECTION_FAILED: "no state satisfying the state constraints "
