@@ -39,7 +39,7 @@ from . import _events as ev
 from ._controller import AbstractStepSizeController
 from ._inputs import InputSource
 from ._result import SimulatedTrajectory
-from ._reverse import run_reverse
+from ._reverse import run_adjoint, run_reverse
 from ._solvers import AbstractSolver, Linearization
 from ._status import SimulationStatus
 
@@ -106,6 +106,15 @@ class LoopState(eqx.Module):
     pieces: PieceRecord
     events: EventRecord
 
+    def buffers(self):
+        """The trajectory buffers (written in place by the loop; their counts are not)."""
+        p, e = self.pieces, self.events
+        return (p.t_start, p.t_end, p.coefficients, p.modes, e.times, e.indices, e.modes, e.states)
+
+    def buffer_counts(self):
+        """Per buffer, the row the next write goes to."""
+        return (self.pieces.count,) * 4 + (self.events.count,) * 4
+
 
 class Ready(eqx.Module):
     """Stage 1's decision: whether transition `k` fires at once."""
@@ -148,6 +157,9 @@ class Loop(eqx.Module):
     dense: bool = eqx.field(static=True)
     project: bool = eqx.field(static=True)
     fsal: bool = eqx.field(static=True)
+    # the adjoint's step (`_reverse.run_adjoint`): buffers of one row, into which `record`
+    # writes the step's piece and event (the caller places them)
+    windowed: bool = eqx.field(static=True, default=False)
 
     # ----- static facts ---------------------------------------------------------------------
 
@@ -427,22 +439,26 @@ class Loop(eqx.Module):
         x = jnp.where(ready.fired, x_after, jnp.where(accept, x_after, s.x))
         mode = jnp.where(ready.fired | accept, mode_after, s.mode)
         t = jnp.where(accept, a.t_end, s.t)
+        if self.windowed:
+            def write(buffer, n, value, pred):
+                return buffer.at[0].set(jnp.where(pred, value, buffer[0]))
+        else:
+            def write(buffer, n, value, pred):
+                return buffer.at[n].set(value, pred=pred)
         p = s.pieces
         if self.dense:
             n = p.count
-            p = PieceRecord(t_start=p.t_start.at[n].set(s.t, pred=accept),
-                            t_end=p.t_end.at[n].set(a.t_end, pred=accept),
-                            coefficients=p.coefficients.at[n].set(a.coefficients, pred=accept),
-                            modes=p.modes.at[n].set(s.mode, pred=accept), count=n + accept)
+            p = PieceRecord(t_start=write(p.t_start, n, s.t, accept), t_end=write(p.t_end, n, a.t_end, accept),
+                            coefficients=write(p.coefficients, n, a.coefficients, accept),
+                            modes=write(p.modes, n, s.mode, accept), count=n + accept)
         e = s.events
         if self.num_limit_guards + self.num_transitions:
             recorded = (accept & a.event) | ready.fired
             index = jnp.where(ready.fired, self.num_limit_guards + ready.k, a.which).astype(jnp.int32)
             n = e.count
-            e = EventRecord(times=e.times.at[n].set(jnp.where(ready.fired, s.t, a.t_end), pred=recorded),
-                            indices=e.indices.at[n].set(index, pred=recorded),
-                            modes=e.modes.at[n].set(mode, pred=recorded),
-                            states=e.states.at[n].set(x, pred=recorded), count=n + recorded)
+            e = EventRecord(times=write(e.times, n, jnp.where(ready.fired, s.t, a.t_end), recorded),
+                            indices=write(e.indices, n, index, recorded), modes=write(e.modes, n, mode, recorded),
+                            states=write(e.states, n, x, recorded), count=n + recorded)
         k0, k0_valid = s.k0, s.k0_valid
         if self.fsal:
             k0 = jnp.where(accept | a.priming, a.k_last, s.k0)
@@ -464,18 +480,17 @@ class Loop(eqx.Module):
         "checkpointed" (`jax.grad` through the checkpointed loop)."""
         if autodiff == "reverse":
             return run_reverse(self, t0, x0, h0, status)
+        if autodiff == "adjoint":
+            return run_adjoint(self, t0, x0, h0, status)
         return self.run_loop(t0, x0, h0, status, kind="lax" if autodiff == "forward" else "checkpointed")
 
+    def continues(self, s: LoopState):
+        """Whether the loop takes another iteration."""
+        return (s.status == SimulationStatus.SUCCESS) & (s.t < self.tf) & (s.iterations < self.max_steps)
+
     def run_loop(self, t0, x0, h0, status, kind: str) -> LoopState:
-        def cond(s):
-            return (s.status == SimulationStatus.SUCCESS) & (s.t < self.tf) & (s.iterations < self.max_steps)
-
-        def buffers(s):
-            return (s.pieces.t_start, s.pieces.t_end, s.pieces.coefficients, s.pieces.modes,
-                    s.events.times, s.events.indices, s.events.modes, s.events.states)
-
-        return eqxi.while_loop(cond, self.iterate, self.initial_state(t0, x0, h0, status), max_steps=self.max_steps,
-                               kind=kind, buffers=buffers)
+        return eqxi.while_loop(self.continues, self.iterate, self.initial_state(t0, x0, h0, status),
+                               max_steps=self.max_steps, kind=kind, buffers=LoopState.buffers)
 
 
 def initial_status(system, source, t0, tf, x0):

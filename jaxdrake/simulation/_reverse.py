@@ -27,7 +27,10 @@ checkpointed loop's VJP.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
+import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -155,3 +158,131 @@ def _dense_cotangent(primal, cotangent):
     """The cotangent with its symbolic zeros (None at an inexact output) made zero arrays."""
     return jax.tree.map(lambda c, p: (jnp.zeros_like(p) if c is None else c) if eqx.is_inexact_array(p) else None,
                         cotangent, primal, is_leaf=lambda x: x is None)
+
+
+# ----- the discrete adjoint (autodiff="adjoint") ---------------------------------------------
+
+
+def run_adjoint(loop, t0, x0, h0, status):
+    r"""`loop.run_loop` differentiable by `jax.grad` through its discrete adjoint: the loop
+    as a sequence of iterations $s_{i+1} = \Phi(s_i, p)$ (each one `Loop.iterate`: a step
+    attempt, its event, its reset, its record), and the backward pass
+    $\bar s_i = (\partial\Phi/\partial s_i)^T \bar s_{i+1}$,
+    $\bar p \mathrel{+}= (\partial\Phi/\partial p)^T \bar s_{i+1}$ from the last iteration to
+    the first, a `lax.while_loop` over `jax.vjp` of one iteration. The forward pass keeps
+    each iteration's state without its trajectory buffers (O(max_steps) small states); the
+    backward pass re-runs one iteration from it. The iteration is traced once, with its
+    buffers cut to the one row it writes (`Loop.windowed`); the loop places that row, and the
+    backward pass reads the row's cotangent. A linearly implicit solver's kept matrix is
+    formed again where it was reused (same values; its derivative then comes through the
+    state). The same derivative as the other modes: that of the computed solution."""
+    s0 = loop.initial_state(t0, x0, h0, status)
+    step = eqx.filter_closure_convert(dataclasses.replace(loop, windowed=True).iterate, _window(s0, s0.linearization))
+    continues = eqx.filter_closure_convert(loop.continues, _without_buffers(s0))
+    return _adjoint_run((step, continues, s0), loop.max_steps)
+
+
+def _window(s, linearization):
+    """The state `s` as the windowed iteration takes it: its buffers cut to one row of zeros,
+    and the kept matrix `linearization`."""
+    rows = tuple(None if b is None else jnp.zeros((1,) + b.shape[1:], b.dtype) for b in s.buffers())
+    return dataclasses.replace(eqx.tree_at(lambda s: s.buffers(), s, rows, is_leaf=lambda x: x is None),
+                               linearization=linearization)
+
+
+def _without_buffers(s):
+    """What the forward pass keeps of an iteration's state: no buffers (their counts stay), no
+    kept matrix."""
+    return dataclasses.replace(eqx.tree_at(lambda s: s.buffers(), s, (None,) * 8), linearization=None)
+
+
+def _placed(s, w):
+    """The iteration's result `w` (one-row buffers) with its rows written into the buffers
+    of `s`, the state it started from, where they belong."""
+    full = tuple(b.at[n].set(row[0], pred=m > n)
+                 for b, row, n, m in zip(s.buffers(), w.buffers(), s.buffer_counts(), w.buffer_counts()))
+    return eqx.tree_at(lambda s: s.buffers(), w, full)
+
+
+def _iterations(step, continues, s0, max_steps, keep: bool):
+    """The forward loop; with `keep`, also every iteration's state (`_without_buffers`)."""
+    kept = tuple(jnp.zeros((max_steps,) + x.shape, x.dtype) for x in jax.tree.leaves(_without_buffers(s0))) if keep else ()
+
+    def body(carry):
+        s, kept = carry
+        if keep:   # a flat tuple: its entries are the loop's in-place buffers
+            kept = tuple(b.at[s.iterations].set(x) for b, x in zip(kept, jax.tree.leaves(_without_buffers(s))))
+        return _placed(s, step(_window(s, s.linearization))), kept
+
+    return eqxi.while_loop(lambda carry: continues(_without_buffers(carry[0])), body, (s0, kept),
+                           max_steps=max_steps, kind="lax",
+                           buffers=lambda carry: carry[0].buffers() + (tuple(carry[1]) if keep else ()))
+
+
+@eqx.filter_custom_vjp
+def _adjoint_run(vjp_arg, max_steps):
+    step, continues, s0 = vjp_arg
+    return _iterations(step, continues, s0, max_steps, keep=False)[0]
+
+
+@_adjoint_run.def_fwd
+def _adjoint_forward(perturbed, vjp_arg, max_steps):
+    step, continues, s0 = vjp_arg
+    final, kept = _iterations(step, continues, s0, max_steps, keep=True)
+    return final, (final, kept)
+
+
+@_adjoint_run.def_bwd
+def _adjoint_backward(residuals, cotangent, perturbed, vjp_arg, max_steps):
+    final, kept = residuals
+    step, _, s0 = vjp_arg
+    cotangent = _dense_cotangent(final, cotangent)
+    # the step's perturbed leaves alone (its other floats, e.g. the event tolerance, feed
+    # loops that JAX cannot differentiate)
+    step_diff, step_static = eqx.partition(step, perturbed[0])
+    kept_structure = jax.tree.structure(_without_buffers(s0))
+    none = None if s0.linearization is None else jax.tree.map(jnp.zeros_like, s0.linearization)
+    if none is not None:
+        none = dataclasses.replace(none, current=jnp.asarray(False))
+
+    def backward(carry):
+        i, s_bar, p_bar = carry
+        i = i - 1
+        start = _restore(jax.tree.unflatten(kept_structure, [b[i] for b in kept]), s0, none)
+        start_diff, start_static = eqx.partition(start, eqx.is_inexact_array)
+
+        def one_iteration(step_diff, start_diff):
+            start = eqx.combine(start_diff, start_static)   # step sizes held, as `Loop.record` holds them
+            start = dataclasses.replace(start, h=jax.lax.stop_gradient(start.h))
+            out = eqx.combine(step_diff, step_static)(start)
+            return eqx.filter(out, eqx.is_inexact_array)
+
+        _, pullback = jax.vjp(one_iteration, step_diff, start_diff)
+        rows = tuple(None if c is None else jax.lax.dynamic_index_in_dim(c, n, keepdims=True)
+                     for c, n in zip(cotangent.buffers(), start.buffer_counts()))
+        step_bar, start_bar = pullback(eqx.tree_at(lambda s: s.buffers(), s_bar, rows, is_leaf=lambda x: x is None))
+        return i, start_bar, jax.tree.map(jnp.add, p_bar, step_bar)
+
+    s_bar = eqx.filter(_window(cotangent, cotangent.linearization), eqx.is_inexact_array)
+    p_bar = jax.tree.map(jnp.zeros_like, step_diff)
+    _, s_bar, p_bar = jax.lax.while_loop(lambda carry: carry[0] > 0, backward, (final.iterations, s_bar, p_bar))
+    # s0's buffers reach the end unchanged except in the rows the iterations wrote
+    unwritten = tuple(None if c is None else c * _rows_outside(c, n0, n1)
+                      for c, n0, n1 in zip(cotangent.buffers(), s0.buffer_counts(), final.buffer_counts()))
+    s0_bar = eqx.tree_at(lambda s: s.buffers(), s_bar, unwritten, is_leaf=lambda x: x is None)
+    zeros = lambda tree: jax.tree.map(jnp.zeros_like, eqx.filter(tree, eqx.is_inexact_array))  # noqa: E731
+    return eqx.combine(p_bar, zeros(eqx.filter(step, perturbed[0], inverse=True))), zeros(vjp_arg[1]), s0_bar
+
+
+def _restore(kept, s0, linearization):
+    """An iteration's state from what the forward pass kept, windowed, with the kept matrix
+    `linearization` (not current: the iteration forms it again)."""
+    rows = tuple(jnp.zeros((1,) + b.shape[1:], b.dtype) for b in s0.buffers())
+    return dataclasses.replace(eqx.tree_at(lambda s: s.buffers(), kept, rows, is_leaf=lambda x: x is None),
+                               linearization=linearization)
+
+
+def _rows_outside(c, first, end):
+    """1 for the rows of buffer `c` outside [first, end), else 0 (shaped to broadcast)."""
+    rows = jnp.arange(c.shape[0])
+    return ((rows < first) | (rows >= end)).astype(c.dtype).reshape((-1,) + (1,) * (c.ndim - 1))

@@ -127,8 +127,8 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
                     ("event_tol", event_tol)):
         if v is not None and _concrete(v) and not float(v) > 0:
             raise ValueError(f"{name} must be positive, got {v}")
-    if autodiff not in ("reverse", "forward", "checkpointed"):
-        raise ValueError(f"autodiff must be 'reverse', 'forward' or 'checkpointed', got {autodiff!r}")
+    if autodiff not in ("reverse", "forward", "checkpointed", "adjoint"):
+        raise ValueError(f"autodiff must be 'reverse', 'forward', 'checkpointed' or 'adjoint', got {autodiff!r}")
     if not (isinstance(max_steps, int) and max_steps > 0):
         raise ValueError(f"max_steps must be a positive int, got {max_steps!r}")
 
