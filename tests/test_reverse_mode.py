@@ -83,11 +83,12 @@ def test_reverse_equals_the_checkpointed_transpose_and_central_differences(case)
     np.testing.assert_allclose(g, central_difference(loss_reverse, p), rtol=2e-5, atol=1e-7)
 
 
-def test_many_differentiated_scalars_take_the_checkpointed_vjp_or_chunked_tangents():
+def test_many_differentiated_scalars_take_the_adjoint_or_chunked_tangents(monkeypatch):
     """80 differentiated scalars, over the forward-direction limit: as the knots of an input
-    tape (the checkpointed loop's VJP, against central differences) and as weights closed
-    over by an input function (chunked forward sensitivities through the traced loop, against
-    JAX's transpose of the checkpointed loop)."""
+    tape (the discrete adjoint, against central differences; where its kept states would not
+    fit, the checkpointed loop's VJP, equal to it) and as weights closed over by an input
+    function (chunked forward sensitivities through the traced loop, against JAX's transpose
+    of the checkpointed loop)."""
     n = 80
     assert n > _reverse.MAX_FORWARD_DIRECTIONS
     ts = jnp.linspace(0.0, 1.0, n)
@@ -107,6 +108,8 @@ def test_many_differentiated_scalars_take_the_checkpointed_vjp_or_chunked_tangen
     for i in (0, 17, 79):
         e = jnp.zeros(n).at[i].set(1e-6)
         np.testing.assert_allclose(g_tape[i], (by_tape(w + e) - by_tape(w - e)) / 2e-6, rtol=1e-6)
+    monkeypatch.setattr(_reverse, "KEPT_BYTES", 0)
+    np.testing.assert_allclose(jax.grad(by_tape)(w), g_tape, rtol=1e-9, atol=1e-14)
     np.testing.assert_allclose(jax.grad(by_closure)(w), jax.grad(lambda w: by_closure(w, "checkpointed"))(w),
                                rtol=1e-9, atol=1e-14)
 
@@ -152,3 +155,73 @@ def test_a_traced_gain_inside_a_controller_is_differentiated():
     g = jax.grad(loss)(0.7)
     np.testing.assert_allclose(g, central_difference(lambda k: loss(k[0]), [0.7])[0], rtol=1e-6)
     assert eqx.is_array(g)
+
+
+# ----- the discrete adjoint (autodiff="adjoint") ---------------------------------------------
+
+
+def stiff_van_der_pol(mode):
+    """Rosenbrock23 on a stiff Van der Pol (rejected steps whose retries reuse the matrix),
+    w.r.t. x0 and mu."""
+    def loss(p):
+        system = jd.models.VanDerPol(p[2])
+        traj = jd.simulate(system, (0.0, 3.0), p[:2], solver="rosenbrock23", rtol=1e-6, atol=1e-8, autodiff=mode)
+        return jnp.sum(traj.final_state ** 2)
+    return loss, np.array([2.0, 0.0, 30.0])
+
+
+@pytest.mark.parametrize("case", CASES + [stiff_van_der_pol], ids=lambda c: c.__name__)
+def test_the_adjoint_equals_forward_sensitivities(case):
+    """Two independent derivations of the same derivative: the adjoint's backward loop over
+    one iteration's VJP, and the loop's tangents (which the slow test above checks against
+    central differences and JAX's transpose)."""
+    loss_adjoint, p = case("adjoint")
+    loss_reverse, _ = case("reverse")
+    np.testing.assert_allclose(jax.grad(loss_adjoint)(jnp.asarray(p)), jax.grad(loss_reverse)(jnp.asarray(p)),
+                               rtol=1e-9, atol=1e-12)
+
+
+def test_the_adjoint_with_many_scalars_a_closure_and_vmap():
+    """80 tape knots (central differences); weights closed over by an input function (the
+    loop's tangents); under vmap, equal to a loop over members, with the vector field traced
+    once for the loop (the backward pass re-runs that trace)."""
+    n = 80
+    ts = jnp.linspace(0.0, 1.0, n)
+    system = jd.System.from_functions(lambda t, x, u: -x + u, num_states=1, num_inputs=1)
+
+    def by_tape(w):
+        tape = jd.Trajectory.from_samples(ts, w[:, None])
+        return jd.simulate(system, (0.0, 1.0), jnp.ones(1), inputs=tape, autodiff="adjoint",
+                           **TOL).final_state[0] ** 2
+
+    def by_closure(w, mode="adjoint"):
+        def u(t):
+            return jnp.sum(w * jnp.sin(jnp.arange(1, n + 1) * t))
+        return jd.simulate(system, (0.0, 1.0), jnp.ones(1), inputs=u, autodiff=mode, **TOL).final_state[0] ** 2
+
+    w = jnp.sin(3.0 * ts) / n
+    g_tape = jax.grad(by_tape)(w)
+    for i in (0, 17, 79):
+        e = jnp.zeros(n).at[i].set(1e-6)
+        np.testing.assert_allclose(g_tape[i], (by_tape(w + e) - by_tape(w - e)) / 2e-6, rtol=1e-6)
+    np.testing.assert_allclose(jax.grad(by_closure)(w), jax.grad(lambda w: by_closure(w, "reverse"))(w),
+                               rtol=1e-9, atol=1e-14)
+
+    traces = []
+
+    def pendulum(t, x, u, b):
+        traces.append(1)
+        return jnp.array([x[1], -jnp.sin(x[0]) - b * x[1]])
+
+    def loss(x0, b):
+        plant = jd.System.from_functions(lambda t, x, u: pendulum(t, x, u, b), num_states=2)
+        return jnp.sum(jd.simulate(plant, (0.0, 1.0), x0, autodiff="adjoint", **TOL).final_state ** 2)
+
+    gradient = jax.jit(jax.vmap(jax.grad(loss, argnums=(0, 1))))
+    x0s, bs = jnp.array([[1.0, 0.0], [0.5, 0.2], [-0.3, 1.0]]), jnp.array([0.1, 0.2, 0.3])
+    gx, gb = gradient(x0s, bs)
+    assert len(traces) == 2, f"the vector field was traced {len(traces)} times for one gradient program"
+    for i in range(3):
+        gxi, gbi = jax.grad(loss, argnums=(0, 1))(x0s[i], bs[i])
+        np.testing.assert_allclose(gx[i], gxi, rtol=1e-12)
+        np.testing.assert_allclose(gb[i], gbi, rtol=1e-12)

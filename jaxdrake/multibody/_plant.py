@@ -187,7 +187,7 @@ class RigidBodySystem(System):
                   limit_period: float = 0.02, contact: bool = False, package_map=None,
                   mesh_hulls: bool = False,
                   stiction_tolerance: float = DEFAULT_STICTION_TOLERANCE) -> "RigidBodySystem":
-        """Load a URDF; joints named in `welded` are fixed at zero; `mimic=True` couples each
+        r"""Load a URDF; joints named in `welded` are fixed at zero; `mimic=True` couples each
         `<mimic>` joint to its leader (a `CouplerConstraint`).
 
         `contact=True` reads the `<collision>` elements (and Drake's proximity properties and

@@ -39,6 +39,7 @@ from ._result import trajectory_bytes
 
 MAX_FORWARD_DIRECTIONS = 32  # Solo-12 from x0 (37): 10x the checkpointed warm time; the Panda (18): faster both ways
 TANGENT_BYTES = 256 * 2**20
+KEPT_BYTES = 1024 * 2**20   # the adjoint's kept states at most (else the checkpointed loop's VJP)
 
 
 def run_reverse(loop, t0, x0, h0, status):
@@ -62,6 +63,10 @@ def _forward(perturbed, vjp_arg, status):
     loop under `jax.jvp` along every unit direction at once (its tangents are the residuals,
     so the backward pass only contracts); else the plain loop."""
     directions = _Directions(vjp_arg, perturbed)
+    adjoint = directions.adjoint(status)
+    if adjoint is not None:   # the adjoint's forward pass; its pullback is the residual
+        out, pullback = eqx.filter_vjp(adjoint, directions.values)
+        return out, (out, pullback)
     if not (directions.forward and directions.chunk() == directions.count):
         return _differentiable_run.fn(vjp_arg, status), None
     out, tangents = jax.vmap(lambda e: jax.jvp(directions.run, (directions.values,), (directions.split(e),)),
@@ -70,17 +75,20 @@ def _forward(perturbed, vjp_arg, status):
 
 
 @_differentiable_run.def_bwd
-def _backward(tangents, cotangent, perturbed, vjp_arg, status):
+def _backward(residuals, cotangent, perturbed, vjp_arg, status):
     directions = _Directions(vjp_arg, perturbed)
-    if tangents is not None:  # stored by the forward pass
-        flat = jax.vmap(lambda t: _contract(cotangent, t))(tangents)
+    if directions.adjoint(status) is not None:   # the adjoint's pullback
+        out, pullback = residuals
+        return directions.gradient(pullback(_dense_cotangent(out, cotangent))[0])
+    if residuals is not None:  # the tangents, stored by the forward pass
+        flat = jax.vmap(lambda t: _contract(cotangent, t))(residuals)
     elif directions.forward or directions.in_closure:
         # tangents over the memory bound, or a closed-over value among many differentiated
         # ones (only the traced jaxpr may be re-run then): the tangents again, in chunks
         flat = jax.lax.map(lambda e: _contract(cotangent, jax.jvp(directions.run, (directions.values,),
                                                                    (directions.split(e),))[1]),
                            directions.basis(), batch_size=directions.chunk())
-    else:
+    else:   # the adjoint's kept states would not fit: the checkpointed loop's VJP
         primal, pullback = eqx.filter_vjp(directions.checkpointed(status), directions.values)
         return directions.gradient(pullback(_dense_cotangent(primal, cotangent))[0])
     return directions.gradient(directions.split(flat))
@@ -120,6 +128,22 @@ class _Directions:
         def run(values):
             _, (loop, t0, x0, h0) = self._with(values)
             return loop.run_loop(t0, x0, h0, status, kind="checkpointed")
+        return run
+
+    def adjoint(self, status):
+        """For many differentiated scalars, none of them closed over, whose kept states fit in
+        `KEPT_BYTES`: the loop run by `run_adjoint`, a function of the differentiated leaves
+        (else None)."""
+        if self.forward or self.in_closure or not self.count:
+            return None
+        _, (loop, t0, x0, h0) = jax.tree.unflatten(self.treedef, self.leaves)
+        kept = jax.eval_shape(lambda: _without_buffers(loop.initial_state(t0, x0, h0, status)))
+        if loop.max_steps * sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(kept)) > KEPT_BYTES:
+            return None
+
+        def run(values):
+            _, (loop, t0, x0, h0) = self._with(values)
+            return run_adjoint(loop, t0, x0, h0, status)
         return run
 
     def basis(self):
