@@ -12,8 +12,9 @@ but matters with one solver iteration (MuJoCo Playground's setting). The model's
 gains, geometry sizes, ...) are pytree leaves: `vmap` over them does not recompile and `grad`
 reaches them. Gradients through contacts: `jax.grad` of a simulation goes through MJX's
 solver whatever its iteration count (its `while_loop` is differentiated by forward
-sensitivities, for up to 32 differentiated scalars); `autodiff="checkpointed"`, and
-`jax.grad` of `discrete_update` alone, need a one-iteration solver
+sensitivities, for up to 32 differentiated scalars); more scalars (the discrete adjoint),
+`autodiff="adjoint"` or `"checkpointed"`, and `jax.grad` of `discrete_update` alone, need a
+one-iteration solver
 (`<option iterations="1" ls_iterations="4"/>`, MuJoCo Playground's setting). Needs `pip install mujoco==3.17.0 mujoco-mjx==3.17.0` (the `mujoco` extra).
 
 MuJoCo derives constants from the model's arrays when it compiles a model (`mj_setConst`):

@@ -476,8 +476,9 @@ class Loop(eqx.Module):
 
     def run(self, t0, x0, h0, status, autodiff: str) -> LoopState:
         """The loop from its start to its end, differentiable as `autodiff` says: "forward"
-        (the plain loop, for `jax.jvp`), "reverse" (`_reverse.run_reverse`) or
-        "checkpointed" (`jax.grad` through the checkpointed loop)."""
+        (the plain loop, for `jax.jvp`), "reverse" (`_reverse.run_reverse`),
+        "adjoint" (`_reverse.run_adjoint`) or "checkpointed" (`jax.grad` through the
+        checkpointed loop)."""
         if autodiff == "reverse":
             return run_reverse(self, t0, x0, h0, status)
         if autodiff == "adjoint":

@@ -15,15 +15,16 @@ ways, picked while tracing from the number $P$ of differentiated scalars:
   faster than the checkpointed VJP (`benchmarks/RESULTS.md`) and runs faster for the
   few-parameter gradients of system identification and design; it also differentiates
   inner `while_loop`s that JAX cannot transpose (MJX's solver).
-- **The checkpointed loop's VJP** (larger $P$: a floating robot's x0, a neural controller's
-  weights, a long input tape), whose cost does not grow with $P$: the loop re-run as
-  `equinox.internal.while_loop(kind="checkpointed")` (recursive checkpointing bounded by
-  `max_steps`) and transposed by JAX; when a closed-over value is among the differentiated
-  ones, the traced loop's tangents in chunks instead.
+- **The discrete adjoint** (larger $P$: a floating robot's x0, a neural controller's
+  weights, a long input tape), whose cost does not grow with $P$ (`run_adjoint`: one
+  iteration's VJP, looped backwards); where its kept states would pass `KEPT_BYTES`, the
+  loop re-run as `equinox.internal.while_loop(kind="checkpointed")` (recursive
+  checkpointing bounded by `max_steps`) and transposed by JAX; when a closed-over value is
+  among the differentiated ones, the traced loop's tangents in chunks instead.
 
 Either way it is the same derivative, that of the computed solution (step sizes held, event
 times by the implicit-function theorem). `autodiff="checkpointed"` always takes the
-checkpointed loop's VJP.
+checkpointed loop's VJP, `autodiff="adjoint"` always the discrete adjoint (`run_adjoint`).
 """
 from __future__ import annotations
 
@@ -206,10 +207,10 @@ def run_adjoint(loop, t0, x0, h0, status):
     return _adjoint_run((step, continues, s0), loop.max_steps)
 
 
-def _window(s, linearization):
-    """The state `s` as the windowed iteration takes it: its buffers cut to one row of zeros,
-    and the kept matrix `linearization`."""
-    rows = tuple(None if b is None else jnp.zeros((1,) + b.shape[1:], b.dtype) for b in s.buffers())
+def _window(s, linearization, like=None):
+    """The state `s` as the windowed iteration takes it: buffers of one row of zeros (shaped
+    as those of `like`, by default `s`), and the kept matrix `linearization`."""
+    rows = tuple(None if b is None else jnp.zeros((1,) + b.shape[1:], b.dtype) for b in (like or s).buffers())
     return dataclasses.replace(eqx.tree_at(lambda s: s.buffers(), s, rows, is_leaf=lambda x: x is None),
                                linearization=linearization)
 
@@ -230,7 +231,7 @@ def _placed(s, w):
 
 def _iterations(step, continues, s0, max_steps, keep: bool):
     """The forward loop; with `keep`, also every iteration's state (`_without_buffers`)."""
-    kept = tuple(jnp.zeros((max_steps,) + x.shape, x.dtype) for x in jax.tree.leaves(_without_buffers(s0))) if keep else ()
+    kept = tuple(jnp.zeros((max_steps,) + x.shape, x.dtype) for x in jax.tree.leaves(_without_buffers(s0)) if keep)
 
     def body(carry):
         s, kept = carry
@@ -265,14 +266,13 @@ def _adjoint_backward(residuals, cotangent, perturbed, vjp_arg, max_steps):
     # loops that JAX cannot differentiate)
     step_diff, step_static = eqx.partition(step, perturbed[0])
     kept_structure = jax.tree.structure(_without_buffers(s0))
-    none = None if s0.linearization is None else jax.tree.map(jnp.zeros_like, s0.linearization)
-    if none is not None:
-        none = dataclasses.replace(none, current=jnp.asarray(False))
+    stale = None if s0.linearization is None else dataclasses.replace(   # a kept matrix not current: formed again
+        jax.tree.map(jnp.zeros_like, s0.linearization), current=jnp.asarray(False))
 
     def backward(carry):
         i, s_bar, p_bar = carry
         i = i - 1
-        start = _restore(jax.tree.unflatten(kept_structure, [b[i] for b in kept]), s0, none)
+        start = _window(jax.tree.unflatten(kept_structure, [b[i] for b in kept]), stale, like=s0)
         start_diff, start_static = eqx.partition(start, eqx.is_inexact_array)
 
         def one_iteration(step_diff, start_diff):
@@ -296,14 +296,6 @@ def _adjoint_backward(residuals, cotangent, perturbed, vjp_arg, max_steps):
     s0_bar = eqx.tree_at(lambda s: s.buffers(), s_bar, unwritten, is_leaf=lambda x: x is None)
     zeros = lambda tree: jax.tree.map(jnp.zeros_like, eqx.filter(tree, eqx.is_inexact_array))  # noqa: E731
     return eqx.combine(p_bar, zeros(eqx.filter(step, perturbed[0], inverse=True))), zeros(vjp_arg[1]), s0_bar
-
-
-def _restore(kept, s0, linearization):
-    """An iteration's state from what the forward pass kept, windowed, with the kept matrix
-    `linearization` (not current: the iteration forms it again)."""
-    rows = tuple(jnp.zeros((1,) + b.shape[1:], b.dtype) for b in s0.buffers())
-    return dataclasses.replace(eqx.tree_at(lambda s: s.buffers(), kept, rows, is_leaf=lambda x: x is None),
-                               linearization=linearization)
 
 
 def _rows_outside(c, first, end):

@@ -3,8 +3,9 @@
 The loop is `equinox.internal.while_loop` with the trajectory as in-place buffers. Its
 derivatives (`autodiff`): `"forward"` runs it as it is (`jax.jvp` / `jax.jacfwd`);
 `"reverse"` (the default) makes it a custom VJP (`_reverse.py`: forward sensitivities for up
-to 32 differentiated scalars, else the checkpointed loop's VJP), which forward mode cannot
-enter; `"checkpointed"` always takes JAX's transpose of the checkpointed loop. Step sizes are
+to 32 differentiated scalars, else the discrete adjoint), which forward mode cannot enter;
+`"adjoint"` always takes the discrete adjoint, `"checkpointed"` JAX's transpose of the
+checkpointed loop. Step sizes are
 not differentiated (the gradient is that of the discrete scheme on its grid); event times are,
 by the implicit function theorem, so gradients see the shift of a switching instant and the
 saltation jump at an impact.
@@ -74,9 +75,11 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     - `dense`: keep the dense output (else only the final state, for big batches).
     - `constraint_projection`: project the state onto phi(x) = 0 after every step.
     - `autodiff`: `"reverse"` (default; `jax.grad` / `jax.vjp` work: up to 32 differentiated
-      scalars by forward sensitivities, which compile fast, more through the checkpointed
-      loop), `"checkpointed"` (`jax.grad` always through the checkpointed loop) or
-      `"forward"` (`jax.jvp` / `jax.jacfwd` work, `jax.grad` does not).
+      scalars by forward sensitivities, which compile fast, more by the discrete adjoint),
+      `"adjoint"` (`jax.grad` always by the discrete adjoint: the VJP of one loop iteration,
+      looped backwards over the kept iteration states), `"checkpointed"` (`jax.grad` through
+      JAX's transpose of the checkpointed loop) or `"forward"` (`jax.jvp` / `jax.jacfwd`
+      work, `jax.grad` does not).
     - `throw`: outside `jit` / `vmap`, raise `SimulationError` on failure; inside, the
       status is on the result (`traj.status`, `traj.success`) either way.
     - `device`: where a call from Python (outside `jit` / `vmap` / `grad`) runs. None: the
