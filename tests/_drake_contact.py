@@ -34,21 +34,23 @@ def drake_scene(urdf, world_geometries, stiction_tolerance):
 
 
 class StateMap:
-    """Our x = [q; v] <-> Drake's (free body: quaternion w, x, y, z then position, velocities
+    """Our x = [q; v] <-> Drake's (a free body: quaternion w, x, y, z then position, velocities
     angular then linear in the world; ours: position then quaternion x, y, z, w, velocities
-    linear then angular in the body frame)."""
+    linear then angular in the body frame), for any number of free bodies."""
 
     def __init__(self, plant, ours):
         tree = ours.tree
-        self.nq, self.floating = tree.nq, tree.has_floating_base
-        self.joints = []
-        for name, kind, qs, vs in zip(tree.joint_names, tree.joint_types, tree.q_starts, tree.v_starts):
+        self.nq = tree.nq
+        self.joints, self.free = [], []
+        for body, name, kind, qs, vs in zip(tree.body_names, tree.joint_names, tree.joint_types, tree.q_starts,
+                                            tree.v_starts):
             if kind != "floating":
                 joint = plant.GetJointByName(name)
                 self.joints.append((qs, vs, joint.position_start(), joint.velocity_start()))
-        if self.floating:
-            body = plant.GetBodyByName(tree.body_names[0])
-            self.fq, self.fv = body.floating_positions_start(), body.floating_velocities_start_in_v()
+            else:
+                drake_body = plant.GetBodyByName(body)
+                self.free.append((qs, vs, drake_body.floating_positions_start(),
+                                  drake_body.floating_velocities_start_in_v()))
         self.plant_nq, self.plant_nv = plant.num_positions(), plant.num_velocities()
 
     @staticmethod
@@ -63,35 +65,35 @@ class StateMap:
         qd, vd = np.zeros(self.plant_nq), np.zeros(self.plant_nv)
         for qs, vs, dq, dv in self.joints:
             qd[dq], vd[dv] = q[qs], v[vs]
-        if self.floating:
-            R = self._rotation(q[3:7])
-            qd[self.fq: self.fq + 7] = np.concatenate([[q[6]], q[3:6], q[:3]])
-            vd[self.fv: self.fv + 6] = np.concatenate([R @ v[3:6], R @ v[:3]])
+        for qs, vs, fq, fv in self.free:
+            R = self._rotation(q[qs + 3: qs + 7])
+            qd[fq: fq + 7] = np.concatenate([[q[qs + 6]], q[qs + 3: qs + 6], q[qs: qs + 3]])
+            vd[fv: fv + 6] = np.concatenate([R @ v[vs + 3: vs + 6], R @ v[vs: vs + 3]])
         return qd, vd
 
     def from_drake(self, qd, vd):
         q, v = np.zeros(self.nq), np.zeros(len(vd))
         for qs, vs, dq, dv in self.joints:
             q[qs], v[vs] = qd[dq], vd[dv]
-        if self.floating:
-            quat = qd[self.fq: self.fq + 4]
-            q[:7] = np.concatenate([qd[self.fq + 4: self.fq + 7], quat[1:], quat[:1]])
-            R = self._rotation(q[3:7])
-            w, lin = vd[self.fv: self.fv + 3], vd[self.fv + 3: self.fv + 6]
-            v[:6] = np.concatenate([R.T @ lin, R.T @ w])
+        for qs, vs, fq, fv in self.free:
+            quat = qd[fq: fq + 4]
+            q[qs: qs + 7] = np.concatenate([qd[fq + 4: fq + 7], quat[1:], quat[:1]])
+            R = self._rotation(q[qs + 3: qs + 7])
+            w, lin = vd[fv: fv + 3], vd[fv + 3: fv + 6]
+            v[vs: vs + 6] = np.concatenate([R.T @ lin, R.T @ w])
         return np.concatenate([q, v])
 
     def velocity_derivative_from_drake(self, x, vdot_drake):
-        """Our v-dot from Drake's: for the free body, d/dt (R^T v_W) = R^T a_W - w_B x v_B."""
+        """Our v-dot from Drake's: for a free body, d/dt (R^T v_W) = R^T a_W - w_B x v_B."""
         x = np.asarray(x, float)
         v = x[self.nq:]
         out = np.zeros(len(v))
         for qs, vs, dq, dv in self.joints:
             out[vs] = vdot_drake[dv]
-        if self.floating:
-            R = self._rotation(x[3:7])
-            alpha, a = vdot_drake[self.fv: self.fv + 3], vdot_drake[self.fv + 3: self.fv + 6]
-            out[:6] = np.concatenate([R.T @ a - np.cross(v[3:6], v[:3]), R.T @ alpha])
+        for qs, vs, fq, fv in self.free:
+            R = self._rotation(x[qs + 3: qs + 7])
+            alpha, a = vdot_drake[fv: fv + 3], vdot_drake[fv + 3: fv + 6]
+            out[vs: vs + 6] = np.concatenate([R.T @ a - np.cross(v[vs + 3: vs + 6], v[vs: vs + 3]), R.T @ alpha])
         return out
 
 

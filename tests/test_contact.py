@@ -36,6 +36,10 @@ SCENES = {
         ("floor", HalfSpace(), np.eye(3), (0.0, 0.0, -0.6), _material(1e5, 1.0, 0.9, 0.9))], 1e-2),
     "hopper_landing": ("contact_hopper.urdf", True, [
         ("floor", Box(4.0, 4.0, 0.5), np.eye(3), (0.0, 0.0, -0.25), _material(1e5, 10.0, 1.0, 0.8))], 1e-2),
+    # three free bodies' worth of coordinates: an arm on the world, a ball freed by a floating
+    # joint, a puck no joint holds
+    "arm_pushing_free_bodies": ("contact_pusher.urdf", False, [
+        ("floor", HalfSpace(), np.eye(3), (0.0, 0.0, 0.0), _material(2e4, 3.0, 0.5, 0.4))], 1e-2),
 }
 
 
@@ -61,6 +65,11 @@ def _random_state(scene, plant, rng):
         q = np.concatenate([[0.38 + 0.06 * rng.random(), 0.2, 0.085 + 0.03 * rng.random()], quat])
     elif scene == "dumbbell_on_a_slope":
         q = np.concatenate([[0.1 * rng.normal(), 0.0, 0.02 + 0.04 * rng.random()], quat])
+    elif scene == "arm_pushing_free_bodies":   # tip near the ball, ball and puck on the floor
+        ball = np.concatenate([[0.12 + 0.03 * rng.normal(), 0.0, 0.075 + 0.01 * rng.random()], quat])
+        quat = rng.normal(size=4)
+        puck = np.concatenate([[0.25 + 0.02 * rng.normal(), 0.01, 0.055 + 0.01 * rng.random()], quat / np.linalg.norm(quat)])
+        q = np.concatenate([[0.2 + 0.05 * rng.normal(), 0.05 * rng.normal()], ball, puck])
     else:  # hopper: torso upright-ish, feet into the floor
         tilt = np.array([0.1 * rng.normal(), 0.1 * rng.normal(), 0.0])
         quat = np.concatenate([np.sin(np.linalg.norm(tilt) / 2) * tilt / max(np.linalg.norm(tilt), 1e-12),
@@ -71,7 +80,7 @@ def _random_state(scene, plant, rng):
 
 @pytest.mark.parametrize("scene", [pytest.param("ball_between_walls"),
                                    pytest.param("dumbbell_on_a_slope", marks=pytest.mark.slow),
-                                   pytest.param("hopper_landing")])
+                                   pytest.param("hopper_landing"), pytest.param("arm_pushing_free_bodies")])
 def test_time_derivatives_equal_drakes_continuous_plant(scene):
     pytest.importorskip("pydrake")
     from _drake_contact import drake_velocity_derivative
@@ -91,7 +100,8 @@ def test_time_derivatives_equal_drakes_continuous_plant(scene):
 
 @pytest.mark.parametrize("scene", [pytest.param("ball_between_walls"),
                                    pytest.param("dumbbell_on_a_slope", marks=pytest.mark.slow),
-                                   pytest.param("hopper_landing", marks=pytest.mark.slow)])
+                                   pytest.param("hopper_landing", marks=pytest.mark.slow),
+                                   pytest.param("arm_pushing_free_bodies", marks=pytest.mark.slow)])
 def test_simulations_equal_drakes_continuous_plant(scene):
     pytest.importorskip("pydrake")
     from _drake_contact import drake_simulate
@@ -100,9 +110,14 @@ def test_simulations_equal_drakes_continuous_plant(scene):
     x0 = {"ball_between_walls": [0.0, 0.0, 0.4, 0, 0, 0, 1, 3.0, 0.5, 0.0, 0.0, 0.0, 8.0],
           "dumbbell_on_a_slope": [0.0, 0.0, 0.3, 0.1, 0.2, 0.0, 0.97467943, 0.5, 0.0, 0.0, 1.0, -2.0, 0.5],
           "hopper_landing": [0.05, 0.0, 0.6, 0.05, 0.0, 0.0, 0.99875, 0.3, -0.6, -0.2, 0.5,
-                             0.3, 0.0, -1.0, 0.2, 0.0, 0.5, 0.0, 1.0, 0.0, -1.0]}[scene]
+                             0.3, 0.0, -1.0, 0.2, 0.0, 0.5, 0.0, 1.0, 0.0, -1.0],
+          # the arm swings into the ball, which the puck, sliding and spinning, meets
+          "arm_pushing_free_bodies": [-0.6, 0.1, 0.12, 0.0, 0.1, 0, 0, 0, 1, 0.5, 0.02, 0.07, 0, 0, 0.3, 0.95,
+                                      3.0, 0.5, 0, 0, -0.5, 0, 0, 0, -1.64, 1.15, 0, 0, 0, 6.0]}[scene]
     x0 = np.asarray(x0, float)
-    x0[3:7] /= np.linalg.norm(x0[3:7])
+    for start, kind in zip(plant.tree.q_starts, plant.tree.joint_types):
+        if kind == "floating":
+            x0[start + 3: start + 7] /= np.linalg.norm(x0[start + 3: start + 7])
     times = np.linspace(0.1, 0.6, 6)
     expected = drake_simulate(drake_plant, diagram, state_map, x0, times)
     traj = jd.simulate(plant, (0.0, 0.6), jnp.asarray(x0), rtol=1e-11, atol=1e-12, max_steps=40000)
@@ -316,14 +331,17 @@ def test_without_contact_nothing_changes():
                                np.asarray(plain.dynamics(0.0, far, jnp.zeros(4))), rtol=1e-14, atol=1e-12)
 
 
-def test_a_floating_joint_from_a_declared_world_is_the_floating_base(tmp_path):
+def test_a_floating_joint_from_a_declared_world_frees_its_child(tmp_path):
+    """A `<joint type="floating">` from the world: its child is a free body with the joint's
+    name, the floating base's layout; beside a body hanging from the world too."""
     text = (DATA / "contact_ball.urdf").read_text()
     with_world = text.replace("</robot>", '<link name="world"/><joint name="free" type="floating">'
                               '<parent link="world"/><child link="ball"/></joint></robot>')
     (tmp_path / "free.urdf").write_text(with_world)
     free = jd.RigidBodySystem.from_urdf(tmp_path / "free.urdf", contact=True).with_ground()
     base = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True, contact=True).with_ground()
-    assert free.tree.joint_types == ("floating",) and free.state_frame.coordinates == base.state_frame.coordinates
+    assert free.tree.joint_types == ("floating",)
+    assert free.state_frame.coordinates == tuple(c.replace("floating_base", "free") for c in base.state_frame.coordinates)
     x = jnp.array([0.1, 0.0, 0.095, 0, 0, 0, 1, 1.0, 0, 0, 0, 2.0, 0])
     np.testing.assert_array_equal(np.asarray(free.dynamics(0.0, x, jnp.zeros(0))),
                                   np.asarray(base.dynamics(0.0, x, jnp.zeros(0))))
@@ -331,8 +349,13 @@ def test_a_floating_joint_from_a_declared_world_is_the_floating_base(tmp_path):
                              'izz="1" ixy="0" ixz="0" iyz="0"/></inertial></link><joint name="pin" type="revolute">'
                              '<parent link="world"/><child link="other"/><axis xyz="0 0 1"/></joint></robot>')
     (tmp_path / "two.urdf").write_text(two)
-    with pytest.raises(URDFError, match="floats while other joints hang from the world"):
-        jd.RigidBodySystem.from_urdf(tmp_path / "two.urdf")
+    both = jd.RigidBodySystem.from_urdf(tmp_path / "two.urdf", contact=True).with_ground()
+    assert both.tree.joint_names == ("pin", "free") and both.tree.joint_types == ("revolute", "floating")
+    x_both = jnp.concatenate([jnp.array([0.3]), x[:7], jnp.array([0.5]), x[7:]])   # the pin turning freely
+    xdot = np.asarray(both.dynamics(0.0, x_both, jnp.zeros(1)))
+    np.testing.assert_allclose(xdot[[1, 2, 3, 4, 5, 6, 7, 9, 10, 11, 12, 13, 14]],
+                               np.asarray(base.dynamics(0.0, x, jnp.zeros(0))), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(xdot[[0, 8]], [0.5, 0.0], atol=1e-12)
 
 
 def test_filtering_pairs_and_the_stiction_tolerance_of_a_plant_built_in_steps():

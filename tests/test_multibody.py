@@ -489,7 +489,7 @@ MALFORMED = {
               '<joint name="j1" type="revolute"><parent link="a"/><child link="b"/></joint>'
               '<joint name="j2" type="revolute"><parent link="b"/><child link="a"/></joint></robot>',
               "no root link"),
-    "two free bodies": ('<robot name="r"><link name="a"/><link name="b"/></robot>', r"2 root links .*\(one floating base at most\)"),
+    "a massless free body": ('<robot name="r"><link name="a"/><link name="b"/></robot>', r"link 'b' floats .* no mass"),
     "unknown joint type": ('<robot name="r"><link name="a"/><link name="b"/><joint name="j" type="spherical">'
                            '<parent link="a"/><child link="b"/></joint></robot>', "type 'spherical'"),
     "non-positive-definite inertia": (

@@ -110,9 +110,10 @@ def _rotation_about(axis, angle):
 def _kinematics(tree: KinematicTree, q, *, unroll):
     """World rotations R (n, 3, 3, B) and positions p (n, 3, B) of the body frames relative to
     O, in level order, and the motion subspaces: S1 (m, 6, B), one column per one-dof body, and
-    the floating base's 6x6 S0 (None without one), columns [v_lin; omega] in its frame."""
+    the free bodies' 6x6 S0 (F, 6, 6, B) (None without any), columns [v_lin; omega] in each
+    one's frame."""
     L = tree.layout
-    f = int(L.floating)
+    f = L.num_floating
     one_dof = L.order[f:]
     dtype, lanes = q.dtype, q.shape[-1]
     axis = tree.axes[one_dof].astype(dtype)
@@ -124,7 +125,15 @@ def _kinematics(tree: KinematicTree, q, *, unroll):
         origin, _lane(axis) * (angle * (1 - revolute))[:, None, :])
     eye = jnp.broadcast_to(_lane(jnp.eye(3, dtype=dtype)), (3, 3, lanes))
     zero3 = jnp.zeros((3, lanes), dtype)
-    R_root = quaternion_matrix(q[3:7]) if f else eye        # else: the world
+    if f:   # the free bodies, then the world (their slots and the world slot of the depth above)
+        R_root = jnp.moveaxis(quaternion_matrix(q[L.root_q[None, :] + np.arange(3, 7)[:, None]]), 2, 0)
+        origin = q[L.root_q[0] + np.arange(3)]                                   # O: the first free body
+        p_root = q[L.root_q[:, None] + np.arange(3)] - origin
+        pad = L.width - f
+        init = (jnp.concatenate([R_root, jnp.broadcast_to(eye, (pad, 3, 3, lanes))]),
+                jnp.concatenate([p_root, jnp.broadcast_to(-origin, (pad, 3, lanes))]))   # the world at -O
+    else:
+        init = (jnp.broadcast_to(eye, (L.width, 3, 3, lanes)), jnp.zeros((L.width, 3, lanes), dtype))
 
     def one_depth(above, local):
         (R_above, p_above), (R_loc, p_loc, parent) = above, local
@@ -133,20 +142,23 @@ def _kinematics(tree: KinematicTree, q, *, unroll):
         p_new = _mv(R_parent, p_loc) + p_parent
         return (R_new, p_new), (R_new, p_new)
 
-    init = (jnp.broadcast_to(R_root, (L.width, 3, 3, lanes)), jnp.zeros((L.width, 3, lanes), dtype))
-    _, (R_slots, p_slots) = _over_depths(one_depth, init, (
-        _to_slots(L, R_local, eye), _to_slots(L, p_local, zero3), L.parent_of_slot), unroll=unroll)
-    R, p = _from_slots(L, R_slots), _from_slots(L, p_slots)
+    if len(L.slots):
+        _, (R_slots, p_slots) = _over_depths(one_depth, init, (
+            _to_slots(L, R_local, eye), _to_slots(L, p_local, zero3), L.parent_of_slot), unroll=unroll)
+        R, p = _from_slots(L, R_slots), _from_slots(L, p_slots)
+    else:   # free bodies alone
+        R, p = jnp.zeros((0, 3, 3, lanes), dtype), jnp.zeros((0, 3, lanes), dtype)
     if f:
-        R, p = jnp.concatenate([R_root[None], R]), jnp.concatenate([zero3[None], p])
+        R, p = jnp.concatenate([R_root, R]), jnp.concatenate([p_root, p])
     axis_world = _mv(R[f:], _lane(axis))
     revolute = revolute[..., None]
     S1 = jnp.concatenate([axis_world * revolute,
                           _cross(p[f:], axis_world) * revolute + axis_world * (1 - revolute)], axis=1)
     S0 = None
-    if f:
-        zero = jnp.zeros((3, 3, lanes), dtype)
-        S0 = jnp.concatenate([jnp.concatenate([zero, R[0]], 1), jnp.concatenate([R[0], zero], 1)], 0)
+    if f:   # [v_lin; omega] in the body's frame -> [omega; velocity of the body point at O]
+        zero = jnp.zeros((f, 3, 3, lanes), dtype)
+        S0 = jnp.concatenate([jnp.concatenate([zero, R_root], 2),
+                              jnp.concatenate([R_root, _mm(_skew(p_root), R_root)], 2)], 1)
     return R, p, S1, S0
 
 
@@ -173,7 +185,7 @@ def _to_slots(L, x, fill):
 
 def _slot_rows(L):
     """(depths, width): the row of each slot in the per-one-dof-body arrays (with their fill row)."""
-    return L.slots - L.first_scanned
+    return L.slots - L.num_floating
 
 
 def _with_fill(L, x, fill):
@@ -203,14 +215,15 @@ def _to_parents(L, parent, x):
 
 def _dof_columns(L, S1, S0):
     """The motion subspace of every velocity coordinate, rows (nv, 6, B), in the tree's order."""
-    rows = S1 if S0 is None else jnp.concatenate([jnp.moveaxis(S0, 1, 0), S1])
+    rows = S1 if S0 is None else jnp.concatenate([jnp.moveaxis(S0, 2, 1).reshape((-1,) + S0.shape[1:2] + S0.shape[3:]), S1])
     return rows[L.dof_level_order]
 
 
 def _joint_velocity(L, S1, S0, v):
     """s_i qdot_i of every body's own joint (n, 6, B), level order, from velocity coordinates v."""
-    one = S1 * v[L.level_dofs[6 * int(L.floating):]][:, None, :]
-    return one if S0 is None else jnp.concatenate([_mv(S0, v[:6])[None], one])
+    f = L.num_floating
+    one = S1 * v[L.level_dofs[6 * f:]][:, None, :]
+    return one if S0 is None else jnp.concatenate([_mv(S0, v[L.level_dofs[:6 * f]].reshape((f, 6) + v.shape[1:])), one])
 
 
 def _subtree_sum(L, x):
@@ -322,10 +335,10 @@ def _contact_kinematics(tree: KinematicTree, q, v, *, unroll):
 
 def _project_forces(L, S1, S0, F):
     """tau = S^T F per joint, in the tree's coordinate order."""
-    f = int(L.floating)
+    f = L.num_floating
     tau = _dot(S1, F[f:])
     if S0 is not None:
-        tau = jnp.concatenate([_mv(_t(S0), F[0]), tau])
+        tau = jnp.concatenate([_mv(_t(S0), F[:f]).reshape((6 * f,) + tau.shape[1:]), tau])
     return _from_level_order(L, tau)
 
 
@@ -342,11 +355,25 @@ def _mass_matrix(tree: KinematicTree, q, *, unroll):
     return ancestor * M + (_t(ancestor) - same) * _t(M)
 
 
+def _free_force(R, p, tau):
+    r"""$S_0^{-T}\tau$: free bodies' generalized forces (F, 6, B) [force; torque] in their
+    frames (R, p relative to O) as spatial forces about O, [torque about O; force]."""
+    force = _mv(R, tau[:, :3])
+    return jnp.concatenate([_mv(R, tau[:, 3:]) + _cross(p, force), force], 1)
+
+
+def _free_coordinates(R, p, m):
+    r"""$S_0^{-1} m$: free bodies' spatial motions (F, 6, B) [omega; v_O] as their coordinates
+    [v_lin; omega] in their frames."""
+    w, u = m[:, :3], m[:, 3:]
+    return jnp.concatenate([_mv(_t(R), u - _cross(p, w)), _mv(_t(R), w)], 1)
+
+
 def _aba(tree: KinematicTree, q, v, tau, *, gravity: bool, unroll):
     L = tree.layout
-    f = int(L.floating)
+    f = L.num_floating
     R, p, S1, S0, joint, V = _velocities(tree, q, v, unroll=unroll)
-    c = _motion_cross(V, joint)                      # s_dot qdot (zero for the floating base)
+    c = _motion_cross(V, joint)                      # s_dot qdot (zero for a free body)
     inertia = _world_inertias(tree, R, p)
     I_A = _dense_inertia(inertia)
     p_A = _force_cross(V, _apply_inertia(inertia, V))
@@ -376,19 +403,21 @@ def _aba(tree: KinematicTree, q, v, tau, *, gravity: bool, unroll):
         up = (_to_parents(L, parent, Ia * valid[:, None, None]), _to_parents(L, parent, pa * valid[:, None]))
         return up, (U, D_inv, u)
 
-    if not L.width:  # a single free body: nothing but the base
-        A_root = _solve_spd6(I_A[0], _mv(S0, tau_level[:6]) - p_A[0])
-        return _from_level_order(L, _mv(_t(S0), A_root - _base_acceleration(tree, dtype, gravity)))
-    depths = (jnp.asarray(_slot_rows(L)), L.parent_of_slot, L.valid)
-    init = (jnp.zeros((L.width, 6, 6, lanes), dtype), jnp.zeros((L.width, 6, lanes), dtype))
-    (Ia_root, pa_root), (U, D_inv, u) = _over_depths(backward, init, depths, reverse=True, unroll=unroll)
-
     a0 = _base_acceleration(tree, dtype, gravity)
-    if f:
-        A_root = _solve_spd6(I_A[0] + Ia_root[0], _mv(S0, tau_level[:6]) - p_A[0] - pa_root[0])
-        qdd_root = _mv(_t(S0), A_root - a0)
-    else:
-        A_root = jnp.broadcast_to(a0, (6, lanes))
+    depths = (jnp.asarray(_slot_rows(L)), L.parent_of_slot, L.valid)
+    Ia_root, pa_root = jnp.zeros((L.width, 6, 6, lanes), dtype), jnp.zeros((L.width, 6, lanes), dtype)
+    if len(L.slots):
+        (Ia_root, pa_root), (U, D_inv, u) = _over_depths(backward, (Ia_root, pa_root), depths, reverse=True,
+                                                         unroll=unroll)
+    A_above = jnp.broadcast_to(a0, (L.width, 6, lanes))   # the world's slots
+    if f:   # each free body: (I^A) A = S0^{-T} tau - p^A, its coordinates S0^{-1} (A - a0)
+        R0, p0 = R[:f], p[:f]
+        A_root = jax.vmap(_solve_spd6)(I_A[:f] + Ia_root[:f], _free_force(R0, p0, tau_level[:6 * f].reshape(
+            (f, 6, lanes))) - p_A[:f] - pa_root[:f])
+        qdd_root = _free_coordinates(R0, p0, A_root - a0).reshape((6 * f, lanes))
+        A_above = A_above.at[:f].set(A_root)
+    if not len(L.slots):   # free bodies alone
+        return _from_level_order(L, qdd_root)
 
     def forward(A_above, depth):
         """One depth, root first: joint accelerations and body accelerations."""
@@ -397,8 +426,7 @@ def _aba(tree: KinematicTree, q, v, tau, *, gravity: bool, unroll):
         qdd = D_inv * (u - _dot(U, A))
         return A + S1p[rows] * qdd[:, None], qdd
 
-    _, qdd = _over_depths(forward, jnp.broadcast_to(A_root, (L.width, 6, lanes)),
-                          (depths[0], U, D_inv, u, L.parent_of_slot), unroll=unroll)
+    _, qdd = _over_depths(forward, A_above, (depths[0], U, D_inv, u, L.parent_of_slot), unroll=unroll)
     qdd = _from_slots(L, qdd)
     if f:
         qdd = jnp.concatenate([qdd_root, qdd])
@@ -605,8 +633,9 @@ def external_forces(tree: KinematicTree, motion: BodyMotion, F):
 
 
 def _offset(tree, q):
-    """O in world coordinates: the floating base's position, else the world origin."""
-    return q[:3] if tree.layout.floating else jnp.zeros(3, q.dtype)
+    """O in world coordinates: the first free body's position, else the world origin."""
+    L = tree.layout
+    return q[L.root_q[0]: L.root_q[0] + 3] if L.num_floating else jnp.zeros(3, q.dtype)
 
 
 @compiled_query
@@ -675,26 +704,55 @@ def potential_energy(tree: KinematicTree, q):
 
 
 def configuration_derivative(tree: KinematicTree, q, v):
-    r"""$\dot q$ from v: the identity for revolute and prismatic joints; for a floating base
+    r"""$\dot q$ from v: the identity for revolute and prismatic joints; for a free body
     $\dot p = R v_{lin}$ and $\dot{\mathbf q} = \tfrac12 \mathbf q \otimes (0, \omega)$."""
-    if not tree.layout.floating:
+    L = tree.layout
+    if not L.num_floating:
         return v
-    x, y, z, w = q[3], q[4], q[5], q[6]
-    wx, wy, wz = v[3], v[4], v[5]
-    quat_dot = 0.5 * jnp.stack([w * wx + y * wz - z * wy, w * wy + z * wx - x * wz,
-                                w * wz + x * wy - y * wx, -(x * wx + y * wy + z * wz)])
-    return jnp.concatenate([quaternion_matrix(q[3:7]) @ v[:3], quat_dot, v[6:]])
+
+    def free(quat, v_lin, omega):
+        x, y, z, w = quat
+        wx, wy, wz = omega
+        quat_dot = 0.5 * jnp.stack([w * wx + y * wz - z * wy, w * wy + z * wx - x * wz,
+                                    w * wz + x * wy - y * wx, -(x * wx + y * wy + z * wz)])
+        return jnp.concatenate([quaternion_matrix(quat) @ v_lin, quat_dot])
+
+    per_root = jax.vmap(free)(*_free_parts(L, q, v))
+    return jnp.zeros(tree.nq, v.dtype).at[L.q_index].set(v[L.v_index]).at[_free_q(L)].set(per_root)
 
 
 def velocity_of_configuration_change(tree: KinematicTree, q, dq):
     r"""The velocity-coordinate change $\delta\nu$ with configuration_derivative(q, $\delta\nu$)
-    = dq (the inverse of that linear map; for a floating base, of a quaternion change tangent
+    = dq (the inverse of that linear map; for a free body, of a quaternion change tangent
     to the unit sphere): $\delta\nu_{lin} = R^T dp$ and $\delta\omega = 2\,\mathrm{vec}(
     \bar{\mathbf q} \otimes d\mathbf q)$."""
-    if not tree.layout.floating:
+    L = tree.layout
+    if not L.num_floating:
         return dq
-    x, y, z, w = q[3], q[4], q[5], q[6]
-    dx, dy, dz, dw = dq[3], dq[4], dq[5], dq[6]
-    omega = 2.0 * jnp.stack([w * dx - dw * x - y * dz + z * dy, w * dy - dw * y - z * dx + x * dz,
-                             w * dz - dw * z - x * dy + y * dx])
-    return jnp.concatenate([quaternion_matrix(q[3:7]).T @ dq[:3], omega, dq[7:]])
+
+    def free(quat, dp, dquat):
+        x, y, z, w = quat
+        dx, dy, dz, dw = dquat
+        omega = 2.0 * jnp.stack([w * dx - dw * x - y * dz + z * dy, w * dy - dw * y - z * dx + x * dz,
+                                 w * dz - dw * z - x * dy + y * dx])
+        return jnp.concatenate([quaternion_matrix(quat).T @ dp, omega])
+
+    quat = q[L.root_q[:, None] + np.arange(3, 7)]
+    per_root = jax.vmap(free)(quat, dq[L.root_q[:, None] + np.arange(3)], dq[L.root_q[:, None] + np.arange(3, 7)])
+    return jnp.zeros(tree.nv, dq.dtype).at[L.v_index].set(dq[L.q_index]).at[_free_v(L)].set(per_root)
+
+
+def _free_parts(L, q, v):
+    """The free bodies' quaternions (F, 4), linear and angular velocity coordinates (F, 3)."""
+    return (q[L.root_q[:, None] + np.arange(3, 7)], v[L.root_v[:, None] + np.arange(3)],
+            v[L.root_v[:, None] + np.arange(3, 6)])
+
+
+def _free_q(L):
+    """(F, 7): the free bodies' position coordinates."""
+    return L.root_q[:, None] + np.arange(7)
+
+
+def _free_v(L):
+    """(F, 6): the free bodies' velocity coordinates."""
+    return L.root_v[:, None] + np.arange(6)

@@ -338,7 +338,7 @@ def _axis_carried_by(tree) -> np.ndarray:
     carried = np.zeros((tree.nv, tree.nv))
     for k in range(tree.nv):
         body = int(L.order[L.dof_body[k]])
-        carrier = body if (L.floating and L.dof_body[k] == 0) else tree.parents[body]
+        carrier = body if L.dof_body[k] < L.num_floating else tree.parents[body]
         if carrier >= 0:
             carried[:, k] = L.subtree[L.dof_body, L.position[carrier]]
     return carried

@@ -176,7 +176,7 @@ class RigidBodySystem(System):
         num_loop = sum(len(loop.axes) for loop in self.loops) + len(self.couplers)
         super().__init__(num_continuous_states=tree.nq + tree.nv, num_inputs=len(actuated_joints),
                          direct_feedthrough=False, time_invariant=True, input_limits=limits,
-                         num_state_constraints=2 * num_loop + tree.has_floating_base,
+                         num_state_constraints=2 * num_loop + tree.layout.num_floating,
                          input_frame=Frame(f"{tree.robot_name}Input", tuple(actuated_joints)),
                          state_frame=state, output_frame=state)
 
@@ -451,12 +451,12 @@ class RigidBodySystem(System):
         return jnp.concatenate([self.loop_jacobian(q), self._coupler_rows(q)[1]])
 
     def state_constraints(self, x):
-        """[|quaternion|^2 - 1 (floating base); phi(q); J(q) v]."""
+        """[|quaternion|^2 - 1 (each free body); phi(q); J(q) v]."""
         q, v = x[: self.tree.nq], x[self.tree.nq:]
         parts = []
-        if self.tree.has_floating_base:
-            s = self.tree.q_starts[self.tree.joint_types.index(JointType.FLOATING)]
-            parts.append(jnp.atleast_1d(jnp.sum(q[s + 3: s + 7] ** 2) - 1))
+        roots = self.tree.layout.root_q
+        if len(roots):
+            parts.append(jnp.sum(q[roots[:, None] + np.arange(3, 7)] ** 2, 1) - 1)
         if self.loops or self.couplers:
             parts += [self.constraint_residual(q), self.constraint_jacobian(q) @ v]
         return jnp.concatenate(parts) if parts else jnp.zeros(0, x.dtype)

@@ -112,6 +112,7 @@ class KinematicTree(eqx.Module):
 
     @property
     def has_floating_base(self) -> bool:
+        """Whether any body is free (a floating joint)."""
         return JointType.FLOATING in self.joint_types
 
     def position_names(self) -> tuple:
@@ -138,38 +139,41 @@ class TreeLayout:
 
     - `order[k]`: the body (tree index) at level-order position k; `position[i]` its inverse.
     - `levels[d]`: the slice of level-order positions at depth d.
-    - `parent_in_level[d]`: for depth d >= 1, the position of each body's parent inside the
-      slice of depth d - 1 (None when that is the identity, as along a chain).
     - `subtree[j, i]`: 1 where body i (level order) is in the subtree of body j (itself included).
-    - `floating`: whether position 0 is a floating base (only a root may be one); the other
+    - `num_floating`: the free bodies (floating joints; only roots may have one), at
+      positions 0 .. num_floating - 1, depth 0, each with position coordinates
+      `root_q[k]` .. + 7 and velocity coordinates `root_v[k]` .. + 6; with any of them, the
+      other roots (joined to the world) count as depth 1, children of the world. The other
       bodies have one degree of freedom each, `revolute[k]` (1.0) or prismatic (0.0), with
       position coordinate `q_index[k]` (k over the one-dof bodies in level order).
     - `dof_body[c]`: the level-order position of the body that velocity coordinate c
       (the tree's own coordinate order) belongs to; `dof_level_order[c]`: c's place in the
-      level-ordered list of velocity coordinates (floating base first, then one per body);
-      `level_dofs` its inverse (the coordinate at each level-ordered place).
+      level-ordered list of velocity coordinates (the free bodies' six each first, then one
+      per body); `level_dofs` its inverse (the coordinate at each level-ordered place).
     - `ancestor[c, c']`: 1 where coordinate c' belongs to an ancestor of (or the same body as)
       coordinate c's body.
 
     For the sweeps that recurse over depth (a `lax.scan`, one step per depth), the depths
-    from `first_scanned` on (1 with a floating base, which is handled on its own; else 0) are
+    from `first_scanned` on (1 with free bodies, which are handled on their own; else 0) are
     padded to the widest, `width`: `slots[d, w]` is the level-order position in slot w of
     scanned depth d (n: an empty slot), `valid[d, w]` whether it is a body, `parent_of_slot[d, w]`
-    the slot of the depth above that holds its parent (depth 0's parent, the world or the
-    floating base, is slot 0; empty slots point at 0 too),
+    the slot of the depth above that holds its parent (without free bodies, depth 0's parent,
+    the world, is slot 0; with them, the free bodies are slots 0 .. num_floating - 1 and the
+    world slot `world_slot` = num_floating; empty slots point at 0),
     and `unslot[k]` the flat padded index of level-order position k >= `first_scanned`'s start.
     """
 
     def __init__(self, parents, joint_types):
         n = len(parents)
-        floating = JointType.FLOATING
-        if floating in joint_types[1:] or (joint_types and joint_types[0] == floating and parents[0] != -1):
-            raise ValueError("only the root body of a tree may have a floating joint")
+        free = [kind == JointType.FLOATING for kind in joint_types]
+        if any(f and p != -1 for f, p in zip(free, parents)):
+            raise ValueError("only a root body (parent -1) may have a floating joint")
+        self.num_floating = F = sum(free)
         depth = []
         for i, p in enumerate(parents):
             if not p < i:
                 raise ValueError(f"body {i}'s parent {p} does not come before it")
-            depth.append(0 if p < 0 else depth[p] + 1)
+            depth.append(depth[p] + 1 if p >= 0 else (0 if free[i] or not F else 1))
         depth = np.asarray(depth, int)
         self.order = np.argsort(depth, kind="stable")
         self.position = np.empty(n, int)
@@ -177,39 +181,36 @@ class TreeLayout:
         counts = np.bincount(depth) if n else np.zeros(0, int)
         starts = np.concatenate([[0], np.cumsum(counts)])
         self.levels = tuple(slice(int(a), int(b)) for a, b in zip(starts[:-1], starts[1:]))
-        parent_in_level = [None]
-        for d in range(1, len(self.levels)):
-            local = self.position[np.asarray(parents)[self.order[self.levels[d]]]] - self.levels[d - 1].start
-            identity = len(local) == counts[d - 1] and np.array_equal(local, np.arange(len(local)))
-            parent_in_level.append(None if identity else local)
-        self.parent_in_level = tuple(parent_in_level)
         self.subtree = np.zeros((n, n))
         for i in range(n):  # walk up from every body
             j = i
             while j >= 0:
                 self.subtree[self.position[j], self.position[i]] = 1.0
                 j = parents[j]
-        self.floating = bool(n and joint_types[0] == floating)
-        one_dof = self.order[int(self.floating):]
+        roots, one_dof = self.order[:F], self.order[F:]
         dofs = [k.num_velocities for k in joint_types]
         v_starts = np.concatenate([[0], np.cumsum(dofs)])[:-1].astype(int)
         q_starts = np.concatenate([[0], np.cumsum([k.num_positions for k in joint_types])])[:-1]
+        self.root_q, self.root_v = q_starts[roots].astype(int), v_starts[roots].astype(int)
         self.revolute = np.array([joint_types[i] == JointType.REVOLUTE for i in one_dof], float)
         self.q_index = q_starts[one_dof].astype(int)
+        self.v_index = v_starts[one_dof].astype(int)
         nv = int(sum(dofs))
         self.dof_body = np.zeros(nv, int)
         self.dof_level_order = np.zeros(nv, int)
         for i in range(n):
             self.dof_body[v_starts[i]: v_starts[i] + dofs[i]] = self.position[i]
-        level_dofs = ([np.arange(6)] if self.floating else []) + [[v_starts[i]] for i in one_dof]
+        level_dofs = [np.arange(v, v + 6) for v in self.root_v] + [[v_starts[i]] for i in one_dof]
         level_dofs = np.concatenate(level_dofs).astype(int) if level_dofs else np.zeros(0, int)
         self.dof_level_order[level_dofs] = np.arange(nv)
         self.level_dofs = level_dofs
         self.ancestor = self.subtree[self.dof_body[None, :], self.dof_body[:, None]]
 
-        self.first_scanned = int(self.floating)
+        self.first_scanned = int(F > 0)
         scanned = self.levels[self.first_scanned:]
-        self.width = max((lv.stop - lv.start for lv in scanned), default=0)
+        self.world_slot = F   # with free bodies: the slot beside theirs that the world's children read
+        world_children = F > 0 and any(p < 0 and not f for p, f in zip(parents, free))
+        self.width = max(max((lv.stop - lv.start for lv in scanned), default=0), F + world_children)
         self.slots = np.full((len(scanned), self.width), n, int)
         self.parent_of_slot = np.zeros((len(scanned), self.width), int)
         for d, level in enumerate(scanned):
@@ -218,7 +219,10 @@ class TreeLayout:
             depth_above = d + self.first_scanned - 1
             for w in range(count):
                 parent = parents[self.order[level.start + w]]
-                j = 0 if depth_above < 0 or parent < 0 else self.position[parent] - self.levels[depth_above].start
+                if parent < 0:
+                    j = self.world_slot if F else 0
+                else:
+                    j = self.position[parent] - self.levels[depth_above].start
                 self.parent_of_slot[d, w] = j
         self.valid = self.slots < n
         flat = np.full(n, -1, int)
@@ -230,7 +234,6 @@ class TreeLayout:
         for name, value in vars(self).items():
             if isinstance(value, np.ndarray) and value.dtype.kind == "i":
                 setattr(self, name, value.astype(np.int32))
-        self.parent_in_level = tuple(None if x is None else x.astype(np.int32) for x in self.parent_in_level)
 
 
 @functools.lru_cache(maxsize=256)
@@ -284,7 +287,7 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
         links[name] = _inertial(link, path)
     joints = []
     children = set()
-    free_joint = None  # a <joint type="floating"> from the world: its child is the floating base
+    free_joints = {}  # <joint type="floating"> from the world: child link -> joint name
     for joint in root.findall("joint"):
         name, kind = joint.get("name"), URDF_JOINT_TYPES.get(joint.get("type"))
         where = f"joint {name!r}"
@@ -296,20 +299,22 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
         parent = parent.get("link") if parent is not None else None
         child = child.get("link") if child is not None else None
         if kind == JointType.FLOATING:
-            if parent != "world" or free_joint is not None:
-                raise URDFError(f"{path}: joint {name!r} is floating {'between two links' if parent != 'world' else 'as a second free body'}; "
-                                "jaxdrake's tree has one floating base, joined to the world: give the floating "
-                                "joint the parent 'world', and only one")
+            if parent != "world":
+                raise URDFError(f"{path}: joint {name!r} is floating between two links ({parent!r} and {child!r}); "
+                                "a floating joint frees a body from the world: give it the parent 'world'")
             if child not in links:
                 raise URDFError(f"{path}: joint {name!r} names child link {child!r}, which is not defined")
-            free_joint = child
+            if child in children or child in free_joints:
+                raise URDFError(f"{path}: link {child!r} is the child of two joints (a kinematic loop; "
+                                "declare loops as constraints instead)")
+            free_joints[child] = name
             continue
         if parent == "world" and "world" not in links:  # Drake's convention: the world itself
             links["world"] = (0.0, np.zeros(3), np.zeros((3, 3)))
         for role, link in (("parent", parent), ("child", child)):
             if link not in links:
                 raise URDFError(f"{path}: joint {name!r} names {role} link {link!r}, which is not defined")
-        if child in children:
+        if child in children or child in free_joints:
             raise URDFError(f"{path}: link {child!r} is the child of two joints (a kinematic loop; "
                             "declare loops as constraints instead)")
         children.add(child)
@@ -325,23 +330,26 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
             upper=np.inf if unlimited else number(limit, "upper", np.inf),
             effort=number(limit, "effort", np.inf),
             damping=number(dynamics, "damping", 0.0), friction=number(dynamics, "friction", 0.0)))
-    if free_joint is not None:  # as floating_base=True: the world holds only the floating joint
-        if any(j["parent"] == "world" for j in joints):
-            raise URDFError(f"{path}: link {free_joint!r} floats while other joints hang from the world; "
-                            "jaxdrake's tree has one root: attach the environment as collision geometry on "
-                            "'world' (with_collision_geometry), not as links")
-        links.pop("world", None)
-        floating_base = True
-    roots = [name for name in links if name not in children]
-    if len(roots) > 1:
-        raise URDFError(f"{path}: {len(roots)} root links (links that are no joint's child): {roots}. In Drake "
-                        "each would float on its own; jaxdrake's tree has one root (one floating base at most): "
-                        "join the others to it by joints, or load each free body from a file of its own")
+    if free_joints and "world" not in links:
+        links["world"] = (0.0, np.zeros(3), np.zeros((3, 3)))
+    roots = [name for name in links if name not in children and name not in free_joints]
     if not roots:
         raise URDFError(f"{path}: no root link (a link that is no joint's child): the joints form a cycle")
-    if floating_base and roots[0] == "world" and "world" not in {l.get("name") for l in root.findall("link")}:
-        raise URDFError(f"{path}: the tree hangs from the world (its root joints name the parent "
-                        "'world'), so it cannot have a floating base; load it without floating_base")
+    # the fixed root (the world's frame): 'world' if the file names it, else the robot's root
+    # link unless floating_base; every other root floats, as in Drake
+    if "world" in roots:
+        roots.remove("world")
+        fixed = "world"
+        if floating_base and not roots:
+            raise URDFError(f"{path}: the tree hangs from the world (its root joints name the parent "
+                            "'world'), so it cannot have a floating base; load it without floating_base")
+        free = {link: free_joints.get(link, link) for link in roots}
+    else:
+        fixed = None if floating_base else roots[0]
+        free = {link: ("floating_base" if floating_base and i == 0 else link)
+                for i, link in enumerate(roots) if link != fixed}
+    free.update(free_joints)
+    free = {link: free[link] for link in links if link in free}   # in the file's order of links
     known = {j["name"]: j for j in joints}
     for name in welded:
         if name not in known:
@@ -354,8 +362,7 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
     for name in actuated:
         if name not in known:
             raise URDFError(f"{path}: a <transmission> actuates joint {name!r}, which is not defined")
-    tree = _build_tree(root.get("name") or path.stem, roots[0], links, joints, floating_base,
-                       np.asarray(gravity, float), path)
+    tree = _build_tree(root.get("name") or path.stem, fixed, free, links, joints, np.asarray(gravity, float), path)
     return tree, tuple(actuated)
 
 
@@ -432,46 +439,50 @@ def _combine(m1, c1, I1, m2, c2, I2):
     return m, c, I1 + shift(m1, c1 - c) + I2 + shift(m2, c2 - c)
 
 
-def _build_tree(robot_name, root, links, joints, floating_base, gravity, path):
+def _build_tree(robot_name, fixed, free, links, joints, gravity, path):
+    """The tree of the fixed root link `fixed` (the world's frame; None: none) and of the free
+    root links `free` (link -> its floating joint's name), each root's subtree after it."""
     by_parent = {}
     for j in joints:
         by_parent.setdefault(j["parent"], []).append(j)
     bodies = []      # dicts: name, joint, type, parent, R, p, axis, inertial
-    frames = []      # (link name, body index, R, p) with body -1 the world
     link_body = {}   # link -> (body index, R, p of the link in the body frame)
-
-    if floating_base:
-        bodies.append(dict(link=root, joint="floating_base", type=JointType.FLOATING, parent=-1,
-                           R=np.eye(3), p=np.zeros(3), axis=np.zeros(3), inertial=links[root],
-                           lower=-np.inf, upper=np.inf, effort=np.inf, damping=0.0, friction=0.0))
-        link_body[root] = (0, np.eye(3), np.zeros(3))
-    else:
-        link_body[root] = (-1, np.eye(3), np.zeros(3))
-    stack = list(reversed(by_parent.get(root, [])))
-    while stack:  # depth first, the children of a link in the order the file declares their joints
-        j = stack.pop()
-        body, R_lb, p_lb = link_body[j["parent"]]
-        R_o, p_o = j["origin"]
-        R, p = R_lb @ R_o, R_lb @ p_o + p_lb  # the joint frame in the parent body's frame
-        if j["type"] == JointType.FIXED:
-            link_body[j["child"]] = (body, R, p)
-            if body >= 0:  # merge the child's inertia into the body
-                m, c, I = links[j["child"]]
-                bodies[body]["inertial"] = _combine(*bodies[body]["inertial"], m, R @ c + p, R @ I @ R.T)
+    joint_names = {j["name"] for j in joints if j["type"] != JointType.FIXED}   # the moving joints
+    for root in ([fixed] if fixed is not None else []) + list(free):
+        if root == fixed:
+            link_body[root] = (-1, np.eye(3), np.zeros(3))
         else:
-            bodies.append(dict(link=j["child"], joint=j["name"], type=j["type"], parent=body, R=R, p=p,
-                               axis=j["axis"], inertial=links[j["child"]], lower=j["lower"],
-                               upper=j["upper"], effort=j["effort"], damping=j["damping"],
-                               friction=j["friction"]))
-            link_body[j["child"]] = (len(bodies) - 1, np.eye(3), np.zeros(3))
-        stack.extend(reversed(by_parent.get(j["child"], [])))
+            if free[root] in joint_names:
+                raise URDFError(f"{path}: link {root!r} floats, and its floating joint would be named "
+                                f"{free[root]!r}, which a joint of the file already is: rename that joint")
+            bodies.append(dict(link=root, joint=free[root], type=JointType.FLOATING, parent=-1,
+                               R=np.eye(3), p=np.zeros(3), axis=np.zeros(3), inertial=links[root],
+                               lower=-np.inf, upper=np.inf, effort=np.inf, damping=0.0, friction=0.0))
+            link_body[root] = (len(bodies) - 1, np.eye(3), np.zeros(3))
+        stack = list(reversed(by_parent.get(root, [])))
+        while stack:  # depth first, the children of a link in the order the file declares their joints
+            j = stack.pop()
+            body, R_lb, p_lb = link_body[j["parent"]]
+            R_o, p_o = j["origin"]
+            R, p = R_lb @ R_o, R_lb @ p_o + p_lb  # the joint frame in the parent body's frame
+            if j["type"] == JointType.FIXED:
+                link_body[j["child"]] = (body, R, p)
+                if body >= 0:  # merge the child's inertia into the body
+                    m, c, I = links[j["child"]]
+                    bodies[body]["inertial"] = _combine(*bodies[body]["inertial"], m, R @ c + p, R @ I @ R.T)
+            else:
+                bodies.append(dict(link=j["child"], joint=j["name"], type=j["type"], parent=body, R=R, p=p,
+                                   axis=j["axis"], inertial=links[j["child"]], lower=j["lower"],
+                                   upper=j["upper"], effort=j["effort"], damping=j["damping"],
+                                   friction=j["friction"]))
+                link_body[j["child"]] = (len(bodies) - 1, np.eye(3), np.zeros(3))
+            stack.extend(reversed(by_parent.get(j["child"], [])))
     if len(link_body) != len(links):
         missing = sorted(set(links) - set(link_body))
-        raise URDFError(f"{path}: links {missing} are not connected to the root {root!r}")
+        raise URDFError(f"{path}: links {missing} are not connected to any root (the joints form a cycle)")
     if not bodies:
         raise URDFError(f"{path}: the URDF has no movable joint")
-    for name, (body, R, p) in link_body.items():
-        frames.append((name, body, R, p))
+    frames = [(name, body, R, p) for name, (body, R, p) in link_body.items()]   # body -1: the world
     return assemble_tree(robot_name, bodies, frames, gravity, path)
 
 
@@ -530,6 +541,10 @@ def _check_every_joint_moves_mass(bodies, path):
         if bodies[i]["parent"] >= 0:
             carried[bodies[i]["parent"]] += carried[i]
     for b, amount in zip(bodies, carried):
+        if not amount > 0 and b["type"] == JointType.FLOATING:
+            raise URDFError(f"{path}: link {b['link']!r} floats (no joint joins it to the world or to another "
+                            "link) and has no mass or inertia, nor anything attached to it: give it an <inertial>, "
+                            "or join it by a joint")
         if not amount > 0:
             raise URDFError(f"{path}: joint {b['joint']!r} moves link {b['link']!r}, which has no mass "
                             "or inertia, and neither has anything attached beyond it: the mass matrix "
