@@ -415,7 +415,12 @@ def test_the_stiff_linearization_is_the_contact_springs_dampers_and_friction_slo
         spheres = spheres.with_collision_geometry(link, jd.geometry.Sphere(0.01 + 0.005 * i), translation=(0, 0.02 * i, 0),
                                                   name=f"extra{i}")
     assert len(spheres.contact_results(x).depth) > 16 + int(jnp.sum(spheres.contact_results(x).active))
-    for plant in (hopper, spheres):
+    pusher = _ours("arm_pushing_free_bodies")   # and free bodies beside an arm on the world
+    x_pusher = jnp.asarray(_random_state("arm_pushing_free_bodies", pusher, np.random.default_rng(5)))
+    x_pusher = x_pusher.at[4].set(0.075).at[11].set(0.055).at[16:].multiply(0.1)   # ball and puck touch, slowly
+    assert int(jnp.sum(pusher.contact_results(x_pusher).active)) >= 2
+    for plant, x in ((hopper, x), (spheres, x), (pusher, x_pusher)):
+        q, v = x[:plant.tree.nq], x[plant.tree.nq:]
         K, D = derivatives(plant, q, v)
         D_exact = jax.jacfwd(lambda v: plant.contact_force(q, v))(v)
         np.testing.assert_allclose(np.asarray(D), np.asarray(D_exact), rtol=1e-10, atol=1e-10 * float(jnp.max(jnp.abs(D))))

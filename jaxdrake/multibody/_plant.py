@@ -72,8 +72,12 @@ class RigidBodySystem(System):
 
     - B: the joints named by the URDF's `<transmission>`s, or `actuated` (joint names), or
       else every joint but a floating base; one input per actuated joint, in that order.
-    - State frame: joint positions then velocities (`<joint>`, `<joint>dot`; a floating base
-      has x, y, z, qx, qy, qz, qw and vx, vy, vz, wx, wy, wz, in its own frame).
+    - State frame: joint positions then velocities (`<joint>`, `<joint>dot`; a free body's
+      joint has x, y, z, qx, qy, qz, qw and vx, vy, vz, wx, wy, wz, in the body's own frame).
+    - Free bodies: the robot's root link with `floating_base=True` (joint `floating_base`),
+      the child of each `<joint type="floating">` from the world (the joint's name), and, as in
+      Drake, every other link that no joint holds (its own name); any number, beside bodies
+      that hang from the world.
     - Input limits: the actuated joints' `<limit effort>` (|u_k| <= effort, as Drake's
       parser makes actuator effort limits), unless `effort_limits=False`; the simulator
       locates the saturation instants as events.

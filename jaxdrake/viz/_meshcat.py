@@ -418,7 +418,7 @@ class MeshcatVisualizer(Visualizer):
                                                  self._neutral_transforms())
         model, camera = connection["puppet"]
         return render_frames(model, camera, self.frame_transforms(xs), self.height, self.width,
-                             follow=self.tree.has_floating_base)
+                             follow=self.tree.layout.num_floating == 1 and self.tree.parents.count(-1) == 1)
 
     def save(self, traj, path, fps=None) -> pathlib.Path:
         """Write the scene with the trajectory's animation as one self-contained `.html` file,
