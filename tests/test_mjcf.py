@@ -120,24 +120,30 @@ def quaternion_matrix(wxyz):
     return R.reshape(3, 3)
 
 
+def free_joints(model):
+    """(qpos address, dof address) of every free joint."""
+    return [(model.jnt_qposadr[j], model.jnt_dofadr[j]) for j in range(model.njnt)
+            if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE]
+
+
 def to_plant(model, qpos, qvel):
-    """MuJoCo's (qpos, qvel) as the plant's x: a free root's quaternion reordered to (x, y, z, w),
+    """MuJoCo's (qpos, qvel) as the plant's x: a free body's quaternion reordered to (x, y, z, w),
     its linear velocity turned into the body frame."""
     q, v = np.array(qpos, float), np.array(qvel, float)
-    if model.njnt and model.jnt_type[0] == mujoco.mjtJoint.mjJNT_FREE:
-        R = quaternion_matrix(qpos[3:7])
-        q[3:7] = np.roll(qpos[3:7], -1)
-        v[:3] = R.T @ qvel[:3]
+    for a, d in free_joints(model):
+        R = quaternion_matrix(qpos[a + 3: a + 7])
+        q[a + 3: a + 7] = np.roll(qpos[a + 3: a + 7], -1)
+        v[d: d + 3] = R.T @ qvel[d: d + 3]
     return np.concatenate([q, v])
 
 
 def plant_acceleration_from(model, qpos, qvel, qacc):
-    """MuJoCo's qacc as the time derivative of the plant's v: for a free root,
+    """MuJoCo's qacc as the time derivative of the plant's v: for a free body,
     d/dt (R^T v_world) = R^T a_world - omega x v_body."""
     a = np.array(qacc, float)
-    if model.njnt and model.jnt_type[0] == mujoco.mjtJoint.mjJNT_FREE:
-        R = quaternion_matrix(qpos[3:7])
-        a[:3] = R.T @ qacc[:3] - np.cross(qvel[3:6], R.T @ qvel[:3])
+    for p, d in free_joints(model):
+        R = quaternion_matrix(qpos[p + 3: p + 7])
+        a[d: d + 3] = R.T @ qacc[d: d + 3] - np.cross(qvel[d + 3: d + 6], R.T @ qvel[d: d + 3])
     return a
 
 
@@ -228,6 +234,36 @@ def test_floating_quadruped_accelerations_equal_mujoco():
     assert plant.tree.joint_types[0] == "floating" and plant.tree.nq == 19 and plant.tree.nv == 18
     assert plant.state_frame.coordinates[:7] == ("root_x", "root_y", "root_z", "root_qx", "root_qy", "root_qz", "root_qw")
     assert plant.num_inputs == 12
+    assert compare_accelerations(plant, model) < 1e-12
+
+
+FREE_BODIES_BESIDE_AN_ARM = """
+<mujoco>
+  <option gravity="0.3 0 -9.81"/>
+  <worldbody>
+    <body name="box" pos="0.5 0 0.2"><freejoint name="box_free"/>
+      <geom type="box" size=".1 .15 .05" mass="2"/>
+      <body name="flap" pos="0.1 0 0"><joint name="hinge" axis="0 1 0" damping="0.1"/>
+        <geom type="capsule" fromto="0 0 0 0.2 0 0" size=".02" mass="0.3"/></body>
+    </body>
+    <body name="upper" pos="0 0 1"><joint name="shoulder" axis="0 1 0"/>
+      <geom type="capsule" fromto="0 0 0 0 0 -0.4" size=".04" mass="1.5"/>
+      <body name="fore" pos="0 0 -0.4"><joint name="elbow" axis="1 0 0"/>
+        <geom type="capsule" fromto="0 0 0 0.05 0 -0.3" size=".03" mass="0.8"/></body>
+    </body>
+    <body name="ball" pos="-0.4 0.2 0.3"><freejoint name="ball_free"/><geom size=".08" mass="0.5"/></body>
+  </worldbody>
+  <actuator><motor joint="shoulder" gear="2"/><motor joint="elbow"/></actuator>
+</mujoco>
+"""
+
+
+def test_free_bodies_beside_an_arm_accelerations_equal_mujoco():
+    """Two free bodies (one carrying a hinged flap) and an arm hanging from the world."""
+    model = compiled(FREE_BODIES_BESIDE_AN_ARM)
+    plant = RigidBodySystem.from_mjcf(model)
+    assert plant.tree.joint_types == ("floating", "revolute", "revolute", "revolute", "floating")
+    assert plant.tree.joint_names == ("box_free", "hinge", "shoulder", "elbow", "ball_free")
     assert compare_accelerations(plant, model) < 1e-12
 
 
@@ -324,8 +360,6 @@ def test_contype_conaffinity_filtering():
 
 @pytest.mark.parametrize("body, message", [
     ('<body><joint name="ball" type="ball"/><geom size=".1"/></body>', r"joint 'ball' .*ball joint.*three hinges"),
-    ('<body><freejoint name="one"/><geom size=".1"/></body><body><freejoint name="two"/><geom size=".1"/></body>',
-     r"joint 'two' .*beside the floating body 'body1'"),
     ('<body><joint name="j" armature="0.1"/><geom size=".1"/></body>', r"joint 'j' .*armature 0.1.*ignore_armature=True"),
 ])
 def test_unsupported_models_are_named_errors(body, message):

@@ -6,8 +6,8 @@ angles in degrees, meshes); the compiled arrays are read here:
 - **Bodies.** A body with hinge / slide joints is a chain of tree bodies, one per joint in
   the file's order (all but the last without mass, named `<body>_<joint>`); a body without
   joints is welded to its parent (its inertia merged, as a URDF fixed joint); one with a free
-  joint is the floating base, allowed for one body of the worldbody that every other moving
-  body descends from (mocap bodies are welded where the file puts them). Every body is a
+  joint (a body of the worldbody) is a free body, any number of them beside bodies that hang
+  from the world (mocap bodies are welded where the file puts them). Every body is a
   named frame (and `world`), at MuJoCo's body frame.
 - **Placements, exactly.** MuJoCo moves a body by $X = X_{parent} B \prod_j T(a_j) J_j(q_j -
   q_{0,j}) T(-a_j)$ (`body_pos` / `body_quat` B, joint anchors `jnt_pos` $a_j$ in the body
@@ -41,9 +41,8 @@ angles in degrees, meshes); the compiled arrays are read here:
   its includes without DTD or entities, and every file it names (includes, meshes, textures,
   `<compiler meshdir assetdir texturedir>`) inside the model's folder; refused by name.
 
-Refused, each with a named error and its remedy: ball joints, a second floating body or one
-beside other moving bodies of the worldbody (MuJoCo's compiler itself refuses a free joint
-below the worldbody), armature (unless `ignore_armature=True`), joint springs,
+Refused, each with a named error and its remedy: ball joints (MuJoCo's compiler itself
+refuses a free joint below the worldbody), armature (unless `ignore_armature=True`), joint springs,
 polynomial damping, gravity compensation, fluid forces (`density`, `viscosity`), equality
 constraints, tendons, flexes, explicit contact `<pair>`s (with `contact=True`), geoms of
 other shapes that can collide (ellipsoid, height field, SDF), and two geoms that MuJoCo's
@@ -256,24 +255,15 @@ class _Reader:
             R, p = R_p @ R_B, R_p @ m.body_pos[b] + p_p  # body frame before its joints, in `parent`
             joints = range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b])
             for k, j in enumerate(joints):
-                if parent < 0 and bodies and bodies[0]["type"] == JointType.FLOATING:
-                    raise MJCFError(f"{self._joint(j)} moves a body of the worldbody beside the floating "
-                                    f"body {bodies[0]['link']!r}; the plant floats one body and everything "
-                                    "that moves descends from it. Make the body a child of the floating body, "
-                                    "or load the two as separate plants")
                 dof = m.jnt_dofadr[j]
                 common = dict(joint=self.joint_name[j], inertial=(0.0, np.zeros(3), np.zeros((3, 3))),
                               damping=m.dof_damping[dof] if damping_on else 0.0, friction=m.dof_frictionloss[dof],
                               effort=effort.get(j, np.inf), lower=-np.inf, upper=np.inf)
                 kind = self._joint_type(j)
-                if kind == JointType.FLOATING:
-                    if bodies:
-                        raise MJCFError(f"{self._joint(j)}: the floating body must come first among the "
-                                        f"worldbody's moving bodies (body {bodies[0]['link']!r} comes before it) "
-                                        "and be the only one; move it to the top of the worldbody")
+                if kind == JointType.FLOATING:   # a free body of the worldbody (MuJoCo allows no other)
                     bodies.append(dict(common, link=self.body_name[b], type=JointType.FLOATING, parent=-1, R=np.eye(3),
                                        p=np.zeros(3), axis=np.zeros(3)))
-                    parent, R, p = 0, np.eye(3), np.zeros(3)  # MuJoCo ignores body_pos for a free body
+                    parent, R, p = len(bodies) - 1, np.eye(3), np.zeros(3)  # MuJoCo ignores body_pos for a free body
                     continue
                 anchor, axis = m.jnt_pos[j], m.jnt_axis[j] / np.linalg.norm(m.jnt_axis[j])
                 ref = m.qpos0[m.jnt_qposadr[j]]
