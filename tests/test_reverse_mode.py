@@ -170,7 +170,10 @@ def stiff_van_der_pol(mode):
     return loss, np.array([2.0, 0.0, 30.0])
 
 
-@pytest.mark.parametrize("case", CASES + [stiff_van_der_pol], ids=lambda c: c.__name__)
+# by default the features that change the iteration most (an impact's saltation, a reused
+# matrix); the others slow
+@pytest.mark.parametrize("case", [pytest.param(c, marks=() if c in (bouncing_ball, stiff_van_der_pol) else pytest.mark.slow)
+                                  for c in CASES + [stiff_van_der_pol]], ids=lambda c: c.__name__)
 def test_the_adjoint_equals_forward_sensitivities(case):
     """Two independent derivations of the same derivative: the adjoint's backward loop over
     one iteration's VJP, and the loop's tangents (which the slow test above checks against
