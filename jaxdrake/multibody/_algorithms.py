@@ -46,6 +46,11 @@ from ._tree import KinematicTree
 # leading axis, where each thread strides over a member's 36 inertia entries).
 
 
+# products of float32 at float32's precision where JAX's default is less (TF32 on a GPU: the
+# lanes' programs are batched outside `_compiled`'s precision setting)
+_EXACT = jax.lax.Precision.HIGHEST
+
+
 def _mv(M, x):
     """Matrix-vector products M x, M (..., r, c, B), x (..., c, B), written as a sum over the
     (small, static) inner dimension of broadcast products: elementwise work that XLA fuses with
@@ -104,7 +109,7 @@ def _rotation_about(axis, angle):
     """Rodrigues' formula: rotations by `angle[k]` (k, B) about the unit `axis[k]` (k, 3)."""
     K = skew(axis)
     s, c = jnp.sin(angle)[:, None, None, :], jnp.cos(angle)[:, None, None, :]
-    return _lane(jnp.eye(3, dtype=K.dtype)) + s * _lane(K) + (1 - c) * _lane(K @ K)
+    return _lane(jnp.eye(3, dtype=K.dtype)) + s * _lane(K) + (1 - c) * _lane(jnp.matmul(K, K, precision=_EXACT))
 
 
 def _kinematics(tree: KinematicTree, q, *, unroll):
@@ -228,12 +233,12 @@ def _joint_velocity(L, S1, S0, v):
 
 def _subtree_sum(L, x):
     """For every body, the sum of x over its subtree (x: (n, ...), level order)."""
-    return jnp.tensordot(jnp.asarray(L.subtree, x.dtype), x, axes=1)
+    return jnp.tensordot(jnp.asarray(L.subtree, x.dtype), x, axes=1, precision=_EXACT)
 
 
 def _ancestor_sum(L, x):
     """For every body, the sum of x over its ancestors and itself."""
-    return jnp.tensordot(jnp.asarray(L.subtree.T, x.dtype), x, axes=1)
+    return jnp.tensordot(jnp.asarray(L.subtree.T, x.dtype), x, axes=1, precision=_EXACT)
 
 
 def _base_acceleration(tree, dtype, gravity: bool):
