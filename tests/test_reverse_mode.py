@@ -69,6 +69,31 @@ def sampled_controller(mode):
 
 CASES = [pendulum_dense, bouncing_ball, saturated_tape, sampled_controller]
 
+KNOTS = 80
+KNOT_TIMES = jnp.linspace(0.0, 1.0, KNOTS)
+FIRST_ORDER = jd.System.from_functions(lambda t, x, u: -x + u, num_states=1, num_inputs=1)
+
+
+def by_tape(w, mode="reverse"):
+    """|x(1)|^2 of a first-order lag driven by an input tape whose knots have the values w."""
+    tape = jd.Trajectory.from_samples(KNOT_TIMES, w[:, None])
+    return jd.simulate(FIRST_ORDER, (0.0, 1.0), jnp.ones(1), inputs=tape, autodiff=mode, **TOL).final_state[0] ** 2
+
+
+def by_closure(w, mode="reverse"):
+    """The same lag driven by an input function that closes over the weights w."""
+    def u(t):
+        return jnp.sum(w * jnp.sin(jnp.arange(1, KNOTS + 1) * t))
+    return jd.simulate(FIRST_ORDER, (0.0, 1.0), jnp.ones(1), inputs=u, autodiff=mode, **TOL).final_state[0] ** 2
+
+
+def tape_gradient_equal_to_central_differences(w, mode):
+    g = jax.grad(by_tape)(w, mode)
+    for i in (0, 17, 79):
+        e = jnp.zeros(KNOTS).at[i].set(1e-6)
+        np.testing.assert_allclose(g[i], (by_tape(w + e, mode) - by_tape(w - e, mode)) / 2e-6, rtol=1e-6)
+    return g
+
 
 # slow: four checkpointed gradient programs; by default the same features' gradients are
 # checked against central differences in test_input_limits, test_hybrid, test_compose and
@@ -89,32 +114,19 @@ def test_many_differentiated_scalars_take_the_adjoint_or_chunked_tangents(monkey
     fit, the checkpointed loop's VJP, equal to it) and as weights closed over by an input
     function (chunked forward sensitivities through the traced loop, against JAX's transpose
     of the checkpointed loop)."""
-    n = 80
-    assert n > _reverse.MAX_FORWARD_DIRECTIONS
-    ts = jnp.linspace(0.0, 1.0, n)
-    system = jd.System.from_functions(lambda t, x, u: -x + u, num_states=1, num_inputs=1)
-
-    def by_tape(w):
-        tape = jd.Trajectory.from_samples(ts, w[:, None])
-        return jd.simulate(system, (0.0, 1.0), jnp.ones(1), inputs=tape, **TOL).final_state[0] ** 2
-
-    def by_closure(w, mode="reverse"):
-        def u(t):
-            return jnp.sum(w * jnp.sin(jnp.arange(1, n + 1) * t))
-        return jd.simulate(system, (0.0, 1.0), jnp.ones(1), inputs=u, autodiff=mode, **TOL).final_state[0] ** 2
-
-    w = jnp.sin(3.0 * ts) / n
-    g_tape = jax.grad(by_tape)(w)
-    for i in (0, 17, 79):
-        e = jnp.zeros(n).at[i].set(1e-6)
-        np.testing.assert_allclose(g_tape[i], (by_tape(w + e) - by_tape(w - e)) / 2e-6, rtol=1e-6)
+    assert KNOTS > _reverse.MAX_FORWARD_DIRECTIONS
+    w = jnp.sin(3.0 * KNOT_TIMES) / KNOTS
+    g_tape = tape_gradient_equal_to_central_differences(w, "reverse")
     monkeypatch.setattr(_reverse, "KEPT_BYTES", 0)
     np.testing.assert_allclose(jax.grad(by_tape)(w), g_tape, rtol=1e-9, atol=1e-14)
     np.testing.assert_allclose(jax.grad(by_closure)(w), jax.grad(lambda w: by_closure(w, "checkpointed"))(w),
                                rtol=1e-9, atol=1e-14)
 
 
-def test_vmap_of_the_gradient_equals_a_loop_and_the_loop_is_traced_once():
+@pytest.mark.parametrize("mode", ["reverse", "adjoint"])
+def test_vmap_of_the_gradient_equals_a_loop_and_the_loop_is_traced_once(mode):
+    """Forward sensitivities, and the adjoint (whose backward pass re-runs the traced loop's
+    iteration)."""
     traces = []
 
     class Counted(jd.System):
@@ -129,7 +141,7 @@ def test_vmap_of_the_gradient_equals_a_loop_and_the_loop_is_traced_once():
             return jnp.array([x[1], -jnp.sin(x[0]) - self.b * x[1]])
 
     def loss(x0, b):
-        return jnp.sum(jd.simulate(Counted(b), (0.0, 1.0), x0, **TOL).final_state ** 2)
+        return jnp.sum(jd.simulate(Counted(b), (0.0, 1.0), x0, autodiff=mode, **TOL).final_state ** 2)
 
     gradient = jax.jit(jax.vmap(jax.grad(loss, argnums=(0, 1))))
     x0s, bs = jnp.array([[1.0, 0.0], [0.5, 0.2], [-0.3, 1.0]]), jnp.array([0.1, 0.2, 0.3])
@@ -184,47 +196,11 @@ def test_the_adjoint_equals_forward_sensitivities(case):
                                rtol=1e-9, atol=1e-12)
 
 
-def test_the_adjoint_with_many_scalars_a_closure_and_vmap():
+def test_the_adjoint_with_many_scalars_and_a_closure():
     """80 tape knots (central differences); weights closed over by an input function (the
-    loop's tangents); under vmap, equal to a loop over members, with the vector field traced
-    once for the loop (the backward pass re-runs that trace)."""
-    n = 80
-    ts = jnp.linspace(0.0, 1.0, n)
-    system = jd.System.from_functions(lambda t, x, u: -x + u, num_states=1, num_inputs=1)
-
-    def by_tape(w):
-        tape = jd.Trajectory.from_samples(ts, w[:, None])
-        return jd.simulate(system, (0.0, 1.0), jnp.ones(1), inputs=tape, autodiff="adjoint",
-                           **TOL).final_state[0] ** 2
-
-    def by_closure(w, mode="adjoint"):
-        def u(t):
-            return jnp.sum(w * jnp.sin(jnp.arange(1, n + 1) * t))
-        return jd.simulate(system, (0.0, 1.0), jnp.ones(1), inputs=u, autodiff=mode, **TOL).final_state[0] ** 2
-
-    w = jnp.sin(3.0 * ts) / n
-    g_tape = jax.grad(by_tape)(w)
-    for i in (0, 17, 79):
-        e = jnp.zeros(n).at[i].set(1e-6)
-        np.testing.assert_allclose(g_tape[i], (by_tape(w + e) - by_tape(w - e)) / 2e-6, rtol=1e-6)
-    np.testing.assert_allclose(jax.grad(by_closure)(w), jax.grad(lambda w: by_closure(w, "reverse"))(w),
+    loop's tangents)."""
+    w = jnp.sin(3.0 * KNOT_TIMES) / KNOTS
+    tape_gradient_equal_to_central_differences(w, "adjoint")
+    np.testing.assert_allclose(jax.grad(lambda w: by_closure(w, "adjoint"))(w), jax.grad(by_closure)(w),
                                rtol=1e-9, atol=1e-14)
 
-    traces = []
-
-    def pendulum(t, x, u, b):
-        traces.append(1)
-        return jnp.array([x[1], -jnp.sin(x[0]) - b * x[1]])
-
-    def loss(x0, b):
-        plant = jd.System.from_functions(lambda t, x, u: pendulum(t, x, u, b), num_states=2)
-        return jnp.sum(jd.simulate(plant, (0.0, 1.0), x0, autodiff="adjoint", **TOL).final_state ** 2)
-
-    gradient = jax.jit(jax.vmap(jax.grad(loss, argnums=(0, 1))))
-    x0s, bs = jnp.array([[1.0, 0.0], [0.5, 0.2], [-0.3, 1.0]]), jnp.array([0.1, 0.2, 0.3])
-    gx, gb = gradient(x0s, bs)
-    assert len(traces) == 2, f"the vector field was traced {len(traces)} times for one gradient program"
-    for i in range(3):
-        gxi, gbi = jax.grad(loss, argnums=(0, 1))(x0s[i], bs[i])
-        np.testing.assert_allclose(gx[i], gxi, rtol=1e-12)
-        np.testing.assert_allclose(gb[i], gbi, rtol=1e-12)
