@@ -159,7 +159,7 @@ class TreeLayout:
     scanned depth d (n: an empty slot), `valid[d, w]` whether it is a body, `parent_of_slot[d, w]`
     the slot of the depth above that holds its parent (without free bodies, depth 0's parent,
     the world, is slot 0; with them, the free bodies are slots 0 .. num_floating - 1 and the
-    world slot `world_slot` = num_floating; empty slots point at 0),
+    world is slot num_floating; empty slots point at 0),
     and `unslot[k]` the flat padded index of level-order position k >= `first_scanned`'s start.
     """
 
@@ -208,7 +208,6 @@ class TreeLayout:
 
         self.first_scanned = int(F > 0)
         scanned = self.levels[self.first_scanned:]
-        self.world_slot = F   # with free bodies: the slot beside theirs that the world's children read
         world_children = F > 0 and any(p < 0 and not f for p, f in zip(parents, free))
         self.width = max(max((lv.stop - lv.start for lv in scanned), default=0), F + world_children)
         self.slots = np.full((len(scanned), self.width), n, int)
@@ -219,8 +218,8 @@ class TreeLayout:
             depth_above = d + self.first_scanned - 1
             for w in range(count):
                 parent = parents[self.order[level.start + w]]
-                if parent < 0:
-                    j = self.world_slot if F else 0
+                if parent < 0:   # the world: with free bodies, the slot beside theirs
+                    j = F
                 else:
                     j = self.position[parent] - self.levels[depth_above].start
                 self.parent_of_slot[d, w] = j
@@ -343,13 +342,13 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
         if floating_base and not roots:
             raise URDFError(f"{path}: the tree hangs from the world (its root joints name the parent "
                             "'world'), so it cannot have a floating base; load it without floating_base")
-        free = {link: free_joints.get(link, link) for link in roots}
+        names = {link: link for link in roots}
     else:
         fixed = None if floating_base else roots[0]
-        free = {link: ("floating_base" if floating_base and i == 0 else link)
-                for i, link in enumerate(roots) if link != fixed}
-    free.update(free_joints)
-    free = {link: free[link] for link in links if link in free}   # in the file's order of links
+        names = {link: ("floating_base" if floating_base and i == 0 else link)
+                 for i, link in enumerate(roots) if link != fixed}
+    names.update(free_joints)
+    free = {link: names[link] for link in links if link in names}   # in the file's order of links
     known = {j["name"]: j for j in joints}
     for name in welded:
         if name not in known:

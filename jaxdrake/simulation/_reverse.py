@@ -210,7 +210,8 @@ def run_adjoint(loop, t0, x0, h0, status):
 def _window(s, linearization, like=None):
     """The state `s` as the windowed iteration takes it: buffers of one row of zeros (shaped
     as those of `like`, by default `s`), and the kept matrix `linearization`."""
-    rows = tuple(None if b is None else jnp.zeros((1,) + b.shape[1:], b.dtype) for b in (like or s).buffers())
+    rows = tuple(None if b is None else jnp.zeros((1,) + b.shape[1:], b.dtype)
+                 for b in (s if like is None else like).buffers())
     return dataclasses.replace(eqx.tree_at(lambda s: s.buffers(), s, rows, is_leaf=lambda x: x is None),
                                linearization=linearization)
 
@@ -218,7 +219,7 @@ def _window(s, linearization, like=None):
 def _without_buffers(s):
     """What the forward pass keeps of an iteration's state: no buffers (their counts stay), no
     kept matrix."""
-    return dataclasses.replace(eqx.tree_at(lambda s: s.buffers(), s, (None,) * 8), linearization=None)
+    return dataclasses.replace(eqx.tree_at(lambda s: s.buffers(), s, (None,) * len(s.buffers())), linearization=None)
 
 
 def _placed(s, w):
