@@ -131,9 +131,9 @@ def _kinematics(tree: KinematicTree, q, *, unroll):
     eye = jnp.broadcast_to(_lane(jnp.eye(3, dtype=dtype)), (3, 3, lanes))
     zero3 = jnp.zeros((3, lanes), dtype)
     if f:   # the free bodies, then the world (their slots and the world slot of the depth above)
-        R_root = jnp.moveaxis(quaternion_matrix(q[L.root_q[None, :] + np.arange(3, 7)[:, None]]), 2, 0)
-        origin = q[L.root_q[0] + np.arange(3)]                                   # O: the first free body
-        p_root = q[L.root_q[:, None] + np.arange(3)] - origin
+        R_root = jnp.moveaxis(quaternion_matrix(q[L.free_q[:, 3:].T]), 2, 0)
+        origin = q[L.free_q[0, :3]]                                               # O: the first free body
+        p_root = q[L.free_q[:, :3]] - origin
         pad = L.width - f
         init = (jnp.concatenate([R_root, jnp.broadcast_to(eye, (pad, 3, 3, lanes))]),
                 jnp.concatenate([p_root, jnp.broadcast_to(-origin, (pad, 3, lanes))]))   # the world at -O
@@ -640,7 +640,7 @@ def external_forces(tree: KinematicTree, motion: BodyMotion, F):
 def _offset(tree, q):
     """O in world coordinates: the first free body's position, else the world origin."""
     L = tree.layout
-    return q[L.root_q[0]: L.root_q[0] + 3] if L.num_floating else jnp.zeros(3, q.dtype)
+    return q[L.free_q[0, :3]] if L.num_floating else jnp.zeros(3, q.dtype)
 
 
 @compiled_query
@@ -722,8 +722,8 @@ def configuration_derivative(tree: KinematicTree, q, v):
                                     w * wz + x * wy - y * wx, -(x * wx + y * wy + z * wz)])
         return jnp.concatenate([quaternion_matrix(quat) @ v_lin, quat_dot])
 
-    per_root = jax.vmap(free)(*_free_parts(L, q, v))
-    return jnp.zeros(tree.nq, v.dtype).at[L.q_index].set(v[L.v_index]).at[_free_q(L)].set(per_root)
+    per_root = jax.vmap(free)(q[L.free_q[:, 3:]], v[L.free_v[:, :3]], v[L.free_v[:, 3:]])
+    return jnp.zeros(tree.nq, v.dtype).at[L.q_index].set(v[L.v_index]).at[L.free_q].set(per_root)
 
 
 def velocity_of_configuration_change(tree: KinematicTree, q, dq):
@@ -742,22 +742,6 @@ def velocity_of_configuration_change(tree: KinematicTree, q, dq):
                                  w * dz - dw * z - x * dy + y * dx])
         return jnp.concatenate([quaternion_matrix(quat).T @ dp, omega])
 
-    quat = q[L.root_q[:, None] + np.arange(3, 7)]
-    per_root = jax.vmap(free)(quat, dq[L.root_q[:, None] + np.arange(3)], dq[L.root_q[:, None] + np.arange(3, 7)])
-    return jnp.zeros(tree.nv, dq.dtype).at[L.v_index].set(dq[L.q_index]).at[_free_v(L)].set(per_root)
+    per_root = jax.vmap(free)(q[L.free_q[:, 3:]], dq[L.free_q[:, :3]], dq[L.free_q[:, 3:]])
+    return jnp.zeros(tree.nv, dq.dtype).at[L.v_index].set(dq[L.q_index]).at[L.free_v].set(per_root)
 
-
-def _free_parts(L, q, v):
-    """The free bodies' quaternions (F, 4), linear and angular velocity coordinates (F, 3)."""
-    return (q[L.root_q[:, None] + np.arange(3, 7)], v[L.root_v[:, None] + np.arange(3)],
-            v[L.root_v[:, None] + np.arange(3, 6)])
-
-
-def _free_q(L):
-    """(F, 7): the free bodies' position coordinates."""
-    return L.root_q[:, None] + np.arange(7)
-
-
-def _free_v(L):
-    """(F, 6): the free bodies' velocity coordinates."""
-    return L.root_v[:, None] + np.arange(6)

@@ -458,9 +458,9 @@ class RigidBodySystem(System):
         """[|quaternion|^2 - 1 (each free body); phi(q); J(q) v]."""
         q, v = x[: self.tree.nq], x[self.tree.nq:]
         parts = []
-        roots = self.tree.layout.root_q
-        if len(roots):
-            parts.append(jnp.sum(q[roots[:, None] + np.arange(3, 7)] ** 2, 1) - 1)
+        quaternions = self.tree.layout.free_q[:, 3:]
+        if len(quaternions):
+            parts.append(jnp.sum(q[quaternions] ** 2, 1) - 1)
         if self.loops or self.couplers:
             parts += [self.constraint_residual(q), self.constraint_jacobian(q) @ v]
         return jnp.concatenate(parts) if parts else jnp.zeros(0, x.dtype)

@@ -141,8 +141,9 @@ class TreeLayout:
     - `levels[d]`: the slice of level-order positions at depth d.
     - `subtree[j, i]`: 1 where body i (level order) is in the subtree of body j (itself included).
     - `num_floating`: the free bodies (floating joints; only roots may have one), at
-      positions 0 .. num_floating - 1, depth 0, each with position coordinates
-      `root_q[k]` .. + 7 and velocity coordinates `root_v[k]` .. + 6; with any of them, the
+      positions 0 .. num_floating - 1, depth 0, each with position coordinates `free_q[k]`
+      (7: x, y, z, then the quaternion) and velocity coordinates `free_v[k]` (6: linear, then
+      angular, in its frame); with any of them, the
       other roots (joined to the world) count as depth 1, children of the world. The other
       bodies have one degree of freedom each, `revolute[k]` (1.0) or prismatic (0.0), with
       position coordinate `q_index[k]` (k over the one-dof bodies in level order).
@@ -191,7 +192,8 @@ class TreeLayout:
         dofs = [k.num_velocities for k in joint_types]
         v_starts = np.concatenate([[0], np.cumsum(dofs)])[:-1].astype(int)
         q_starts = np.concatenate([[0], np.cumsum([k.num_positions for k in joint_types])])[:-1]
-        self.root_q, self.root_v = q_starts[roots].astype(int), v_starts[roots].astype(int)
+        self.free_q = q_starts[roots].astype(int)[:, None] + np.arange(7)
+        self.free_v = v_starts[roots].astype(int)[:, None] + np.arange(6)
         self.revolute = np.array([joint_types[i] == JointType.REVOLUTE for i in one_dof], float)
         self.q_index = q_starts[one_dof].astype(int)
         self.v_index = v_starts[one_dof].astype(int)
@@ -200,7 +202,7 @@ class TreeLayout:
         self.dof_level_order = np.zeros(nv, int)
         for i in range(n):
             self.dof_body[v_starts[i]: v_starts[i] + dofs[i]] = self.position[i]
-        level_dofs = [np.arange(v, v + 6) for v in self.root_v] + [[v_starts[i]] for i in one_dof]
+        level_dofs = list(self.free_v) + [[v_starts[i]] for i in one_dof]
         level_dofs = np.concatenate(level_dofs).astype(int) if level_dofs else np.zeros(0, int)
         self.dof_level_order[level_dofs] = np.arange(nv)
         self.level_dofs = level_dofs
