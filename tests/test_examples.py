@@ -41,7 +41,16 @@ SLOW = {"swing_up.ipynb", "lqr.ipynb", "swing_up.py",  # lqr.ipynb: 45 s, extend
         # mpc_estimation.py 80 (compiling the UKF/MPC and LQG loops, two LCM node processes; its pieces:
         # tests/test_mpc.py, each QP against OSQP/Clarabel and the constraints along a closed loop, and
         # tests/test_estimation.py, the UKF against filterpy and LQG's poles); its notebook repeats it
-        "mpc_estimation.py", "mpc_estimation.ipynb"}
+        "mpc_estimation.py", "mpc_estimation.ipynb",
+        # scripts of 13-21 CPU s each whose content a fast test checks (the suite's 10-minute budget):
+        # dynamic_programming.py (tests/test_planning.py: the grid world, the double integrator against
+        # Drake and the exact minimum time, the pendulum's swing-up under its policy), lyapunov.py
+        # (tests/test_analysis.py: the common Lyapunov function, the damped pendulum's certificate, the
+        # cubic system's region, the reversed Van der Pol), feedback_cancellation.py
+        # (tests/test_multibody.py), lcm_pendulum.py (tests/test_lcm_bridge.py, the two processes'
+        # loop), rimless_wheel.py (tests/test_hybrid.py, the rolling fixed point)
+        "dynamic_programming.py", "lyapunov.py", "feedback_cancellation.py", "lcm_pendulum.py",
+        "rimless_wheel.py"}
 NOTEBOOKS = [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW else p
              for p in sorted((ROOT / "notebooks").glob("*.ipynb"))]
 WORKERS = 3

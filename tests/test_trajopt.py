@@ -427,6 +427,26 @@ def test_box_qp_matches_scipys_bounded_minimizer():
     assert active >= 2
 
 
+def test_an_indefinite_quu_is_made_positive_definite_and_a_definite_one_is_kept():
+    """The backward pass's fallback where the DDP curvature makes Q_uu indefinite: a definite
+    matrix is returned as it is; an indefinite one gains the Gershgorin shift (the largest
+    off-diagonal row sum less the diagonal, plus the largest |diagonal|), after which every
+    Gershgorin disc, and so every eigenvalue, lies at or above that largest |diagonal|; for one
+    input the result is |Q_uu|."""
+    from jaxdrake.trajopt._ilqr import convexified
+
+    rng = np.random.default_rng(7)
+    M = rng.normal(size=(3, 3))
+    definite = M @ M.T + 0.1 * np.eye(3)
+    np.testing.assert_array_equal(convexified(jnp.asarray(definite)), definite)
+    np.testing.assert_allclose(convexified(jnp.array([[-2.5]])), [[2.5]], rtol=1e-15)
+    indefinite = np.array([[1.0, 2.0, 0.5], [2.0, -3.0, 1.0], [0.5, 1.0, 0.2]])
+    shift = max(np.abs(indefinite).sum(1) - np.abs(np.diag(indefinite)) - np.diag(indefinite)) + 3.0   # = 9.0
+    fixed = np.asarray(convexified(jnp.asarray(indefinite)))
+    np.testing.assert_allclose(fixed, indefinite + shift * np.eye(3), rtol=1e-15)
+    assert np.linalg.eigvalsh(fixed).min() >= 3.0 - 1e-12
+
+
 @pytest.mark.parametrize("model", ["pendulum", pytest.param("acrobot", marks=pytest.mark.slow)])
 def test_hermite_simpson_structured_derivatives_equal_autodiff_of_the_defect(model):
     """DirectCollocation's defect term is batched over the segments (each knot's f once) and

@@ -311,7 +311,7 @@ class StepModel(eqx.Module):
 
 class Gains(eqx.Module):
     r"""The backward pass's policy $u_k = \bar u_k + \alpha k_k + K_k (x_k - \bar x_k)$ (clamped),
-    whether every regularized $Q_{uu}$ was positive definite, and the model's predicted decrease
+    whether every step's factorization stayed finite, and the model's predicted decrease
     $\Delta V(\alpha) = -(\alpha d_1 + \alpha^2 d_2)$, $d = (\sum_k k_k^T Q_u, \sum_k \tfrac12 k_k^T Q_{uu} k_k)$."""
 
     feedforward: jax.Array  # k (N, m)
@@ -329,6 +329,20 @@ def expand_steps(problem: ILQRProblem, X, U) -> StepModel:
     return StepModel(A=A, B=B, fxx=fxx, fxu=fxu, fuu=fuu, lx=lx, lu=lu, lxx=lxx, lux=lux, luu=luu, u=U)
 
 
+def convexified(H):
+    r"""H where it is positive definite; else $H + sI$ with the Gershgorin shift
+    $s = \max_i (\sum_{j \ne i} |H_{ij}| - H_{ii}) + \max_i |H_{ii}|$, which makes it
+    diagonally dominant (for one input, $|H|$: the curvature's sign flipped, as saddle-free
+    Newton does). The DDP curvature $V_x' \cdot \Phi_{uu}$ can make $Q_{uu}$ indefinite after a
+    penalty increase; a step then costs one knot's shift instead of an iteration spent raising
+    the regularization (the batch's stragglers waited for those: 106 iterations against a
+    median of 26 among 8192 pendulum swing-ups, float32 on a GPU)."""
+    definite = jnp.all(jnp.isfinite(jnp.linalg.cholesky(H)))
+    diagonal = jnp.diagonal(H)
+    shift = jnp.max(jnp.sum(jnp.abs(H), 1) - jnp.abs(diagonal) - diagonal) + jnp.max(jnp.abs(diagonal))
+    return jnp.where(definite, H, H + shift * jnp.eye(H.shape[0], dtype=H.dtype))
+
+
 def backward_step(problem: ILQRProblem, regularization, carry, k: StepModel):
     r"""One step of the backward pass, from $(V_x', V_{xx}')$ at step k+1 (DDP, with the
     dynamics' curvature):
@@ -339,7 +353,8 @@ def backward_step(problem: ILQRProblem, regularization, carry, k: StepModel):
       Q_{uu} = \ell_{uu} + B^T V_{xx}' B + V_x' \cdot \Phi_{uu};$$
 
     the gains from the regularized $\tilde Q = Q$ with $V_{xx}' + \rho I$ for $V_{xx}'$ (Tassa
-    et al. 2012, eq. 10-11): $k$ solves the box QP $\min \tfrac12 k^T \tilde Q_{uu} k + Q_u^T k$,
+    et al. 2012, eq. 10-11), made positive definite where it is not (`convexified`): $k$ solves
+    the box QP $\min \tfrac12 k^T \tilde Q_{uu} k + Q_u^T k$,
     $u_{lo} - \bar u \le k \le u_{hi} - \bar u$ (warm-started at the next step's k), and
     $K = -\tilde Q_{uu}^{-1} \tilde Q_{ux}$ on the free inputs, zero on the clamped ones; then
 
@@ -357,7 +372,7 @@ def backward_step(problem: ILQRProblem, regularization, carry, k: StepModel):
     Qxx = lxx + A.T @ Vxx @ A
     Quu, Qux = luu + B.T @ Vxx @ B, lux + B.T @ Vxx @ A
     Quu_reg = luu + B.T @ Vreg @ B
-    kff, free, chol = box_qp((Quu_reg + Quu_reg.T) / 2, Qu, problem.u_lo - k.u, problem.u_hi - k.u, warm)
+    kff, free, chol = box_qp(convexified((Quu_reg + Quu_reg.T) / 2), Qu, problem.u_lo - k.u, problem.u_hi - k.u, warm)
     ok = ok & jnp.all(jnp.isfinite(chol))
     K = jnp.where(free[:, None], -jax.scipy.linalg.cho_solve((chol, True), lux + B.T @ Vreg @ A), 0.0)
     Vx = Qx + K.T @ Quu @ kff + K.T @ Qu + Qux.T @ kff
