@@ -51,6 +51,40 @@ def test_a_thousand_steps_equal_c_mujoco(source):
     np.testing.assert_allclose(samples, expected, rtol=0, atol=1e-10)
 
 
+@pytest.mark.slow  # MuJoCo Warp's kernels compile for ~50 s on a CPU the first time (cached after)
+@pytest.mark.parametrize("source", [PENDULUM, DATA / "mj_cartpole.xml"], ids=["pendulum", "cartpole"])
+def test_steps_on_mujoco_warp_equal_c_mujoco_to_float32_rounding(source):
+    """impl="warp" (MuJoCo Warp, float32): a thousand steps under a sine input equal C MuJoCo's
+    float64 steps to 2e-5 (the pendulum measured 2.8e-7, the cart-pole 5.5e-6 on a CPU: float32
+    rounding over 1000 steps); a vmapped batch equals its members run one by one."""
+    pytest.importorskip("mujoco_warp")
+    dt_system = jd.MujocoSystem.from_xml(source, impl="warp")
+    dt, n = dt_system.sample_time, 1000
+    x0 = np.array(dt_system.initial_state()) + 0.3
+    controls = 0.8 * np.sin(3.0 * dt * np.arange(n))[:, None] * np.ones((1, dt_system.num_inputs))
+    expected = c_mujoco(dt_system.mj_model, x0, controls)
+    tape = jd.Trajectory.from_samples(dt * np.arange(n), controls, interpolation="zoh")
+    on_warp = jd.simulate(dt_system, (0.0, n * dt), jnp.asarray(x0), inputs=tape).final_state
+    np.testing.assert_allclose(np.asarray(on_warp), expected[-1], rtol=0, atol=2e-5)
+    starts = jnp.asarray(x0) + 0.01 * jnp.arange(4)[:, None]
+    final = lambda x: jd.simulate(dt_system, (0.0, 100 * dt), x, dense=False).final_state  # noqa: E731
+    np.testing.assert_array_equal(np.asarray(jax.jit(jax.vmap(final))(starts)), np.stack([final(x) for x in starts]))
+
+
+def test_the_implementation_is_checked_and_warp_sizes_need_warp():
+    with pytest.raises(ValueError, match="impl must be 'jax'"):
+        jd.MujocoSystem.from_xml(PENDULUM, impl="cuda")
+    with pytest.raises(ValueError, match="with impl='warp' only"):
+        jd.MujocoSystem.from_xml(PENDULUM, warp_sizes={"naconmax": 100})
+    import importlib.util
+    if importlib.util.find_spec("mujoco_warp") is None:
+        with pytest.raises(ImportError, match=r"jaxdrake\[mujoco-warp\]"):
+            jd.MujocoSystem.from_xml(PENDULUM, impl="warp")
+    else:
+        with pytest.raises(ValueError, match="naconmax, naccdmax, njmax, nvmax"):
+            jd.MujocoSystem.from_xml(PENDULUM, impl="warp", warp_sizes={"nconmax": 100})
+
+
 def test_contacts_equal_c_mujoco_to_the_solver_tolerance():
     """A spinning ball dropped onto a plane, converged solver (MuJoCo's defaults: tolerance
     1e-8): MJX and C MuJoCo (warm start off in both) agree to 1e-6 over 400 steps (2 s),

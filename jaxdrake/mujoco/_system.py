@@ -80,7 +80,7 @@ def mujoco_renderer(model, height: int, width: int):
 
 def import_mujoco():
     """mujoco and mjx, imported without MJX's "Failed to import warp" lines (Warp is an optional
-    GPU backend jaxdrake does not use), and with MuJoCo's warnings sent to Python's `warnings`
+    GPU backend, used only by `MujocoSystem(impl="warp")`), and with MuJoCo's warnings sent to Python's `warnings`
     (MuJoCo's own handler writes MUJOCO_LOG.TXT into the working folder) unless the user set
     a handler."""
     try:
@@ -110,6 +110,14 @@ class MujocoSystem(System):
     (default) or `"sensors"` (`sensordata`, named by the model's sensors); `warm_start=True`
     carries the solver's warm start in the state (see the module doc).
 
+    `impl="warp"` steps the model with MuJoCo Warp (MJX's Warp implementation, `mjx.put_model(...,
+    impl="warp")`; `pip install 'jaxdrake[mujoco-warp]'`, an NVIDIA GPU for speed): float32 steps,
+    the model's constants as compiled (its arrays are not differentiable leaves there, and no
+    gradient passes a Warp step), `vmap` over states and inputs. `warp_sizes`: MJX's
+    `make_data` capacities for Warp, e.g. `{"naconmax": ..., "njmax": ...}`: `naconmax` counts
+    the contacts of all the worlds a `vmap` steps at once (MuJoCo Warp prints an overflow
+    warning and drops contacts when it is too small), `njmax` the constraints of one world.
+
     `mj_model` keeps the C model (for C MuJoCo, rendering); `model` is the `mjx.Model`.
     """
 
@@ -118,8 +126,11 @@ class MujocoSystem(System):
     sizes: tuple = eqx.field(static=True)  # (nq, nv, na)
     sensors: bool = eqx.field(static=True)
     warm_start: bool = eqx.field(static=True)
+    impl: str = eqx.field(static=True)
+    warp_sizes: tuple = eqx.field(static=True)  # ((name, capacity), ...) for make_data with impl="warp"
 
-    def __init__(self, mj_model, *, output: str = "state", warm_start: bool = False):
+    def __init__(self, mj_model, *, output: str = "state", warm_start: bool = False, impl: str = "jax",
+                 warp_sizes=None):
         mujoco, mjx = import_mujoco()
         if not isinstance(mj_model, mujoco.MjModel):
             raise TypeError(f"MujocoSystem needs a mujoco.MjModel (or use MujocoSystem.from_xml), "
@@ -131,7 +142,21 @@ class MujocoSystem(System):
         if mj_model.nq + mj_model.nv + mj_model.na == 0:
             raise ValueError("the MuJoCo model has no degrees of freedom (no joint and no actuator state): there "
                              "is nothing to simulate; give a body a <joint> or <freejoint>")
-        self.mj_model, self.model = mj_model, mjx.put_model(mj_model)
+        if impl not in ("jax", "warp"):
+            raise ValueError(f"impl must be 'jax' (MJX in JAX) or 'warp' (MuJoCo Warp), got {impl!r}")
+        if impl == "warp":
+            try:
+                import mujoco_warp  # noqa: F401
+                import warp  # noqa: F401
+            except ImportError as error:   # not in the test extra: 150 MB of GPU kernels' compiler
+                raise ImportError("MujocoSystem(impl='warp') needs MuJoCo Warp: pip install "
+                                  "'jaxdrake[mujoco-warp]' (mujoco-warp and warp-lang)") from error
+        unknown = set(warp_sizes or {}) - {"naconmax", "naccdmax", "njmax", "nvmax"}
+        if unknown or (warp_sizes and impl != "warp"):
+            raise ValueError(f"warp_sizes takes naconmax, naccdmax, njmax, nvmax, with impl='warp' only; got "
+                             f"{dict(warp_sizes)} with impl={impl!r}")
+        self.impl, self.warp_sizes = impl, tuple(sorted((warp_sizes or {}).items()))
+        self.mj_model, self.model = mj_model, mjx.put_model(mj_model, impl=impl)
         self.sizes = (mj_model.nq, mj_model.nv, mj_model.na)
         self.sensors = output == "sensors"
         self.warm_start = bool(warm_start)
@@ -157,7 +182,8 @@ class MujocoSystem(System):
                          input_frame=inputs, output_frame=outputs)
 
     @classmethod
-    def from_xml(cls, text_or_path, assets=None, *, output: str = "state", warm_start: bool = False) -> "MujocoSystem":
+    def from_xml(cls, text_or_path, assets=None, *, output: str = "state", warm_start: bool = False,
+                 impl: str = "jax", warp_sizes=None) -> "MujocoSystem":
         """From MJCF text or a file path (an `.xml` MJCF or a `.urdf`); `assets`: {file name: bytes}.
         The files a model names are read only from inside its folder (the working directory for
         text) or from `assets`; its XML without DTD or entities (`multibody.check_model_files`)."""
@@ -172,14 +198,16 @@ class MujocoSystem(System):
                 raise FileNotFoundError(f"no MuJoCo model file {path}")
             check_model_files(path, assets=assets)
             model = mujoco.MjModel.from_xml_path(str(path), assets or {})
-        return cls(model, output=output, warm_start=warm_start)
+        return cls(model, output=output, warm_start=warm_start, impl=impl, warp_sizes=warp_sizes)
 
     def stepped_model(self):
         """The `mjx.Model` each step uses: `model`, its derived constants recomputed from its
         arrays (`set_const`, as C MuJoCo's `mj_setConst`) where those differ from the compiled
         model's (`mj_model`); where they do not, the compiled constants themselves (to the bit:
         a one-iteration solver turns a last-bit change of `body_invweight0` into 1e-3 in 300
-        steps)."""
+        steps). With `impl="warp"`, `model` as it is."""
+        if self.impl == "warp":   # Warp's kernels take float32 (simulate may have widened the leaves)
+            return jax.tree.map(lambda a: a.astype(jnp.float32) if eqx.is_inexact_array(a) else a, self.model)
         fresh = set_const(self.model, self.mj_model)
         compiled = _as_compiled(self.model, self.mj_model)
         return fresh.replace(**{name: jnp.where(compiled, getattr(self.model, name), getattr(fresh, name))
@@ -188,7 +216,11 @@ class MujocoSystem(System):
     def _data(self, model, t, x, u):
         _, mjx = import_mujoco()
         nq, nv, na = self.sizes
-        data = mjx.make_data(model)
+        if self.impl == "warp":   # Warp's data is built from the C model, in float32
+            data = mjx.make_data(self.mj_model, impl="warp", **dict(self.warp_sizes))
+            x, u = x.astype(jnp.float32), u.astype(jnp.float32)
+        else:
+            data = mjx.make_data(model)
         data = data.replace(time=jnp.asarray(t, x.dtype), qpos=x[:nq], qvel=x[nq: nq + nv],
                             act=x[nq + nv: nq + nv + na], ctrl=u.astype(x.dtype))
         return data.replace(qacc_warmstart=x[nq + nv + na:]) if self.warm_start else data
