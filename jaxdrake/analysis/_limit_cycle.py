@@ -109,8 +109,6 @@ def limit_cycle(system: System, x_guess, period_guess, *, events_per_period: int
                     max_iterations, events_per_period if hybrid else 0, options, autodiff)
     if isinstance(result.residual, jax.core.Tracer):
         return result
-    if hybrid and not np.isfinite(float(result.residual)):
-        _raise_without_events(system, x_guess, float(period_guess), events_per_period, options)
     if not float(result.residual) <= tol:
         raise LimitCycleError(
             f"limit_cycle of {system.name}: Newton's method stopped at residual {float(result.residual):.3g} "
@@ -231,9 +229,9 @@ def _return_map(system, x0, horizon, events, options, autodiff="forward"):
 
 
 def _raise_without_events(system, x_guess, period_guess, events, options):
-    """If the return map found fewer than `events` events from x_guess within 3 x
-    period_guess, say so, with the time at which they do come (if they do within 30 x
-    period_guess); otherwise return (the residual failed for another reason)."""
+    """If the flow from x_guess meets fewer than `events` events within 3 x period_guess (the
+    horizon of the return map), say so, with the time at which they do come (if they do within
+    30 x period_guess); otherwise return."""
     horizon = 3 * period_guess
     traj = simulate(system, (0.0, 10 * horizon), x_guess, dense=False, throw=False,
                     max_events=max(events, 8), **options)
