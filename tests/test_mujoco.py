@@ -58,16 +58,16 @@ def test_steps_on_mujoco_warp_equal_c_mujoco_to_float32_rounding(source):
     float64 steps to 2e-5 (the pendulum measured 2.8e-7, the cart-pole 5.5e-6 on a CPU: float32
     rounding over 1000 steps); a vmapped batch equals its members run one by one."""
     pytest.importorskip("mujoco_warp")
-    dt_system = jd.MujocoSystem.from_xml(source, impl="warp")
-    dt, n = dt_system.sample_time, 1000
-    x0 = np.array(dt_system.initial_state()) + 0.3
-    controls = 0.8 * np.sin(3.0 * dt * np.arange(n))[:, None] * np.ones((1, dt_system.num_inputs))
-    expected = c_mujoco(dt_system.mj_model, x0, controls)
+    system = jd.MujocoSystem.from_xml(source, impl="warp")
+    dt, n = system.sample_time, 1000
+    x0 = np.array(system.initial_state()) + 0.3
+    controls = 0.8 * np.sin(3.0 * dt * np.arange(n))[:, None] * np.ones((1, system.num_inputs))
+    expected = c_mujoco(system.mj_model, x0, controls)
     tape = jd.Trajectory.from_samples(dt * np.arange(n), controls, interpolation="zoh")
-    on_warp = jd.simulate(dt_system, (0.0, n * dt), jnp.asarray(x0), inputs=tape).final_state
+    on_warp = jd.simulate(system, (0.0, n * dt), jnp.asarray(x0), inputs=tape).final_state
     np.testing.assert_allclose(np.asarray(on_warp), expected[-1], rtol=0, atol=2e-5)
     starts = jnp.asarray(x0) + 0.01 * jnp.arange(4)[:, None]
-    final = lambda x: jd.simulate(dt_system, (0.0, 100 * dt), x, dense=False).final_state  # noqa: E731
+    final = lambda x: jd.simulate(system, (0.0, 100 * dt), x, dense=False).final_state  # noqa: E731
     np.testing.assert_array_equal(np.asarray(jax.jit(jax.vmap(final))(starts)), np.stack([final(x) for x in starts]))
 
 
