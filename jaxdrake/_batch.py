@@ -1,12 +1,17 @@
 """`run_batch`: a per-member function over a batch of any size, in chunks that fit in memory,
-each chunk sharded across devices (JAX's `NamedSharding` over a "batch" mesh axis).
+spread over devices.
 
-One program is compiled for every full chunk (the last one is padded with copies of the batch's
-last member and trimmed), and chunks are dispatched ahead of the host copies of their
-predecessors' results, so the devices are not idle while results come back. On several hosts
-(`jax.distributed.initialize()` first), every process calls it with the same arguments and the
-global devices: each chunk is one program over all of them, each process holds its own shards,
-and gathered results are exchanged between processes (tests/test_distributed.py).
+Results gathered to this host from this process's devices: each device drains its own queue of
+slices in its own thread, so a device never waits for another's slowest member (two H200s,
+10^7 pendulum simulations: 1.92x one device, against 1.78x when every chunk was one program
+over both). Results left on the devices, or devices of several processes
+(`jax.distributed.initialize()` first; every process calls it with the same arguments and the
+global devices): every chunk is one program sharded over all of them (JAX's `NamedSharding`
+over a "batch" mesh axis), each process holds its own shards, and gathered results are
+exchanged between processes (tests/test_distributed.py). Either way one program is compiled
+per chunk shape (the last chunk is padded with copies of the batch's last member and trimmed),
+and each is dispatched before its predecessor's results are copied back, so the devices are
+not idle while results come back.
 """
 
 from __future__ import annotations
@@ -14,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import os
+import threading
 
 import jax
 import jax.numpy as jnp
@@ -63,28 +69,87 @@ def run_batch(fn, inputs, *, chunk_size: int | None = None, devices=None, progre
     if chunk < 1:
         raise ValueError(f"run_batch: chunk_size must be a positive int, got {chunk_size}")
     chunk = -(-min(chunk, size) // count) * count  # a multiple of the device count
-    mapped, sharding = _program(fn, devices, gather and devices[0].platform != "cpu" and _one_process(devices))
+    with _failures_named(fn, member, chunk):
+        if gather and _one_process(devices):
+            result = _per_device_queues(fn, leaves, treedef, size, chunk // count, devices, progress)
+        else:
+            result = _sharded_chunks(fn, leaves, treedef, size, chunk, devices, progress, gather)
+    return result
+
+
+def _per_device_queues(fn, leaves, treedef, size, piece, devices, progress):
+    """Results to this host from this process's devices: each device runs its own queue of
+    `piece`-member slices in its own thread (one program, `vmap(fn)`, for every slice; the
+    last slice padded), taking the next slice as soon as its previous one is dispatched, so no
+    device waits for another's slowest member. Slices run where they are taken, results land
+    in place: the same values as one `vmap` (each member's computation is its own)."""
+    starts = list(range(0, size, piece))
+    taken = iter(enumerate(starts))
+    lock, failed = threading.Lock(), []
+    results = [None] * len(starts)
+    bar = progress_bar(progress, len(starts), "batch", "chunk")
+
+    def collect(index, out, used):
+        results[index] = jax.tree.map(lambda a: np.asarray(a)[:used], out)
+        if bar:
+            with lock:
+                bar.update(1)
+
+    def drain(device):
+        program, pending = _device_program(fn, device), None
+        try:
+            while not failed:
+                with lock:
+                    index, start = next(taken, (None, None))
+                if index is None:
+                    break
+                stop = min(start + piece, size)
+                slice_ = jax.device_put(jax.tree.unflatten(treedef, [padded(_host_or_device(leaf[start:stop]), piece)
+                                                                     for leaf in leaves]), device)
+                out = program(slice_)  # dispatched; runs while the previous slice is copied back
+                if pending is not None:
+                    collect(*pending)
+                pending = (index, out, stop - start)
+            if pending is not None:
+                collect(*pending)
+        except BaseException as error:  # noqa: BLE001 -- re-raised in the caller's thread
+            failed.append(error)
+
+    workers = [threading.Thread(target=drain, args=(device,), daemon=True) for device in devices]
+    for worker in workers:
+        worker.start()
+    for worker in workers:
+        worker.join()
+    if bar:
+        bar.close()
+    if failed:
+        raise failed[0]
+    return jax.tree.map(lambda *parts: np.concatenate(parts), *results)
+
+
+def _sharded_chunks(fn, leaves, treedef, size, chunk, devices, progress, gather):
+    """Every chunk one program over all `devices` (several processes, or results left on the
+    devices): dispatched ahead of the host copies of its predecessor's results."""
+    mapped, sharding = _program(fn, devices)
     starts = range(0, size, chunk)
     bar = progress_bar(progress, len(starts), "batch", "chunk")
     pending, results = None, []
-    with _failures_named(fn, member, chunk):
-        for start in starts:
-            stop = min(start + chunk, size)
-            piece = [padded(np.asarray(leaf[start:stop]) if not isinstance(leaf, jax.Array) else leaf[start:stop],
-                             chunk) for leaf in leaves]
-            piece = jax.device_put(jax.tree.unflatten(treedef, piece), sharding)
-            out = mapped(piece)  # dispatched; runs while the previous chunk is copied back
-            if pending is not None:
-                results.append(_collect(*pending, gather))
-                if bar:
-                    bar.update(1)
-            pending = (out, stop - start)
-        results.append(_collect(*pending, gather))
-        if gather:
-            result = jax.tree.map(lambda *parts: np.concatenate(parts), *results)
-        else:
-            result = jax.block_until_ready(jax.tree.map(
-                lambda *parts: jnp.concatenate(parts) if len(parts) > 1 else parts[0], *results))
+    for start in starts:
+        stop = min(start + chunk, size)
+        piece = jax.device_put(jax.tree.unflatten(treedef, [padded(_host_or_device(leaf[start:stop]), chunk)
+                                                           for leaf in leaves]), sharding)
+        out = mapped(piece)  # dispatched; runs while the previous chunk is copied back
+        if pending is not None:
+            results.append(_collect(*pending, gather))
+            if bar:
+                bar.update(1)
+        pending = (out, stop - start)
+    results.append(_collect(*pending, gather))
+    if gather:
+        result = jax.tree.map(lambda *parts: np.concatenate(parts), *results)
+    else:
+        result = jax.block_until_ready(jax.tree.map(
+            lambda *parts: jnp.concatenate(parts) if len(parts) > 1 else parts[0], *results))
     if bar:
         bar.update(1)
         bar.close()
@@ -170,22 +235,17 @@ def _failures_named(fn, member, chunk):
 
 
 @functools.lru_cache(maxsize=64)
-def _program(fn, devices, to_host):
+def _program(fn, devices):
     """The jitted, sharded `vmap(fn)` for these devices (kept: one compilation per chunk shape).
     On several devices each runs `vmap(fn)` on its own slice (`shard_map`): a loop inside `fn`
     (an adaptive simulation's `while`) then stops per device, without the all-reduce of its
-    condition across devices that one global program needs every iteration. `to_host`: the
-    program writes its results to pinned host memory itself (results to be gathered, from
-    accelerators of this process; across processes a collective gathers them from the devices):
-    a separate copy would share the device-to-host queue with the next chunk's loop, whose
-    condition is read back every iteration, and stall it."""
+    condition across devices that one global program needs every iteration."""
     sharding = batch_sharding(devices)
     mapped = jax.vmap(fn)
     if len(devices) > 1:  # check_vma=False: the event search's custom_vmap has no replication rule
         mapped = jax.shard_map(mapped, mesh=sharding.mesh, in_specs=sharding.spec, out_specs=sharding.spec,
                                check_vma=False)
-    out = sharding.with_memory_kind("pinned_host") if to_host else sharding
-    return jax.jit(mapped, in_shardings=sharding, out_shardings=out), sharding
+    return jax.jit(mapped, in_shardings=sharding, out_shardings=sharding), sharding
 
 
 def batch_sharding(devices) -> NamedSharding:
@@ -200,6 +260,21 @@ def padded(x, chunk):
         return x
     tail = jnp.repeat(x[-1:], missing, axis=0) if isinstance(x, jax.Array) else np.repeat(x[-1:], missing, axis=0)
     return (jnp if isinstance(x, jax.Array) else np).concatenate([x, tail])
+
+
+def _host_or_device(leaf):
+    """A slice of an input leaf: device arrays stay where they are, the rest become NumPy."""
+    return leaf if isinstance(leaf, jax.Array) else np.asarray(leaf)
+
+
+@functools.lru_cache(maxsize=64)
+def _device_program(fn, device):
+    """`jit(vmap(fn))` on `device` (kept per function and device). An accelerator writes the
+    results to pinned host memory itself: a separate copy would share the device-to-host queue
+    with the next slice's loop, whose condition is read back every iteration, and stall it
+    (two H200s, 10^7 pendulums in slices of 10^6: 0.68 s against 0.74 s on one device)."""
+    kind = None if device.platform == "cpu" else "pinned_host"
+    return jax.jit(jax.vmap(fn), out_shardings=jax.sharding.SingleDeviceSharding(device, memory_kind=kind))
 
 
 def _one_process(devices) -> bool:

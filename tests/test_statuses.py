@@ -155,6 +155,6 @@ def test_run_batch_picks_a_chunk_from_free_memory_and_names_out_of_memory(monkey
     def exhausted(*args):
         raise jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory")
 
-    monkeypatch.setattr(_batch, "_program", lambda fn, devices, gather: (exhausted, _batch.batch_sharding(devices)))
+    monkeypatch.setattr(_batch, "_device_program", lambda fn, device: exhausted)
     with pytest.raises(MemoryError, match="chunk of 10 members.*bytes per member.*chunk_size.*dense=False"):
         jd.run_batch(final, x0)
