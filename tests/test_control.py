@@ -1,6 +1,5 @@
 """Linearization and LQR against SciPy's and python-control's Riccati solvers, closed forms and finite differences."""
 
-import control as ct
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -86,6 +85,8 @@ def test_lqr_of_the_notes_plants_matches_scipy_and_stabilises(name):
     S = sl.solve_continuous_are(A, B, Q, R)
     assert relative(result.S, S) < 1e-8
     assert relative(result.K, np.linalg.solve(R, B.T @ S)) < 1e-8
+    import control as ct   # ~5 s to import: only where it is used
+
     K_ct, S_ct, _ = ct.lqr(A, B, Q, R)
     assert relative(result.S, S_ct) < 1e-8 and relative(result.K, K_ct) < 1e-8
     assert np.max(np.linalg.eigvals(A - B @ np.asarray(result.K)).real) < 0
@@ -107,6 +108,8 @@ def test_discrete_lqr_matches_scipy_and_stabilises():
     S = sl.solve_discrete_are(A, B, Q, R, s=N)
     assert relative(result.S, S) < 1e-8
     assert relative(result.K, np.linalg.solve(R + B.T @ S @ B, B.T @ S @ A + N.T)) < 1e-8
+    import control as ct   # ~5 s to import: only where it is used
+
     K_ct, S_ct, _ = ct.dlqr(A, B, Q, R, N)
     assert relative(result.S, S_ct) < 1e-8 and relative(result.K, K_ct) < 1e-8
     assert result.linearization.is_discrete
@@ -121,6 +124,8 @@ def test_continuous_lqr_with_a_cross_term_matches_scipy():
     S = sl.solve_continuous_are(np.asarray(plant.A), np.asarray(plant.B), Q, R, s=N)
     assert relative(result.S, S) < 1e-8
     assert relative(result.K, np.linalg.solve(R, np.asarray(plant.B).T @ S + N.T)) < 1e-8
+    import control as ct   # ~5 s to import: only where it is used
+
     K_ct, S_ct, _ = ct.lqr(np.asarray(plant.A), np.asarray(plant.B), Q, R, N)
     assert relative(result.S, S_ct) < 1e-8 and relative(result.K, K_ct) < 1e-8
 

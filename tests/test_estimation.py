@@ -2,14 +2,12 @@
 filterpy: steady-state gains, the time-varying covariance, EKF / UKF step by step, observer
 error decay, the separation principle of LQG, and the refusals of bad input."""
 
-import control
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.integrate as si
 import scipy.linalg as sl
-import scipy.signal
 
 import jaxdrake as jd
 from jaxdrake.estimation import (ExtendedKalmanFilter, UnscentedKalmanFilter, kalman_filter,
@@ -53,6 +51,8 @@ def test_steady_state_gain_equals_drake_and_python_control(discrete):
     plant = jd.LinearSystem(A, B, C, D, sample_time=0.1 if discrete else None)
     result = kalman_filter(plant, W, V)
     drake = (DiscreteTimeSteadyStateKalmanFilter if discrete else SteadyStateKalmanFilter)(A, C, W, V)
+    import control   # ~5 s to import: only where it is used
+
     L, P, _ = (control.dlqe if discrete else control.lqe)(A, np.eye(3), C, W, V)
     assert relative(result.L, drake) < 1e-9
     assert relative(result.L, L) < 1e-9 and relative(result.P, P) < 1e-9
@@ -130,6 +130,8 @@ def test_observer_error_decays_at_the_rate_of_its_poles():
     A = np.array([[0.0, 1.0], [2.0, -0.5]])  # unstable: e^{t sqrt 2}-ish
     B, C = np.array([[0.0], [1.0]]), np.array([[1.0, 0.0]])
     poles = np.array([-2.0, -6.0])
+    import scipy.signal
+
     L = scipy.signal.place_poles(A.T, C.T, poles).gain_matrix.T
     plant = jd.LinearSystem(A, B, C)
     loop = estimation_loop(plant, luenberger_observer(plant, L))

@@ -56,6 +56,7 @@ def test_switching_instants_are_not_smeared_by_step_control():
 
 def test_gradient_sees_the_shift_of_a_switching_instant():
     # u(t) = a sin t: the first switch is at asin(1/a); x(T) depends on a through it
+    @jax.jit   # a traced: one program for the three values below
     def final(a):
         return jd.simulate(saturated_system(), (0.0, 2.0), 0.0, inputs=lambda t: a * jnp.sin(t),
                            rtol=1e-12, atol=1e-13).final_state[0]
