@@ -88,6 +88,9 @@ def _per_device_queues(fn, leaves, treedef, size, piece, devices, progress):
     lock, failed = threading.Lock(), []
     results = [None] * len(starts)
     bar = progress_bar(progress, len(starts), "batch", "chunk")
+    # JAX's context managers (`jax.enable_x64(...)`, `jax.default_matmul_precision(...)`) are
+    # thread-local: the workers place and trace under the caller's
+    x64, precision = jax.config.jax_enable_x64, jax.config.jax_default_matmul_precision
 
     def collect(index, out, used):
         results[index] = jax.tree.map(lambda a: np.asarray(a)[:used], out)
@@ -98,20 +101,21 @@ def _per_device_queues(fn, leaves, treedef, size, piece, devices, progress):
     def drain(device):
         program, pending = _device_program(fn, device), None
         try:
-            while not failed:
-                with lock:
-                    index, start = next(taken, (None, None))
-                if index is None:
-                    break
-                stop = min(start + piece, size)
-                slice_ = jax.device_put(jax.tree.unflatten(treedef, [padded(_host_or_device(leaf[start:stop]), piece)
-                                                                     for leaf in leaves]), device)
-                out = program(slice_)  # dispatched; runs while the previous slice is copied back
+            with jax.enable_x64(x64), jax.default_matmul_precision(precision):
+                while not failed:
+                    with lock:
+                        index, start = next(taken, (None, None))
+                    if index is None:
+                        break
+                    stop = min(start + piece, size)
+                    slice_ = jax.device_put(jax.tree.unflatten(
+                        treedef, [padded(_host_or_device(leaf[start:stop]), piece) for leaf in leaves]), device)
+                    out = program(slice_)  # dispatched; runs while the previous slice is copied back
+                    if pending is not None:
+                        collect(*pending)
+                    pending = (index, out, stop - start)
                 if pending is not None:
                     collect(*pending)
-                pending = (index, out, stop - start)
-            if pending is not None:
-                collect(*pending)
         except BaseException as error:  # noqa: BLE001 -- re-raised in the caller's thread
             failed.append(error)
 

@@ -63,3 +63,12 @@ def test_run_batch_errors_name_the_problem():
     with pytest.raises(ValueError, match="chunk_size must be a positive int"):
         jd.run_batch(lambda a: a, np.zeros(3), chunk_size=0)
     np.testing.assert_array_equal(jd.run_batch(lambda a: 2 * a, np.arange(5.0), chunk_size=2), 2 * np.arange(5.0))
+
+
+def test_run_batch_traces_under_the_callers_x64_context():
+    # the devices' queues run in threads of their own; JAX's contexts are thread-local
+    import jax
+
+    assert jd.run_batch(lambda a: 2 * a, np.arange(5.0)).dtype == np.float64   # the suite enables x64
+    with jax.enable_x64(False):
+        assert jd.run_batch(lambda a: 2 * a, np.arange(5.0)).dtype == np.float32
