@@ -3,7 +3,8 @@
 Problems: the pendulum (Drake's PendulumPlant parameters, u = 0) and the Van der Pol
 oscillator (mu = 1), 10 s at rtol = atol = 1e-8, with a 5(4) Dormand-Prince method on every
 side (SciPy RK45, Diffrax Dopri5, Drake RungeKutta5Integrator). Each is run once alone and as a
-batch of initial states. JAX programs are compiled first and timed separately
+batch of initial states (jaxdrake: `jax.vmap(simulate)` and `simulate_ensemble`, one lane per
+member). JAX programs are compiled first and timed separately
 (`block_until_ready`); every timing is the best of several repeats. Each row also reports the
 final-state error against a SciPy DOP853 reference at rtol 1e-13, so that speed is compared at
 equal accuracy.
@@ -134,6 +135,15 @@ def run(batch, gpu, repeats):
             compile_batch = time.perf_counter() - start
             t = best_time(lambda: jax.block_until_ready(many(xs)), repeats)
             record(f"jaxdrake batch {batch} ({autodiff})", t, many(xs), compile_batch - t)
+
+        # the same batch as one lane per member (simulate_ensemble: Pallas on a GPU)
+        xs = jnp.asarray(x0s)
+        ensemble = lambda: jd.simulate_ensemble(system, (0.0, TF), xs, rtol=RTOL, atol=ATOL).final_state  # noqa: E731
+        start = time.perf_counter()
+        jax.block_until_ready(ensemble())
+        compile_ensemble = time.perf_counter() - start
+        t = best_time(lambda: jax.block_until_ready(ensemble()), repeats)
+        record(f"jaxdrake simulate_ensemble {batch}", t, ensemble(), compile_ensemble - t)
 
         try:
             one, many = diffrax_runner(system)

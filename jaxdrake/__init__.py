@@ -10,7 +10,7 @@ from .control import linearize
 from .multibody import CouplerConstraint, LoopConstraint, RigidBodySystem
 from .mujoco import MujocoSystem
 from .polynomials import Polynomial
-from .simulation import SimulatedTrajectory, SimulationError, SimulationStatus, simulate
+from .simulation import EnsembleResult, SimulatedTrajectory, SimulationError, SimulationStatus, simulate, simulate_ensemble
 from .systems import (Diagram, DiagramBuilder, Frame, HybridSystem, LinearSystem, PolynomialSystem, StochasticSystem,
                       System, TrajectorySource, Transition, add_frame_conversion, and_guards, cascade, feedback,
                       not_guard, parallel)
@@ -37,9 +37,9 @@ def __getattr__(name):
 __all__ = ["Adder", "ConstantVectorSource", "Demultiplexer", "DiscreteTimeDelay", "FirstOrderLowPassFilter", "Gain",
            "Multiplexer", "PidController", "RandomDistribution", "RandomSource", "Saturation", "Sine", "WrapToSystem",
            "ZeroOrderHold",
-           "Diagram", "DiagramBuilder", "Frame", "HybridSystem", "LinearSystem", "SimulationError",
+           "Diagram", "DiagramBuilder", "EnsembleResult", "Frame", "HybridSystem", "LinearSystem", "SimulationError",
            "CouplerConstraint", "LoopConstraint", "MujocoSystem", "Polynomial", "PolynomialSystem", "RigidBodySystem", "SimulatedTrajectory", "SimulationStatus", "StochasticSystem", "System", "Trajectory", "TrajectorySource", "Transition",
            "add_frame_conversion", "analysis", "and_guards", "cascade", "control", "estimation", "feedback", "geometry", "lcm", "linearize", "models", "mujoco", "multibody", "not_guard",
-           "parallel", "planning", "polynomials", "ros", "run_batch", "simulate", "simulation", "systems", "trajectories", "trajopt",
+           "parallel", "planning", "polynomials", "ros", "run_batch", "simulate", "simulate_ensemble", "simulation", "systems", "trajectories", "trajopt",
            "use_compilation_cache", "viz"]
 
