@@ -110,6 +110,8 @@ def test_what_one_lane_cannot_simulate_is_named():
                                      num_states=2)
     with pytest.raises(NotImplementedError, match="uses `.*`, which has no per-lane form.*jax.vmap"):
         jd.simulate_ensemble(solve, (0.0, 1.0), np.ones((2, 2)))
+    with pytest.raises(NotImplementedError, match="acrobot's vector field unrolls into more than max_operations=2,000"):
+        jd.simulate_ensemble(jd.models.Acrobot(), (0.0, 1.0), np.zeros((2, 4)))
     with pytest.raises(TypeError, match="tspan, rtol and atol must be Python numbers"):
         jax.jit(lambda tf: jd.simulate_ensemble(jd.models.Pendulum(), (0.0, tf), np.ones((2, 2))).final_state)(1.0)
 
@@ -123,3 +125,19 @@ def test_the_pallas_kernel_on_a_gpu_equals_the_xla_lanes_on_the_host():
         host = jd.simulate_ensemble(pendulum, (0.0, 10.0), x0s, rtol=1e-8, atol=1e-8, kernel="xla")
     np.testing.assert_allclose(np.asarray(gpu.final_state), np.asarray(host.final_state), rtol=1e-6, atol=1e-7)
     assert bool(jnp.all(gpu.success))
+
+
+@pytest.mark.slow   # 10 s of compiling; by default the acrobot's refusal walks the same unrolled recursions
+def test_a_one_link_rigid_body_tree_unrolls_its_recursions(tmp_path):
+    # the tree's recursions (scans over depth), gathers, scatter-adds and custom batching rules
+    # become straight-line code on lanes; a one-link pendulum from a URDF equals simulate
+    (tmp_path / "link.urdf").write_text(
+        '<robot name="link"><link name="base"/><link name="arm"><inertial><origin xyz="0 0 -0.5"/>'
+        '<mass value="1"/><inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial></link>'
+        '<joint name="hinge" type="continuous"><parent link="base"/><child link="arm"/><axis xyz="0 1 0"/></joint>'
+        '</robot>')
+    plant = jd.RigidBodySystem.from_urdf(tmp_path / "link.urdf")
+    x0s = np.array([[0.5, 0.0], [1.0, -0.5], [2.0, 1.0]])
+    result = jd.simulate_ensemble(plant, (0.0, 2.0), x0s, rtol=1e-10, atol=1e-10)
+    single = jax.vmap(lambda x0: jd.simulate(plant, (0.0, 2.0), x0, rtol=1e-10, atol=1e-10, dense=False).final_state)
+    np.testing.assert_allclose(np.asarray(result.final_state), np.asarray(single(jnp.asarray(x0s))), rtol=1e-7, atol=1e-8)

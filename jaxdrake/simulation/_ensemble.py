@@ -46,7 +46,8 @@ class EnsembleResult(eqx.Module):
 
 
 def simulate_ensemble(system, tspan, x0s, *, inputs=None, rtol: float = 1e-6, atol: float = 1e-6,
-                      max_steps: int = 4096, kernel: str | None = None) -> EnsembleResult:
+                      max_steps: int = 4096, kernel: str | None = None,
+                      max_operations: int = 2000) -> EnsembleResult:
     r"""N simulations of `system` over `tspan` from the rows of `x0s` (N, n), each with its own
     steps: Dormand-Prince 5(4) with `simulate`'s step control (`IController`: error
     $\mathrm{rms}(e_i / (atol + rtol \max(|y_{0,i}|, |y_{1,i}|))) \le 1$, next step
@@ -59,6 +60,9 @@ def simulate_ensemble(system, tspan, x0s, *, inputs=None, rtol: float = 1e-6, at
       constant and clipped to the system's input limits.
     - `rtol`, `atol`, `tspan`: Python numbers (compiled into the kernel); `max_steps`: attempts
       per member.
+    - `max_operations`: the most per-lane operations one evaluation of the vector field may
+      unroll into (the pendulum: 10; the acrobot's rigid-body tree: ~3,900, a 36-s first call
+      on a 2-core CPU); beyond, a named error.
     - `kernel`: "pallas" (one GPU lane per member; the default on a GPU; elsewhere Pallas's
       interpreter, slow, for checking) or "xla" (one jitted program over all lanes; the default
       off a GPU).
@@ -90,7 +94,7 @@ def simulate_ensemble(system, tspan, x0s, *, inputs=None, rtol: float = 1e-6, at
     kernel = kernel or ("pallas" if jax.default_backend() == "gpu" else "xla")
     if kernel not in ("pallas", "xla"):
         raise ValueError(f"simulate_ensemble: kernel must be 'pallas' or 'xla', got {kernel!r}")
-    program = _program(system, n, m, str(dtype), (t0, tf, rtol, atol, max_steps), kernel)
+    program = _program(system, n, m, str(dtype), (t0, tf, rtol, atol, max_steps, int(max_operations)), kernel)
     t, x, status, attempts = program(x0s.T, system.saturate(us).T)
     return EnsembleResult(t, x.T, status, attempts)
 
@@ -129,7 +133,7 @@ def _program(system, n, m, dtype, settings, kernel):
 
 
 def _build(system, n, m, settings, kernel):
-    t0, tf, rtol, atol, max_steps = settings
+    t0, tf, rtol, atol, max_steps, max_operations = settings
 
     def vector_field(t, x, u):
         return system.dynamics(t, x, u)
@@ -140,7 +144,7 @@ def _build(system, n, m, settings, kernel):
 
         def f(t, x):
             out = _lanes(closed.jaxpr, closed.consts, [_elements([t], ()), _elements(x, (n,)), _elements(u_lanes, (m,))],
-                         shape, dtype)[0]
+                         shape, dtype, _Budget(system.name, max_operations))[0]
             return [_materialize(v, shape, dtype) for v in _objects(out).reshape(-1)]
 
         return _dopri5_lanes(f, x_lanes, t0, tf, rtol, atol, max_steps)
@@ -266,10 +270,29 @@ _MOVEMENT = {"slice", "reshape", "squeeze", "broadcast_in_dim", "transpose", "re
 # two-operand data movement of the same kind (the update's positions offset past the operand's)
 _OVERWRITE = {"dynamic_update_slice", "scatter"}
 _CALLS = {"pjit": "jaxpr", "closed_call": "call_jaxpr", "core_call": "call_jaxpr", "custom_jvp_call": "call_jaxpr",
-          "custom_vjp_call": "call_jaxpr", "remat": "jaxpr", "checkpoint": "jaxpr", "jit": "jaxpr"}
+          "custom_vjp_call": "call_jaxpr", "custom_vmap_call": "call", "remat": "jaxpr", "checkpoint": "jaxpr",
+          "jit": "jaxpr"}
 
 
-def _lanes(jaxpr, consts, args, shape, dtype):
+class _Budget:
+    """Counts the lane vectors one evaluation of the vector field makes, and refuses more
+    than `limit`: a rigid-body tree unrolls into long straight-line code, slow to trace and
+    compile (the acrobot's ABA: ~3,900 operations, a 36-s first call on a 2-core CPU)."""
+
+    def __init__(self, name, limit):
+        self.name, self.limit, self.spent = name, limit, 0
+
+    def spend(self, outputs):
+        self.spent += sum(np.size(v) for v in outputs if not _concrete(v))
+        if self.spent > self.limit:
+            raise NotImplementedError(
+                f"simulate_ensemble: {self.name}'s vector field unrolls into more than max_operations="
+                f"{self.limit:,} per-lane operations (a rigid-body tree?), whose kernel is slow to compile: "
+                "use jax.vmap(jd.simulate(...)) or jd.run_batch for it, or raise max_operations to accept "
+                "a first call of tens of seconds")
+
+
+def _lanes(jaxpr, consts, args, shape, dtype, budget):
     """Evaluate `jaxpr` with `args` (object arrays of lanes, or concrete arrays); returns its
     outputs in the same representation."""
     env = {}
@@ -289,15 +312,17 @@ def _lanes(jaxpr, consts, args, shape, dtype):
                 out = eqn.primitive.bind(*[jnp.asarray(v) for v in inputs], **eqn.params)
             outs = [np.asarray(o) for o in (out if eqn.primitive.multiple_results else [out])]
         elif name in _CALLS:
-            inner = eqn.params[_CALLS[name]]
-            inner_jaxpr, inner_consts = (inner.jaxpr, inner.consts) if hasattr(inner, "consts") else (inner, ())
-            outs = _lanes(inner_jaxpr, inner_consts, inputs, shape, dtype)
+            outs = _lanes(*_open(eqn.params[_CALLS[name]]), inputs, shape, dtype, budget)
+        elif name == "scan":
+            outs = _unrolled_scan(eqn, inputs, shape, dtype, budget)
         elif name in _ELEMENTWISE:
             outs = [_elementwise(eqn, inputs, shape)]
         elif name in _MOVEMENT:
             outs = [_moved(eqn, inputs[0], inputs[1:])]
         elif name in _OVERWRITE:
             outs = [_overwritten(eqn, inputs)]
+        elif name == "scatter-add":
+            outs = [_scatter_added(eqn, inputs)]
         elif name == "concatenate":
             outs = [np.concatenate([_objects(v) for v in inputs], axis=eqn.params["dimension"])]
         elif name == "stack":
@@ -314,9 +339,40 @@ def _lanes(jaxpr, consts, args, shape, dtype):
             raise NotImplementedError(
                 f"simulate_ensemble: the vector field uses `{name}`, which has no per-lane form here (loops, "
                 "linear solves and traced indices do not); use jax.vmap(jd.simulate(...)) for this system")
+        if name not in _CALLS and name != "scan":  # (counted inside)
+            budget.spend(outs)
         for var, value in zip(eqn.outvars, outs):
             env[var] = value if isinstance(value, np.ndarray) else _elements([value], ())  # a lone element
     return [read(v) for v in jaxpr.outvars]
+
+
+def _open(closed):
+    """(jaxpr, consts) of a closed or open jaxpr."""
+    return (closed.jaxpr, closed.consts) if hasattr(closed, "consts") else (closed, ())
+
+
+def _unrolled_scan(eqn, inputs, shape, dtype, budget):
+    """A `lax.scan` (a static length) unrolled: its body evaluated once per iteration, so that
+    indices computed from the iteration counter are known while tracing."""
+    p = eqn.params
+    consts, carry = inputs[:p["num_consts"]], inputs[p["num_consts"]:p["num_consts"] + p["num_carry"]]
+    xs, ys = inputs[p["num_consts"] + p["num_carry"]:], []
+    order = range(p["length"] - 1, -1, -1) if p["reverse"] else range(p["length"])
+    for i in order:
+        outs = _lanes(*_open(p["jaxpr"]), [*consts, *carry, *[_element(x, i) for x in xs]], shape, dtype, budget)
+        carry, y = outs[:p["num_carry"]], outs[p["num_carry"]:]
+        ys.append(y)
+    if p["reverse"]:
+        ys.reverse()
+    stacked = [np.stack([y[k] for y in ys]) if all(_concrete(y[k]) for y in ys)
+               else np.stack([_objects(y[k]) for y in ys]) for k in range(len(eqn.outvars) - len(carry))]
+    return [*carry, *stacked]
+
+
+def _element(value, i):
+    """value[i] along the first axis, a lone element wrapped as a 0-d object array."""
+    out = value[i]
+    return out if isinstance(out, np.ndarray) or _concrete(value) else _elements([out], ())
 
 
 def _concrete(value) -> bool:
@@ -391,6 +447,24 @@ def _overwritten(eqn, inputs):
     return np.concatenate([operand.reshape(-1), update.reshape(-1)])[np.asarray(placed)]
 
 
+def _scatter_added(eqn, inputs):
+    """`scatter-add(operand, indices, updates)` with known indices: each update's target found
+    by scattering a one-hot update onto zeros, then added there."""
+    operand, indices, updates = inputs
+    _require_concrete(eqn, [indices])
+    out, updates = _objects(operand).reshape(-1).copy(), _objects(updates)
+    dtype = eqn.invars[0].aval.dtype  # the primitive's own (its adding region is typed)
+    for j in range(updates.size):
+        one_hot = np.zeros(updates.size, dtype)
+        one_hot[j] = 1
+        with jax.ensure_compile_time_eval():
+            hit = np.asarray(eqn.primitive.bind(jnp.zeros(np.shape(operand), dtype), jnp.asarray(indices),
+                                                jnp.asarray(one_hot.reshape(updates.shape)), **eqn.params))
+        for target in np.flatnonzero(hit.reshape(-1)):
+            out[target] = out[target] + updates.reshape(-1)[j]
+    return out.reshape(np.shape(operand))
+
+
 def _require_concrete(eqn, indices):
     if not all(_concrete(v) for v in indices):
         raise NotImplementedError(f"simulate_ensemble: the vector field's `{eqn.primitive.name}` takes indices that "
@@ -408,9 +482,18 @@ def _reduced(name, operand, axes):
 
 
 def _dot(eqn, inputs):
+    """`dot_general` as sums of products, one `tensordot` per batch index: batch dimensions
+    first, then the left operand's free dimensions and the right one's (XLA's order)."""
     (lhs_contract, rhs_contract), (lhs_batch, rhs_batch) = eqn.params["dimension_numbers"]
-    if lhs_batch or rhs_batch:
-        raise NotImplementedError("simulate_ensemble: a batched dot_general in the vector field has no per-lane "
-                                  "form here; use jax.vmap(jd.simulate(...)) for this system")
-    lhs, rhs = _objects(inputs[0]), _objects(inputs[1])
-    return np.tensordot(lhs, rhs, axes=(tuple(lhs_contract), tuple(rhs_contract)))
+    lhs = np.moveaxis(_objects(inputs[0]), tuple(lhs_batch), tuple(range(len(lhs_batch))))
+    rhs = np.moveaxis(_objects(inputs[1]), tuple(rhs_batch), tuple(range(len(rhs_batch))))
+    # the contracting axes counted among each operand's axes that are not batch axes
+    lhs_axes = [[d for d in range(lhs.ndim) if d not in lhs_batch].index(c) for c in lhs_contract]
+    rhs_axes = [[d for d in range(rhs.ndim) if d not in rhs_batch].index(c) for c in rhs_contract]
+    batch = lhs.shape[:len(lhs_batch)]
+    parts = [_objects_of(np.tensordot(lhs[index], rhs[index], axes=(lhs_axes, rhs_axes))) for index in np.ndindex(*batch)]
+    return parts[0] if not batch else np.stack(parts).reshape(batch + parts[0].shape)
+
+
+def _objects_of(value):
+    return value if isinstance(value, np.ndarray) else _elements([value], ())
