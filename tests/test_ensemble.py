@@ -112,6 +112,9 @@ def test_what_one_lane_cannot_simulate_is_named():
         jd.simulate_ensemble(solve, (0.0, 1.0), np.ones((2, 2)))
     with pytest.raises(NotImplementedError, match="acrobot's vector field unrolls into more than max_operations=2,000"):
         jd.simulate_ensemble(jd.models.Acrobot(), (0.0, 1.0), np.zeros((2, 4)))
+    with pytest.raises(TypeError, match="VanDerPol's parameters are traced.*jax.vmap"):
+        jax.vmap(lambda mu: jd.simulate_ensemble(jd.models.VanDerPol(mu), (0.0, 1.0), np.ones((2, 2))).final_state)(
+            jnp.array([1.0, 2.0]))
     with pytest.raises(TypeError, match="tspan, rtol and atol must be Python numbers"):
         jax.jit(lambda tf: jd.simulate_ensemble(jd.models.Pendulum(), (0.0, tf), np.ones((2, 2))).final_state)(1.0)
 
