@@ -30,6 +30,7 @@ import logging
 import socket
 import struct
 import threading
+import time
 
 from ._channels import MAX_LENGTH, ChannelPattern, PatternError
 
@@ -182,11 +183,16 @@ class LoopbackRelay:
             clients = list(self._clients)
         for client in clients:
             client.stop()
-        with self._lock:
-            threads = list(self._threads)
-        for thread in threads:
-            if thread is not threading.current_thread():
-                thread.join(timeout)
+        # until none is left: a connection accepted just before the shutdown starts its thread
+        # after a first look at the threads (it sees the hub closed and ends at once)
+        deadline = time.monotonic() + timeout
+        while True:
+            with self._lock:
+                pending = [t for t in self._threads if t.is_alive() and t is not threading.current_thread()]
+            if not pending or time.monotonic() >= deadline:
+                return
+            for thread in pending:
+                thread.join(max(deadline - time.monotonic(), 0.0))
 
     def _spawn(self, target, role, *args):
         thread = threading.Thread(target=target, args=args, daemon=True, name=f"LoopbackRelay-{self.port}-{role}")
