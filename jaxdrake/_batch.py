@@ -108,8 +108,7 @@ def _per_device_queues(fn, leaves, treedef, size, piece, devices, progress):
                     if index is None:
                         break
                     stop = min(start + piece, size)
-                    slice_ = jax.device_put(jax.tree.unflatten(
-                        treedef, [padded(_host_or_device(leaf[start:stop]), piece) for leaf in leaves]), device)
+                    slice_ = jax.device_put(_members(leaves, treedef, start, stop, piece), device)
                     out = program(slice_)  # dispatched; runs while the previous slice is copied back
                     if pending is not None:
                         collect(*pending)
@@ -140,8 +139,7 @@ def _sharded_chunks(fn, leaves, treedef, size, chunk, devices, progress, gather)
     pending, results = None, []
     for start in starts:
         stop = min(start + chunk, size)
-        piece = jax.device_put(jax.tree.unflatten(treedef, [padded(_host_or_device(leaf[start:stop]), chunk)
-                                                           for leaf in leaves]), sharding)
+        piece = jax.device_put(_members(leaves, treedef, start, stop, chunk), sharding)
         out = mapped(piece)  # dispatched; runs while the previous chunk is copied back
         if pending is not None:
             results.append(_collect(*pending, gather))
@@ -266,9 +264,11 @@ def padded(x, chunk):
     return (jnp if isinstance(x, jax.Array) else np).concatenate([x, tail])
 
 
-def _host_or_device(leaf):
-    """A slice of an input leaf: device arrays stay where they are, the rest become NumPy."""
-    return leaf if isinstance(leaf, jax.Array) else np.asarray(leaf)
+def _members(leaves, treedef, start, stop, length):
+    """Members start..stop of the inputs, padded to `length` (device arrays stay where they
+    are, the rest become NumPy)."""
+    return jax.tree.unflatten(treedef, [padded(leaf[start:stop] if isinstance(leaf, jax.Array)
+                                               else np.asarray(leaf[start:stop]), length) for leaf in leaves])
 
 
 @functools.lru_cache(maxsize=64)
