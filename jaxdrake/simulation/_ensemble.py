@@ -346,7 +346,7 @@ def _lanes(jaxpr, consts, args, shape, dtype, budget):
         if name not in _CALLS and name != "scan":  # (counted inside)
             budget.spend(outs)
         for var, value in zip(eqn.outvars, outs):
-            env[var] = value if isinstance(value, np.ndarray) else _elements([value], ())  # a lone element
+            env[var] = _wrapped(value)
     return [read(v) for v in jaxpr.outvars]
 
 
@@ -374,9 +374,14 @@ def _unrolled_scan(eqn, inputs, shape, dtype, budget):
 
 
 def _element(value, i):
-    """value[i] along the first axis, a lone element wrapped as a 0-d object array."""
-    out = value[i]
-    return out if isinstance(out, np.ndarray) or _concrete(value) else _elements([out], ())
+    """value[i] along the first axis, in the same representation as value."""
+    return np.asarray(value[i]) if _concrete(value) else _wrapped(value[i])
+
+
+def _wrapped(value):
+    """An object array as it is; a lone element (a lane vector, from indexing or a product)
+    as a 0-d object array."""
+    return value if isinstance(value, np.ndarray) else _elements([value], ())
 
 
 def _concrete(value) -> bool:
@@ -495,9 +500,6 @@ def _dot(eqn, inputs):
     lhs_axes = [[d for d in range(lhs.ndim) if d not in lhs_batch].index(c) for c in lhs_contract]
     rhs_axes = [[d for d in range(rhs.ndim) if d not in rhs_batch].index(c) for c in rhs_contract]
     batch = lhs.shape[:len(lhs_batch)]
-    parts = [_objects_of(np.tensordot(lhs[index], rhs[index], axes=(lhs_axes, rhs_axes))) for index in np.ndindex(*batch)]
+    parts = [_wrapped(np.tensordot(lhs[index], rhs[index], axes=(lhs_axes, rhs_axes))) for index in np.ndindex(*batch)]
     return parts[0] if not batch else np.stack(parts).reshape(batch + parts[0].shape)
 
-
-def _objects_of(value):
-    return value if isinstance(value, np.ndarray) else _elements([value], ())
