@@ -304,3 +304,23 @@ def test_matching_is_linear_whatever_the_pattern(text):
 def test_patterns_outside_the_language_are_refused_with_the_reason(text, reason):
     with pytest.raises(PatternError, match=re.escape(reason)):
         ChannelPattern(text)
+
+
+def test_every_thread_is_tracked_even_when_spawns_race(monkeypatch):
+    """A reader spawning its writer while the accept thread spawns the next reader: with a slow
+    `Thread.start` the window is wide, and close() must still know (and wait for) every thread."""
+    start = threading.Thread.start
+
+    def slow_start(thread):
+        time.sleep(0.02)
+        start(thread)
+
+    monkeypatch.setattr(threading.Thread, "start", slow_start)
+    relay = LoopbackRelay().start()
+    clients = [connect(relay) for _ in range(6)]
+    time.sleep(0.1)
+    assert set(relay_threads(relay)) <= set(relay._threads)
+    relay.close()
+    assert not relay_threads(relay)
+    for sock in clients:
+        sock.close()

@@ -196,9 +196,9 @@ class LoopbackRelay:
 
     def _spawn(self, target, role, *args):
         thread = threading.Thread(target=target, args=args, daemon=True, name=f"LoopbackRelay-{self.port}-{role}")
-        with self._lock:
+        with self._lock:  # started under the lock: an unstarted thread is not alive, and pruning would drop it
             self._threads = [t for t in self._threads if t.is_alive()] + [thread]
-        thread.start()
+            thread.start()
         return thread
 
     def _accept(self):
