@@ -59,7 +59,8 @@ class BarycentricMesh(eqx.Module):
 
     def points(self):
         """Every mesh point, (num_points, n), in C order."""
-        return jnp.stack([a.ravel() for a in jnp.meshgrid(*self.grids, indexing="ij")], axis=1)
+        xp = jnp if any(isinstance(g, jax.core.Tracer) for g in self.grids) else np   # on the host: no program
+        return jnp.asarray(xp.stack([a.ravel() for a in xp.meshgrid(*self.grids, indexing="ij")], axis=1))
 
     def weights(self, x):
         r"""(indices, weights) of the n + 1 mesh points whose combination interpolates at x:
@@ -182,12 +183,10 @@ def fitted_value_iteration(system: System, cost, state_grid, input_grid, dt, *, 
             bar.update(int(sweeps))
             bar.set_postfix(max_change=f"{float(change):.3g}")
     finish(bar, done)
-    best = jnp.argmin(stage + discount * jnp.einsum("smv,smv->sm", weights, J[indices]), axis=1)
-    S = state_mesh.num_points
-    table = input_mesh.points()[best[:S]].reshape(state_mesh.shape + (m,))
+    J, table = _values_and_policy(J, indices, weights, stage, discount, input_mesh.points(), state_mesh.shape)
     policy = MeshPolicy(state_mesh, table, periodic, system.state_frame, system.input_frame)
-    return ValueIterationResult(J=J[:S].reshape(state_mesh.shape), policy_table=table, policy=policy,
-                                mesh=state_mesh, iterations=jnp.asarray(done), max_change=change)
+    return ValueIterationResult(J=J, policy_table=table, policy=policy, mesh=state_mesh,
+                                iterations=jnp.asarray(done), max_change=change)
 
 
 def _wrap(x, periodic):
@@ -222,6 +221,15 @@ def _transitions(system, cost, xs, state_mesh, input_mesh, dt, periodic, solver,
         return indices, weights, dt * cost(x, u)
 
     return jax.vmap(lambda x: jax.vmap(lambda u: one(x, u))(us))(xs)
+
+
+@functools.partial(jax.jit, static_argnums=6)
+def _values_and_policy(J, indices, weights, stage, discount, input_points, shape):
+    """J on the mesh (its axes in state order) and the minimizing input at each mesh point,
+    the padding of a split mesh dropped: one program (on one device, as the results are)."""
+    best = jnp.argmin(stage + discount * jnp.einsum("smv,smv->sm", weights, J[indices]), axis=1)
+    S = int(np.prod(shape))
+    return J[:S].reshape(shape), input_points[best[:S]].reshape(shape + (input_points.shape[1],))
 
 
 _SWEEPS_PER_EXCHANGE = 25  # on several devices: sweeps per trip of the loop (see _sweep_program)
