@@ -27,6 +27,6 @@ def call_argument(values, dtype=None):
     transfers them with its other arguments, no `device_put` each) of the width JAX would give
     them (float32 without `jax_enable_x64`), JAX arrays and tracers through `jnp.asarray`."""
     if isinstance(values, jax.Array):
-        return jnp.asarray(values, dtype)
+        return values if dtype is None or values.dtype == dtype else jnp.asarray(values, dtype)
     values = np.asarray(values, dtype)
     return values.astype(jax.dtypes.canonicalize_dtype(values.dtype), copy=False)

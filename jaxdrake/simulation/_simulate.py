@@ -112,10 +112,11 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     if _concrete(t0, tf) and not (np.isfinite(float(t0)) and np.isfinite(float(tf)) and float(tf) > float(t0)):
         raise ValueError(f"tspan must be finite with t0 < tf, got ({float(t0)}, {float(tf)})")
     t0, tf = call_argument(t0, dtype), call_argument(tf, dtype)
-    if _concrete(x0) and not np.all(np.isfinite(x0)):
-        raise ValueError(f"x0 is not finite: {x0}")
     if _concrete(x0):
-        type(system).check_initial_state(system, np.asarray(x0))  # on the host: no op-by-op device work
+        host_x0 = np.asarray(x0)  # checked on the host: no op-by-op device work
+        if not np.isfinite(host_x0).all():
+            raise ValueError(f"x0 is not finite: {x0}")
+        type(system).check_initial_state(system, host_x0)
     source = make_source(system, inputs, t0, dtype)
     if system.is_stochastic:
         if key is None:
@@ -175,8 +176,10 @@ def _placement(device, arguments):
     accelerator, when the default device is one; else the caller's placement."""
     if device is not None:
         return jax.default_device(device)
+    if jax.default_backend() == "cpu":
+        return contextlib.nullcontext()
     leaves = jax.tree.leaves(arguments)
-    if jax.default_backend() == "cpu" or not _concrete(leaves):
+    if not _concrete(leaves):
         return contextlib.nullcontext()
     if any(isinstance(leaf, jax.Array) and leaf.committed and any(d.platform != "cpu" for d in leaf.devices())
            for leaf in leaves):
@@ -237,4 +240,11 @@ def _is_nan_parameter(leaf) -> bool:
 
 
 def _concrete(*values) -> bool:
+    """No tracer among `values` (pytrees): a call from Python, not inside jit / vmap / grad."""
+    if all(isinstance(v, _HOST_NUMBERS) or (isinstance(v, jax.Array) and not isinstance(v, jax.core.Tracer))
+           for v in values):
+        return True  # the common case, without flattening
     return not any(isinstance(v, jax.core.Tracer) for v in jax.tree.leaves(values))
+
+
+_HOST_NUMBERS = (int, float, np.ndarray, np.number)
