@@ -118,13 +118,17 @@ class NoisyInput(InputSource):
 def leaves_to_arrays(tree, dtype):
     """Python floats and numpy arrays in a system become JAX arrays: traced, not static, so
     changing a parameter's value does not recompile."""
-    def convert(v):
-        if isinstance(v, float) or (isinstance(v, np.ndarray) and np.issubdtype(v.dtype, np.floating)):
-            return np.asarray(v, dtype)  # a numpy array is an argument of the compiled call
-        if isinstance(v, jax.Array) and jnp.issubdtype(v.dtype, jnp.floating) and v.dtype != dtype:
-            return v.astype(dtype)
-        return v
-    return jax.tree.map(convert, tree)
+    return jax.tree.map(lambda leaf: leaf_to_array(leaf, dtype), tree)
+
+
+def leaf_to_array(v, dtype):
+    """One leaf as `leaves_to_arrays` converts it: a float or floating numpy array to a numpy
+    array of `dtype` (an argument of the compiled call), a floating JAX array to `dtype`."""
+    if isinstance(v, float) or (isinstance(v, np.ndarray) and np.issubdtype(v.dtype, np.floating)):
+        return np.asarray(v, dtype)
+    if isinstance(v, jax.Array) and jnp.issubdtype(v.dtype, jnp.floating) and v.dtype != dtype:
+        return v.astype(dtype)
+    return v
 
 
 def make_source(system, inputs, t0, dtype):

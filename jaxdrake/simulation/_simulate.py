@@ -25,7 +25,7 @@ from .._numbers import call_argument
 from ..systems import System
 from ..systems import check_initialised
 from ._controller import ConstantStepSize, IController
-from ._inputs import NoisyInput, leaves_to_arrays, make_source
+from ._inputs import NoisyInput, leaf_to_array, make_source
 from ._loop import run_simulation
 from ._result import SimulatedTrajectory, trajectory_bytes
 from ._solvers import Rosenbrock23, make_solver
@@ -93,7 +93,6 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     if not isinstance(system, System):
         raise TypeError(f"simulate needs a jaxdrake.System, got {type(system).__name__}")
     check_initialised(system)
-    _check_no_nan_parameters(system)
     solver = make_solver(solver)
     try:
         t0, tf = tspan
@@ -109,6 +108,7 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
              else jnp.result_type(float))
     if x0.dtype != dtype:
         x0 = x0.astype(dtype)
+    system = _parameters_as_arrays(system, dtype)
     if _concrete(t0, tf) and not (np.isfinite(float(t0)) and np.isfinite(float(tf)) and float(tf) > float(t0)):
         raise ValueError(f"tspan must be finite with t0 < tf, got ({float(t0)}, {float(tf)})")
     t0, tf = call_argument(t0, dtype), call_argument(tf, dtype)
@@ -137,7 +137,6 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
         raise ValueError(f"max_steps must be a positive int, got {max_steps!r}")
 
     arr = lambda v: None if v is None else call_argument(v, dtype)  # noqa: E731
-    system = leaves_to_arrays(system, dtype)
     if solver.adaptive:
         step_control = (arr(rtol), arr(atol))
         h0 = dt if dt is not None else (tf - t0 if system.num_continuous_states == 0 else np.nan)
@@ -218,15 +217,17 @@ def _solver_advice(solver, status) -> str:
             "solver=jd.simulation.Rosenbrock23(jacobian='stiff')")
 
 
-def _check_no_nan_parameters(system):
-    """A NaN among a system's (concrete) parameters, named by its path, before it becomes a
+def _parameters_as_arrays(system, dtype):
+    """`leaves_to_arrays(system, dtype)` in one pass over the leaves, which also checks them:
+    a NaN among the (concrete) parameters is named by its path, before it becomes a
     'non-finite state' at t0 (the paths, slow to list, only once one is found)."""
-    if not any(_is_nan_parameter(leaf) for leaf in jax.tree.leaves(system)):
-        return
-    for path, leaf in jax.tree_util.tree_leaves_with_path(system):
-        if _is_nan_parameter(leaf):
-            raise ValueError(f"{system.name}: the parameter {system.name}{jax.tree_util.keystr(path)} is NaN "
-                             f"({np.asarray(leaf)})")
+    leaves, treedef = jax.tree.flatten(system)
+    if any(_is_nan_parameter(leaf) for leaf in leaves):
+        for path, leaf in jax.tree_util.tree_leaves_with_path(system):
+            if _is_nan_parameter(leaf):
+                raise ValueError(f"{system.name}: the parameter {system.name}{jax.tree_util.keystr(path)} is NaN "
+                                 f"({np.asarray(leaf)})")
+    return jax.tree.unflatten(treedef, [leaf_to_array(leaf, dtype) for leaf in leaves])
 
 
 def _is_nan_parameter(leaf) -> bool:
