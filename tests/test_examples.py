@@ -24,7 +24,7 @@ SLOW = {"swing_up.ipynb", "lqr.ipynb", "swing_up.py",  # lqr.ipynb: 45 s, extend
         "trajectory_optimization.py", "trajectory_optimization.ipynb", "mujoco_models.py", "mujoco_models.ipynb",
         "mujoco_contacts.py", "mujoco_contacts.ipynb",
         "contact.ipynb",  # ~40 s, the same computations as contact.py (which runs by default)
-        # the limit cycles' script (~150 s of compiling hybrid Newton solves and their jvp):
+        # the limit cycles' script (~40 s alone, mostly compiling hybrid Newton solves and their jvp):
         # tests/test_limit_cycles.py checks its orbits and derivatives by default; and the notebooks
         # that repeat a script which runs by default (the same computations; executed with -m slow)
         "limit_cycles.py", "limit_cycles.ipynb", "rimless_wheel.ipynb", "feedback_cancellation.ipynb",
