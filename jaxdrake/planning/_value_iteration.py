@@ -17,6 +17,7 @@ gather over all (state, input) pairs, jitted, on any device.
 from __future__ import annotations
 
 import functools
+import time
 
 import equinox as eqx
 import jax
@@ -24,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import PartitionSpec
 
-from .._batch import batch_sharding, padded
+from .._batch import batch_sharding
 from .._progress import finish, progress_bar
 from ..simulation import simulate
 from ..simulation import leaves_to_arrays
@@ -167,7 +168,7 @@ def fitted_value_iteration(system: System, cost, state_grid, input_grid, dt, *, 
 
     system = leaves_to_arrays(system, jnp.result_type(float))  # new parameter values: no new compilation
     devices = tuple(jax.local_devices() if devices is None else devices)
-    points = _split_across(state_mesh.points(), devices)
+    points = _points_on(devices, state_mesh)
     sweeps_on = _sweep_program(devices)
     indices, weights, stage = _transitions(system, cost, points, state_mesh, input_mesh, dt, periodic, solver,
                                            discrete)
@@ -176,17 +177,28 @@ def fitted_value_iteration(system: System, cost, state_grid, input_grid, dt, *, 
     bar = progress_bar(progress, max_iterations, "value iteration", "sweep")
     chunk = max_iterations if bar is None else 50
     while done < max_iterations and not float(change) <= tol:
+        start = time.perf_counter()
         J, change, sweeps = sweeps_on(J, indices, weights, stage, discount, tol,
                                       jnp.asarray(min(chunk, max_iterations - done)))
         done += int(sweeps)
         if bar is not None:
             bar.update(int(sweeps))
             bar.set_postfix(max_change=f"{float(change):.3g}")
+            chunk = _next_chunk(chunk, time.perf_counter() - start)
     finish(bar, done)
     J, table = _values_and_policy(J, indices, weights, stage, discount, input_mesh.points(), state_mesh.shape)
     policy = MeshPolicy(state_mesh, table, periodic, system.state_frame, system.input_frame)
     return ValueIterationResult(J=J, policy_table=table, policy=policy, mesh=state_mesh,
                                 iterations=jnp.asarray(done), max_change=change)
+
+
+PROGRESS_INTERVAL = 0.25  # s: with a progress bar, sweeps run in chunks of about this long
+
+
+def _next_chunk(chunk: int, seconds: float) -> int:
+    """Sweeps in the next chunk: about `PROGRESS_INTERVAL` s of them, at most 16 times the last
+    chunk (fast sweeps are not cut into host round trips: 10^6 points sweep in ~0.2 ms on a GPU)."""
+    return int(np.clip(chunk * PROGRESS_INTERVAL / max(seconds, 1e-9), 1, 16 * chunk))
 
 
 def _wrap(x, periodic):
@@ -195,12 +207,25 @@ def _wrap(x, periodic):
     return x
 
 
-def _split_across(points, devices):
-    """The mesh points on one device, or padded (copies of the last) to a multiple of the
-    device count and sharded along their first axis, so that what is computed from them is too."""
-    if len(devices) == 1:
-        return jax.device_put(points, devices[0])
-    return jax.device_put(padded(points, -(-len(points) // len(devices)) * len(devices)), batch_sharding(devices))
+def _points_on(devices, mesh: BarycentricMesh):
+    """The mesh points made where they are used: on one device, or padded (copies of the last)
+    to a multiple of the device count and sharded along their first axis, each device making
+    its own slice (nothing is built on the host and copied: 11 ms for 10^6 points on two H200s),
+    so that what is computed from them is split too."""
+    return _points_program(devices, mesh.shape)(mesh.grids)
+
+
+@functools.cache
+def _points_program(devices: tuple, shape: tuple):
+    count = int(np.prod(shape))
+    length = -(-count // len(devices)) * len(devices)
+    sharding = jax.sharding.SingleDeviceSharding(devices[0]) if len(devices) == 1 else batch_sharding(devices)
+
+    def points(grids):
+        coordinates = jnp.unravel_index(jnp.minimum(jnp.arange(length), count - 1), shape)
+        return jnp.stack([g[c] for g, c in zip(grids, coordinates)], axis=1)
+
+    return jax.jit(points, out_shardings=sharding)
 
 
 @eqx.filter_jit
