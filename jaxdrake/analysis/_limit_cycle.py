@@ -117,7 +117,10 @@ def limit_cycle(system: System, x_guess, period_guess, *, events_per_period: int
             f"limit_cycle of {system.name}: Newton's method stopped at residual {float(result.residual):.3g} "
             f"after {int(result.iterations)} iterations (tol {tol:g}); start nearer the orbit, give a "
             "better period_guess, or check that the simulations succeed (simulate from x_guess)")
-    if not hybrid and float(jnp.max(jnp.abs(_field(system, result.state)))) < 1e3 * tol:
+    # under jax.jvp / jacfwd outside jit the residual is concrete (the Newton loop holds the
+    # parameters constant) and the state is not
+    if not hybrid and not isinstance(result.state, jax.core.Tracer) and \
+            float(jnp.max(jnp.abs(_field(system, result.state)))) < 1e3 * tol:
         raise LimitCycleError(
             f"limit_cycle of {system.name}: Newton's method converged to an equilibrium, "
             f"x = {np.asarray(result.state)}, which is 'periodic' with any period; start on the orbit")
