@@ -248,11 +248,17 @@ def _transitions(system, cost, xs, state_mesh, input_mesh, dt, periodic, solver,
     return jax.vmap(lambda x: jax.vmap(lambda u: one(x, u))(us))(xs)
 
 
+def _costs_to_go(J, indices, weights, stage, discount):
+    """The cost of each (state, input) pair: its stage cost plus the discounted interpolant of J
+    at its next state, (S, M); a sweep takes the least over the inputs, the policy its input."""
+    return stage + discount * jnp.einsum("smv,smv->sm", weights, J[indices])
+
+
 @functools.partial(jax.jit, static_argnums=6)
 def _values_and_policy(J, indices, weights, stage, discount, input_points, shape):
     """J on the mesh (its axes in state order) and the minimizing input at each mesh point,
     the padding of a split mesh dropped: one program (on one device, as the results are)."""
-    best = jnp.argmin(stage + discount * jnp.einsum("smv,smv->sm", weights, J[indices]), axis=1)
+    best = jnp.argmin(_costs_to_go(J, indices, weights, stage, discount), axis=1)
     S = int(np.prod(shape))
     return J[:S].reshape(shape), input_points[best[:S]].reshape(shape + (input_points.shape[1],))
 
@@ -277,7 +283,7 @@ def _sweep_program(devices: tuple):
 
     def sweep(J, indices, weights, stage, discount):
         J_all = jax.lax.all_gather(J, "batch", tiled=True) if several else J
-        J_next = jnp.min(stage + discount * jnp.einsum("smv,smv->sm", weights, J_all[indices]), axis=1)
+        J_next = jnp.min(_costs_to_go(J_all, indices, weights, stage, discount), axis=1)
         change = jnp.max(jnp.abs(J_next - J))
         return J_next, jax.lax.pmax(change, "batch") if several else change
 
