@@ -1,0 +1,405 @@
+"""Straight-line programs on lanes: a jaxpr of one evaluation, evaluated element by element so
+that each value is a vector of lanes, one batch member per position (a GPU thread each).
+
+A value of the original program is either concrete (a NumPy array, known while tracing) or an
+object array of its shape whose elements are lane vectors (or Python / NumPy scalars). Only
+elementwise arithmetic on lane vectors is left for the kernel: data movement with indices
+known while tracing (slices, gathers, reshapes, concatenations, `.at[].set`) is resolved while
+tracing, static scans unroll, products and sums become sums of products. Loops, linear solves
+and traced indices are refused with the caller's named error.
+
+Users: `simulate_ensemble` (a Dormand-Prince loop per lane around a vector field) and the
+rigid-body algorithms' fused batches (`lane_map`: one evaluation per lane, one Pallas kernel).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+BLOCK = 128  # members per GPU program (lanes of one Pallas block); 64 / 256 measured no faster
+
+
+_ELEMENTWISE = {
+    "abs", "acos", "acosh", "add", "and", "asin", "asinh", "atan", "atan2", "atanh", "cbrt", "ceil", "clamp",
+    "convert_element_type", "copy", "copy_p", "cos", "cosh", "div", "eq", "erf", "erf_inv", "erfc", "exp", "exp2",
+    "expm1", "floor", "ge", "gt", "integer_pow", "is_finite", "le", "log", "log1p", "logistic", "lt", "max", "min",
+    "mul", "ne", "neg", "nextafter", "not", "or", "pow", "rem", "round", "rsqrt", "select_n", "sign", "sin", "sinh",
+    "sqrt", "square", "sub", "tan", "tanh", "xor"}
+# single-operand data movement: where each output element comes from, found by running the
+# primitive on the operand's flat positions
+_MOVEMENT = {"slice", "reshape", "squeeze", "broadcast_in_dim", "transpose", "rev", "dynamic_slice", "gather",
+             "expand_dims"}
+# two-operand data movement of the same kind (the update's positions offset past the operand's)
+_OVERWRITE = {"dynamic_update_slice", "scatter"}
+_CALLS = {"pjit": "jaxpr", "closed_call": "call_jaxpr", "core_call": "call_jaxpr", "custom_jvp_call": "call_jaxpr",
+          "custom_vjp_call": "call_jaxpr", "custom_vmap_call": "call", "remat": "jaxpr", "checkpoint": "jaxpr",
+          "jit": "jaxpr"}
+
+
+class Budget:
+    """Counts the lane vectors one evaluation makes and refuses more than `limit`; names the
+    caller (`who`), what is evaluated (`subject`), and what to do instead (`remedy`) in its
+    errors. Straight-line code is slow to trace and compile past a few thousand operations."""
+
+    def __init__(self, who, subject, limit, remedy):
+        self.who, self.subject, self.limit, self.remedy, self.spent = who, subject, limit, remedy, 0
+
+    def fresh(self):
+        """The same limits with nothing spent (one per trace)."""
+        return Budget(self.who, self.subject, self.limit, self.remedy)
+
+    def spend(self, outputs):
+        self.spent += sum(np.size(v) for v in outputs if not concrete(v))
+        if self.spent > self.limit:
+            raise NotImplementedError(f"{self.who}: {self.subject} unrolls into more than {self.limit:,} per-lane "
+                                      f"operations, whose kernel is slow to compile: {self.remedy}")
+
+    def refuse(self, what):
+        raise NotImplementedError(f"{self.who}: {self.subject} {what}; {self.remedy}")
+
+
+def lane_map(fn, examples, budget, kernel="pallas"):
+    """`fn` (one evaluation: arrays shaped like `examples` -> an array or a pytree of them) as
+    a program over a batch, one lane per member: `program(*batched)` takes each argument with
+    a leading batch axis (N, *example.shape) and returns the outputs likewise, in the examples'
+    dtype. Values known while tracing (`fn`'s closed-over constants) are folded into the code,
+    which is traced here, once (`budget` bounds its length: its error is raised here).
+    `kernel`: "pallas" (one Pallas program per `BLOCK` members, every intermediate in
+    registers; on a non-GPU backend Pallas's interpreter, slow, for checking) or "xla" (the
+    same code vmapped over blocks of `BLOCK` lanes, one jitted program)."""
+    closed, out_struct = jax.make_jaxpr(fn, return_shape=True)(*examples)
+    shapes, dtype = [tuple(e.shape) for e in examples], examples[0].dtype
+    starts = np.cumsum([0] + [int(np.prod(s, dtype=int)) for s in shapes])
+    out_shapes = [tuple(a.shape) for a in closed.out_avals]
+    out_starts = np.cumsum([0] + [int(np.prod(s, dtype=int)) for s in out_shapes])
+
+    def on_rows(*rows):  # one lane vector (BLOCK,) per input element -> one per output element
+        args = [elements(rows[a:b], shape) for a, b, shape in zip(starts[:-1], starts[1:], shapes)]
+        outs = evaluate(closed.jaxpr, closed.consts, args, (BLOCK,), dtype, budget.fresh())
+        return [materialize(x, (BLOCK,), dtype) for out in outs for x in objects(out).reshape(-1)]
+
+    code = jax.make_jaxpr(on_rows)(*[jax.ShapeDtypeStruct((BLOCK,), dtype)] * int(starts[-1]))
+
+    def block(rows):
+        return jax.core.eval_jaxpr(code.jaxpr, code.consts, *rows)
+
+    @jax.jit
+    def program(*batched):
+        count = batched[0].shape[0]
+        rows = jnp.concatenate([jnp.reshape(a, (count, -1)).astype(dtype) for a in batched], 1).T
+        if kernel == "pallas":
+            out = pallas_over_lanes(lambda ins: [block(ins[0])], [rows], [(int(out_starts[-1]), dtype)])[0]
+        else:
+            blocks = jnp.pad(rows, ((0, 0), (0, -count % BLOCK)), mode="edge").reshape(rows.shape[0], -1, BLOCK)
+            out = jax.vmap(lambda b: jnp.stack(block(list(b))), in_axes=1, out_axes=1)(blocks)
+            out = out.reshape(out.shape[0], -1)[:, :count]
+        outs = [out[a:b].T.reshape((count, *s)) for a, b, s in zip(out_starts[:-1], out_starts[1:], out_shapes)]
+        return jax.tree.unflatten(jax.tree.structure(out_struct), outs)
+
+    return program
+
+
+def pallas_over_lanes(body, inputs, outputs):
+    """One Pallas (Triton) program per `BLOCK` members. `inputs`: arrays (rows, N);
+    `body(input rows)` gets each input as a list of lane vectors (BLOCK,) and returns each
+    output likewise; `outputs`: (rows, dtype) of each. Rows are padded to powers of two and
+    members to a multiple of `BLOCK` (Triton's block shapes), the padding dropped again."""
+    from jax.experimental import pallas as pl
+
+    count = inputs[0].shape[1]
+    padded = -(-count // BLOCK) * BLOCK
+    rows_in = [a.shape[0] for a in inputs]
+    blocks = [jnp.pad(a, ((0, pl.next_power_of_2(r) - r), (0, padded - count)), mode="edge") if r
+              else jnp.zeros((1, padded), inputs[0].dtype) for a, r in zip(inputs, rows_in)]
+
+    def kernel(*refs):
+        ins, outs = refs[:len(inputs)], refs[len(inputs):]
+        results = body([[ref[i, :] for i in range(r)] for ref, r in zip(ins, rows_in)])
+        for ref, rows in zip(outs, results):
+            for i, row in enumerate(rows):
+                ref[i, :] = row
+
+    spec = lambda rows: pl.BlockSpec((pl.next_power_of_2(max(rows, 1)), BLOCK), lambda i: (0, i))  # noqa: E731
+    out = pl.pallas_call(
+        kernel, grid=(padded // BLOCK,),
+        in_specs=[spec(b.shape[0]) for b in blocks], out_specs=[spec(r) for r, _ in outputs],
+        out_shape=[jax.ShapeDtypeStruct((pl.next_power_of_2(max(r, 1)), padded), d) for r, d in outputs],
+        interpret=jax.default_backend() != "gpu",  # elsewhere Pallas's interpreter (slow: for checking)
+    )(*blocks)
+    return [o[:r, :count] for o, (r, _) in zip(out, outputs)]
+
+
+def evaluate(jaxpr, consts, args, shape, dtype, budget):
+    """Evaluate `jaxpr` with `args` (object arrays of lanes, or concrete arrays); returns its
+    outputs in the same representation."""
+    env = {}
+
+    def read(v):
+        return np.asarray(v.val) if isinstance(v, jax.extend.core.Literal) else env[v]
+
+    for var, value in zip(jaxpr.constvars, consts):
+        env[var] = np.asarray(value)
+    for var, value in zip(jaxpr.invars, args):
+        env[var] = value
+    for eqn in jaxpr.eqns:
+        inputs = [read(v) for v in eqn.invars]
+        name = eqn.primitive.name
+        if all(concrete(v) for v in inputs) and name not in _CALLS:
+            with jax.ensure_compile_time_eval():
+                out = eqn.primitive.bind(*[jnp.asarray(v) for v in inputs], **eqn.params)
+            outs = [np.asarray(o) for o in (out if eqn.primitive.multiple_results else [out])]
+        elif name in _CALLS:
+            outs = evaluate(*_open(eqn.params[_CALLS[name]]), inputs, shape, dtype, budget)
+        elif name in _MOVEMENT | _OVERWRITE | {"scatter-add"} and not all(concrete(v) for v in _indices(name, inputs)):
+            budget.refuse(f"takes the indices of its `{name}` from the state or time (traced indices)")
+        elif name == "scan":
+            outs = _unrolled_scan(eqn, inputs, shape, dtype, budget)
+        elif name in _ELEMENTWISE:
+            outs = [_elementwise(eqn, inputs, shape)]
+        elif name in _MOVEMENT:
+            outs = [_moved(eqn, inputs[0], inputs[1:])]
+        elif name in _OVERWRITE:
+            outs = [_overwritten(eqn, inputs)]
+        elif name == "scatter-add":
+            outs = [_scatter_added(eqn, inputs)]
+        elif name == "concatenate":
+            outs = [np.concatenate([objects(v) for v in inputs], axis=eqn.params["dimension"])]
+        elif name == "stack":
+            outs = [np.stack([objects(v) for v in inputs], axis=eqn.params["axis"])]
+        elif name == "unstack":
+            outs = list(np.moveaxis(objects(inputs[0]), eqn.params.get("axis", 0), 0))
+        elif name == "split":
+            outs = np.split(objects(inputs[0]), np.cumsum(eqn.params["sizes"])[:-1], axis=eqn.params["axis"])
+        elif name in ("reduce_sum", "reduce_max", "reduce_min"):
+            outs = [_reduced(name, objects(inputs[0]), eqn.params["axes"])]
+        elif name == "dot_general":
+            outs = [_dot(eqn, inputs)]
+        else:
+            budget.refuse(f"uses `{name}`, which has no per-lane form here (loops, linear solves and traced "
+                          "indices do not)")
+        if name not in _CALLS and name != "scan":  # (counted inside)
+            budget.spend(outs)
+        for var, value in zip(eqn.outvars, outs):
+            env[var] = _wrapped(value)
+    return [read(v) for v in jaxpr.outvars]
+
+
+def _indices(name, inputs):
+    """The index operands of a data-movement primitive (they must be known while tracing)."""
+    if name in ("scatter", "scatter-add"):
+        return [inputs[1]]
+    return inputs[2:] if name == "dynamic_update_slice" else inputs[1:]
+
+
+def _open(closed):
+    """(jaxpr, consts) of a closed or open jaxpr."""
+    return (closed.jaxpr, closed.consts) if hasattr(closed, "consts") else (closed, ())
+
+
+def _unrolled_scan(eqn, inputs, shape, dtype, budget):
+    """A `lax.scan` (a static length) unrolled: its body evaluated once per iteration, so that
+    indices computed from the iteration counter are known while tracing."""
+    p = eqn.params
+    consts, carry = inputs[:p["num_consts"]], inputs[p["num_consts"]:p["num_consts"] + p["num_carry"]]
+    xs, ys = inputs[p["num_consts"] + p["num_carry"]:], []
+    order = range(p["length"] - 1, -1, -1) if p["reverse"] else range(p["length"])
+    for i in order:
+        outs = evaluate(*_open(p["jaxpr"]), [*consts, *carry, *[_element(x, i) for x in xs]], shape, dtype, budget)
+        carry, y = outs[:p["num_carry"]], outs[p["num_carry"]:]
+        ys.append(y)
+    if p["reverse"]:
+        ys.reverse()
+    stacked = [np.stack([y[k] for y in ys]) if all(concrete(y[k]) for y in ys)
+               else np.stack([objects(y[k]) for y in ys]) for k in range(len(eqn.outvars) - len(carry))]
+    return [*carry, *stacked]
+
+
+def _element(value, i):
+    """value[i] along the first axis, in the same representation as value."""
+    return np.asarray(value[i]) if concrete(value) else _wrapped(value[i])
+
+
+def _wrapped(value):
+    """An object array as it is; a lone element (a lane vector, from indexing or a product)
+    as a 0-d object array."""
+    return value if isinstance(value, np.ndarray) else elements([value], ())
+
+
+def concrete(value) -> bool:
+    return not (isinstance(value, np.ndarray) and value.dtype == object)
+
+
+def elements(lanes, shape):
+    """An object array of `shape` holding the lane vectors `lanes` (NumPy would otherwise read
+    the vectors as one more axis)."""
+    out = np.empty(len(lanes), dtype=object)
+    for i, lane in enumerate(lanes):
+        out[i] = lane
+    return out.reshape(shape)
+
+
+def objects(value):
+    """An object array of the value's elements (concrete numbers stay NumPy scalars)."""
+    return value if not concrete(value) else np.asarray(value).astype(object)
+
+
+def materialize(element, shape, dtype):
+    """A lane vector of `dtype` from an element (a lane vector or a number)."""
+    if isinstance(element, (int, float, bool, np.generic, np.ndarray)) or np.ndim(element) == 0:
+        return jnp.full(shape, element, dtype)
+    return element.astype(dtype) if element.dtype != dtype else element
+
+
+def _elementwise(eqn, inputs, shape):
+    """An elementwise primitive, element by element. Known elements are folded while tracing:
+    all known, the result is computed now; a product with a known 0 is 0, with a known 1 the
+    other factor; a sum with a known 0 the other term (a rigid-body tree's axes and offsets
+    are mostly zeros and ones: the 7-dof arm's ABA, 7,000 -> 4,500 operations)."""
+    out_aval, name = eqn.outvars[0].aval, eqn.primitive.name
+    arrays = np.broadcast_arrays(*[objects(v) for v in inputs])
+    result = np.empty(out_aval.shape, dtype=object)
+    for index in np.ndindex(*out_aval.shape):
+        operands = [array[index] for array in arrays]
+        known = [not isinstance(e, jax.Array) for e in operands]
+        if all(known):
+            with jax.ensure_compile_time_eval():
+                value = eqn.primitive.bind(*[jnp.asarray(e, v.aval.dtype) for e, v in zip(operands, eqn.invars)],
+                                           **eqn.params)
+            result[index] = np.asarray(value)[()]
+            continue
+        folded = _folded(name, operands, known, out_aval.dtype)
+        if folded is not None:
+            result[index] = folded
+            continue
+        result[index] = eqn.primitive.bind(*[materialize(e, shape, v.aval.dtype) if k else e
+                                             for e, k, v in zip(operands, known, eqn.invars)], **eqn.params)
+    return result
+
+
+def _folded(name, operands, known, dtype):
+    """x * 0 = 0, x * 1 = x, x + 0 = x, x - 0 = x, 0 - x = -x (one operand a lane vector, the
+    other known); None otherwise."""
+    if name not in ("mul", "add", "sub"):
+        return None
+    (a, b), (a_known, b_known) = operands, known
+    if name == "mul":
+        for value, other, value_known in ((a, b, a_known), (b, a, b_known)):
+            if value_known and value == 0:
+                return np.zeros((), dtype)[()]
+            if value_known and value == 1:
+                return other
+    elif b_known and b == 0:
+        return a
+    elif a_known and a == 0:
+        return b if name == "add" else -b
+    return None
+
+
+def _moved(eqn, operand, others):
+    """A data-movement primitive on an object array, from the positions it moves."""
+    operand = objects(operand)
+    positions = np.arange(operand.size, dtype=np.int32).reshape(operand.shape)
+    with jax.ensure_compile_time_eval():
+        moved = np.asarray(eqn.primitive.bind(jnp.asarray(positions), *[jnp.asarray(v) for v in others], **eqn.params))
+    return operand.reshape(-1)[moved]
+
+
+def _overwritten(eqn, inputs):
+    """`dynamic_update_slice(operand, update, *indices)` or `scatter(operand, indices, updates)`
+    (replacing): the operand's and the update's elements, placed by their positions."""
+    if eqn.primitive.name == "scatter":
+        operand, indices, update = inputs[0], inputs[1], inputs[2]
+        others = [indices]
+    else:
+        operand, update, others = inputs[0], inputs[1], inputs[2:]
+    operand, update = objects(operand), objects(update)
+    offset = operand.size
+    positions = np.arange(operand.size, dtype=np.int32).reshape(operand.shape)
+    update_positions = offset + np.arange(update.size, dtype=np.int32).reshape(update.shape)
+    with jax.ensure_compile_time_eval():
+        if eqn.primitive.name == "scatter":
+            placed = eqn.primitive.bind(jnp.asarray(positions), jnp.asarray(others[0]), jnp.asarray(update_positions),
+                                        **eqn.params)
+        else:
+            placed = eqn.primitive.bind(jnp.asarray(positions), jnp.asarray(update_positions),
+                                        *[jnp.asarray(v) for v in others], **eqn.params)
+    return np.concatenate([operand.reshape(-1), update.reshape(-1)])[np.asarray(placed)]
+
+
+def _scatter_added(eqn, inputs):
+    """`scatter-add(operand, indices, updates)` with known indices: each update's target found
+    by scattering a one-hot update onto zeros, then added there."""
+    operand, indices, updates = inputs
+    out, updates = objects(operand).reshape(-1).copy(), objects(updates)
+    dtype = eqn.invars[0].aval.dtype  # the primitive's own (its adding region is typed)
+    for j in range(updates.size):
+        one_hot = np.zeros(updates.size, dtype)
+        one_hot[j] = 1
+        with jax.ensure_compile_time_eval():
+            hit = np.asarray(eqn.primitive.bind(jnp.zeros(np.shape(operand), dtype), jnp.asarray(indices),
+                                                jnp.asarray(one_hot.reshape(updates.shape)), **eqn.params))
+        for target in np.flatnonzero(hit.reshape(-1)):
+            out[target] = out[target] + updates.reshape(-1)[j]
+    return out.reshape(np.shape(operand))
+
+
+def _reduced(name, operand, axes):
+    combine = {"reduce_sum": _plus, "reduce_max": jnp.maximum, "reduce_min": jnp.minimum}[name]
+    moved = np.moveaxis(operand, axes, tuple(range(-len(axes), 0)))
+    flat = moved.reshape(moved.shape[:moved.ndim - len(axes)] + (-1,))
+    out = np.empty(flat.shape[:-1], dtype=object)
+    for index in np.ndindex(*out.shape):
+        out[index] = functools.reduce(combine, list(flat[index]))
+    return out
+
+
+def _dot(eqn, inputs):
+    """`dot_general` as sums of products (folded, `_times` / `_plus`): batch dimensions first,
+    then the left operand's free dimensions and the right one's (XLA's order)."""
+    (lhs_contract, rhs_contract), (lhs_batch, rhs_batch) = eqn.params["dimension_numbers"]
+    lhs, rhs = objects(inputs[0]), objects(inputs[1])
+    lhs_free = [d for d in range(lhs.ndim) if d not in (*lhs_batch, *lhs_contract)]
+    rhs_free = [d for d in range(rhs.ndim) if d not in (*rhs_batch, *rhs_contract)]
+    lhs = np.transpose(lhs, (*lhs_batch, *lhs_free, *lhs_contract))
+    rhs = np.transpose(rhs, (*rhs_batch, *rhs_contract, *rhs_free))
+    batch, left = lhs.shape[:len(lhs_batch)], lhs.shape[len(lhs_batch):len(lhs_batch) + len(lhs_free)]
+    right = rhs.shape[len(rhs_batch) + len(rhs_contract):]
+    size = int(np.prod(lhs.shape[len(lhs_batch) + len(lhs_free):], dtype=int))
+    lhs = lhs.reshape(int(np.prod(batch, dtype=int)), int(np.prod(left, dtype=int)), size)
+    rhs = rhs.reshape(lhs.shape[0], size, int(np.prod(right, dtype=int)))
+    zero = np.zeros((), eqn.outvars[0].aval.dtype)[()]
+    out = np.empty((lhs.shape[0], lhs.shape[1], rhs.shape[2]), dtype=object)
+    for b, i, j in np.ndindex(*out.shape):
+        out[b, i, j] = functools.reduce(_plus, [_times(lhs[b, i, k], rhs[b, k, j]) for k in range(size)], zero)
+    return out.reshape(batch + left + right)
+
+
+def _times(a, b):
+    """a * b, folded where one factor is a known 0 or 1 (`_folded`)."""
+    return _arithmetic("mul", a, b)
+
+
+def _plus(a, b):
+    """a + b, folded where one term is a known 0."""
+    return _arithmetic("add", a, b)
+
+
+def _python_number(value):
+    """A known number as a Python scalar: weakly typed, so it takes the lane's dtype."""
+    return value.item() if hasattr(value, "item") else value
+
+
+def _arithmetic(name, a, b):
+    known = [not isinstance(e, jax.Array) for e in (a, b)]
+    if all(known):
+        return a * b if name == "mul" else a + b
+    dtype = (b if known[0] else a).dtype
+    folded = _folded(name, (a, b), known, dtype)
+    if folded is not None:
+        return folded
+    a, b = (_python_number(e) if k else e for e, k in zip((a, b), known))
+    return a * b if name == "mul" else a + b
