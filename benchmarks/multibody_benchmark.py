@@ -24,6 +24,7 @@ import tempfile
 import time
 
 import jax
+import jax.extend
 import jax.numpy as jnp
 import numpy as np
 
@@ -74,11 +75,66 @@ def jax_rates(tree, batches, repeats):
         for n in batches:
             many = jax.jit(jax.vmap(fn))
             args = (q[:n], v[:n], t[:n])
+            start = time.perf_counter()
             jax.block_until_ready(many(*args))
+            first = time.perf_counter() - start
             seconds = best_time(lambda: jax.block_until_ready(many(*args)), repeats)
-            rows[f"vmap {n}"] = (seconds, n / seconds, None)
+            rows[f"vmap {n}"] = (seconds, n / seconds, first)
         out[name] = rows
     return out
+
+
+ARITHMETIC = {"add", "sub", "mul", "div", "neg", "sin", "cos", "sqrt", "rsqrt", "max", "min", "abs", "exp", "log"}
+
+
+def arithmetic_count(jaxpr) -> int:
+    """Arithmetic equations in a jaxpr and the jaxprs inside it."""
+    count = 0
+    for eqn in jaxpr.eqns:
+        count += eqn.primitive.name in ARITHMETIC
+        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+            count += arithmetic_count(sub)
+    return count
+
+
+def fused_against_lanes(tree, batches, repeats, float32):
+    """Vmapped ABA and C v + G with `mb.fused_kernels` on (the default on a GPU) and off: rates,
+    first calls, operations per evaluation of the fused kernel, achieved FLOP/s and bytes/s
+    (inputs and outputs once each) against the peak given (H100/H200 SXM: ~67 TFLOP/s float32,
+    ~34 float64 without tensor cores, ~3.35 / 4.8 TB/s)."""
+    from jaxdrake import _lanes
+    from jaxdrake.multibody import _algorithms
+    width = 4 if float32 else 8
+    fns = {"ABA": (lambda q, v, t: mb.aba(tree, q, v, t), _algorithms._aba, 3, {"gravity": True}),
+           "C v + G": (lambda q, v, t: mb.bias_forces(tree, q, v), _algorithms._rnea, 2, {"gravity": True})}
+    for name, (fn, algorithm, arity, static) in fns.items():
+        dtype = jnp.float32 if float32 else jnp.float64
+        examples = [jax.ShapeDtypeStruct((n,), dtype) for n in (tree.nq, tree.nv, tree.nv)[:arity]]
+
+        def evaluation(*xs):
+            return algorithm(tree, *(x[..., None] for x in xs), unroll=float("inf"), **static)[..., 0]
+
+        xla = _lanes.lane_map(evaluation, examples, _lanes.Budget("bench", name, 10**6, ""), kernel="xla")
+        ops = arithmetic_count(jax.make_jaxpr(xla)(*[jnp.zeros((128, *e.shape), dtype) for e in examples]).jaxpr)
+        bytes_per = width * (sum(e.shape[0] for e in examples) + tree.nv)
+        for n in batches:
+            q, v, t = (jnp.asarray(a, dtype) for a in random_inputs(tree, n))
+            row = {}
+            for label, setting in (("fused", n), ("lanes", None)):
+                previous = mb.fused_kernels(setting)
+                try:
+                    program = jax.jit(jax.vmap(fn))
+                    start = time.perf_counter()
+                    jax.block_until_ready(program(q, v, t))
+                    first = time.perf_counter() - start
+                    seconds = best_time(lambda: jax.block_until_ready(program(q, v, t)), repeats)
+                finally:
+                    mb.fused_kernels(previous)
+                row[label] = (seconds, first)
+            (fs, ff), (ls, lf) = row["fused"], row["lanes"]
+            print(f"  {name:8s} {n:>8d}  fused {n / fs / 1e6:8.1f}M/s ({fs * 1e3:7.3f} ms, first call {ff:5.1f} s)"
+                  f"  lanes {n / ls / 1e6:7.1f}M/s ({ls * 1e3:7.3f} ms, first call {lf:4.1f} s)  {ls / fs:5.1f}x"
+                  f"  | {ops} ops: {ops * n / fs / 1e12:5.2f} TFLOP/s, {bytes_per * n / fs / 1e9:6.1f} GB/s")
 
 
 def pinocchio_rates(path, tree, n):
@@ -122,13 +178,13 @@ def mjx_rates(path, batches, repeats):
     return out
 
 
-def main(batches, repeats, gpu, float32):
+def main(batches, repeats, gpu, float32, robots=("panda", "solo12")):
     jax.config.update("jax_enable_x64", not float32)
     print(machine_line())
     with tempfile.TemporaryDirectory() as tmp:
-        robots = {"panda (7 dof)": panda7(tmp),
+        chosen = {"panda (7 dof)": panda7(tmp),
                   "solo12 (floating, 18 dof)": robot_path("solo_description/robots/solo12.urdf")}
-        for label, path in robots.items():
+        for label, path in {k: p for k, p in chosen.items() if k.split()[0] in robots}.items():
             tree, _ = mb.tree_from_urdf(path, floating_base="solo" in label)
             ours = jax_rates(tree, batches, repeats)
             theirs = None if gpu else pinocchio_rates(path, tree, 1000)
@@ -136,12 +192,15 @@ def main(batches, repeats, gpu, float32):
             for name, rows in ours.items():
                 base = theirs[name]["loop 1000"][1] if theirs else None
                 for kind, (seconds, rate, compile_s) in rows.items():
-                    extra = f"   (compile {compile_s:.2f} s)" if compile_s else ""
+                    extra = f"   (first call {compile_s:.2f} s)" if compile_s else ""
                     ratio = f"{rate / base:8.1f}x vs pinocchio loop" if base else ""
                     print(f"  {name:9s} jaxdrake {kind:12s} {rate:14,.0f}/s ({seconds * 1e3:9.3f} ms) {ratio}{extra}")
                 if theirs:
                     for kind, (seconds, rate) in theirs[name].items():
                         print(f"  {name:9s} pinocchio {kind:11s} {rate:14,.0f}/s ({seconds * 1e3:9.3f} ms)")
+            if gpu:
+                print(f"\n{label}: fused kernels (mb.fused_kernels) against the lanes program")
+                fused_against_lanes(tree, batches, repeats, float32)
             if "panda" in label:
                 try:
                     for kind, (seconds, rate) in mjx_rates(path, batches, repeats).items():
@@ -154,5 +213,6 @@ if __name__ == "__main__":
     parser = argument_parser(__doc__, repeats=3, gpu_help="JAX rows only (no Pinocchio)")
     parser.add_argument("--batches", type=int, nargs="+", default=[1000, 100000])
     parser.add_argument("--float32", action="store_true", help="JAX in float32 (the GPU default)")
+    parser.add_argument("--robots", nargs="+", default=["panda", "solo12"], choices=["panda", "solo12"])
     args = parser.parse_args()
-    main(args.batches, args.repeats, args.gpu, args.float32)
+    main(args.batches, args.repeats, args.gpu, args.float32, args.robots)

@@ -149,9 +149,7 @@ def evaluate(jaxpr, consts, args, shape, dtype, budget):
         inputs = [read(v) for v in eqn.invars]
         name = eqn.primitive.name
         if all(concrete(v) for v in inputs) and name not in _CALLS:
-            with jax.ensure_compile_time_eval():
-                out = eqn.primitive.bind(*[jnp.asarray(v) for v in inputs], **eqn.params)
-            outs = [np.asarray(o) for o in (out if eqn.primitive.multiple_results else [out])]
+            outs = _known(eqn, [np.asarray(v) for v in inputs])
         elif name in _CALLS:
             outs = evaluate(*_open(eqn.params[_CALLS[name]]), inputs, shape, dtype, budget)
         elif name in _MOVEMENT | _OVERWRITE | {"scatter-add"} and not all(concrete(v) for v in _indices(name, inputs)):
@@ -193,6 +191,63 @@ def _indices(name, inputs):
     if name in ("scatter", "scatter-add"):
         return [inputs[1]]
     return inputs[2:] if name == "dynamic_update_slice" else inputs[1:]
+
+
+_NUMPY = {"add": np.add, "sub": np.subtract, "mul": np.multiply, "neg": np.negative, "max": np.maximum,
+          "min": np.minimum, "abs": np.abs, "sin": np.sin, "cos": np.cos, "sqrt": np.sqrt, "exp": np.exp,
+          "square": np.square, "lt": np.less, "le": np.less_equal, "gt": np.greater, "ge": np.greater_equal,
+          "eq": np.equal, "ne": np.not_equal, "and": np.bitwise_and, "or": np.bitwise_or, "not": np.invert,
+          "sign": np.sign, "floor": np.floor, "ceil": np.ceil}
+
+
+@functools.lru_cache(maxsize=1)
+def _host():
+    """The CPU device where known values are computed (a GPU compiles each eager op slower),
+    or the default device when JAX runs without its CPU backend."""
+    try:
+        return jax.devices("cpu")[0]
+    except RuntimeError:
+        return None
+
+
+def _known(eqn, inputs):
+    """The outputs of `eqn` on known (NumPy) inputs, computed now: NumPy for the common
+    arithmetic and data movement (JAX's eager dispatch compiled a program for each new
+    primitive and shape: 4 s of the 7-dof ABA's 8-s trace), JAX otherwise."""
+    name, params, x = eqn.primitive.name, eqn.params, (inputs[0] if inputs else None)
+    out = None
+    if x is None:
+        pass
+    elif name in _NUMPY and (name not in ("and", "or", "not") or x.dtype == bool):
+        out = _NUMPY[name](*inputs)
+    elif name == "div" and np.issubdtype(x.dtype, np.floating):
+        out = x / inputs[1]
+    elif name == "select_n" and inputs[0].dtype == bool and len(inputs) == 3:
+        out = np.where(inputs[0], inputs[2], inputs[1])
+    elif name == "convert_element_type":
+        out = x.astype(params["new_dtype"])
+    elif name == "integer_pow":
+        out = x ** params["y"]
+    elif name == "slice":
+        strides = params["strides"] or (1,) * x.ndim
+        out = x[tuple(slice(a, b, s) for a, b, s in zip(params["start_indices"], params["limit_indices"], strides))]
+    elif name == "squeeze":
+        out = np.squeeze(x, axis=tuple(params["dimensions"]))
+    elif name == "broadcast_in_dim" and len(inputs) == 1:
+        dims, shape = params["broadcast_dimensions"], params["shape"]
+        out = np.broadcast_to(x.reshape([x.shape[dims.index(d)] if d in dims else 1 for d in range(len(shape))]),
+                              shape)
+    elif name == "reshape" and params.get("dimensions") is None and len(inputs) == 1:
+        out = x.reshape(params["new_sizes"])
+    elif name == "transpose":
+        out = np.transpose(x, params["permutation"])
+    elif name == "rev":
+        out = np.flip(x, axis=tuple(params["dimensions"]))
+    if out is None:
+        with jax.ensure_compile_time_eval(), jax.default_device(_host()):
+            value = eqn.primitive.bind(*[jnp.asarray(v) for v in inputs], **params)
+        return [np.asarray(o) for o in (value if eqn.primitive.multiple_results else [value])]
+    return [np.asarray(out) if name in _MOVEMENT else np.asarray(out, eqn.outvars[0].aval.dtype)]
 
 
 def _open(closed):
@@ -266,10 +321,7 @@ def _elementwise(eqn, inputs, shape):
         operands = [array[index] for array in arrays]
         known = [not isinstance(e, jax.Array) for e in operands]
         if all(known):
-            with jax.ensure_compile_time_eval():
-                value = eqn.primitive.bind(*[jnp.asarray(e, v.aval.dtype) for e, v in zip(operands, eqn.invars)],
-                                           **eqn.params)
-            result[index] = np.asarray(value)[()]
+            result[index] = _known(eqn, [np.asarray(e, v.aval.dtype) for e, v in zip(operands, eqn.invars)])[0][()]
             continue
         folded = _folded(name, operands, known, out_aval.dtype)
         if folded is not None:
@@ -303,8 +355,7 @@ def _moved(eqn, operand, others):
     """A data-movement primitive on an object array, from the positions it moves."""
     operand = objects(operand)
     positions = np.arange(operand.size, dtype=np.int32).reshape(operand.shape)
-    with jax.ensure_compile_time_eval():
-        moved = np.asarray(eqn.primitive.bind(jnp.asarray(positions), *[jnp.asarray(v) for v in others], **eqn.params))
+    moved = _known(eqn, [positions, *[np.asarray(v) for v in others]])[0]
     return operand.reshape(-1)[moved]
 
 

@@ -668,7 +668,9 @@ def _fused_batches(public, algorithm, tree, static):
     return fused
 
 
-_FUSED_OPERATIONS = 40_000  # the most lane operations of a fused kernel (the 7-dof ABA: ~7,000)
+# the most lane values one fused evaluation may make (`_lanes.Budget`): the 7-dof ABA makes 14,088
+# (a 17-s Triton compile on an H200), Solo-12's 28,587 (124 s: its batches keep the lanes program)
+_FUSED_OPERATIONS = 20_000
 
 
 def rnea(tree: KinematicTree, q, v, a, *, gravity: bool = True):
