@@ -583,8 +583,9 @@ def fused_kernels(min_batch: int | None = 16384) -> int | None:
     The kernel (Pallas, Triton) gives each member a GPU thread and evaluates the algorithm as
     straight-line code with the tree's numbers folded in (`jaxdrake._lanes`): nothing goes to
     memory between the depths. The 7-dof arm's ABA at 10^6 members in float32 on an H200: 2.2e9
-    evaluations/s against 1.2e8 for the lanes program, but a first call of ~25 s instead of
-    ~3 s (kept by JAX's persistent compilation cache). Derivatives are unchanged: JAX's, through
+    evaluations/s against 1.2e8 for the lanes program, but a first call of ~22 s instead of
+    ~4 s (`jd.use_compilation_cache()` keeps it for later processes). Trees over 20,000 lane
+    values (Solo-12's ABA) keep the lanes program. Derivatives are unchanged: JAX's, through
     the one-lane program. Programs already compiled keep the setting they were traced with."""
     if min_batch is not None and not (isinstance(min_batch, int) and min_batch >= 1):
         raise ValueError(f"fused_kernels: min_batch must be a positive int or None, got {min_batch!r}")
