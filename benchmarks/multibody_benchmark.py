@@ -98,25 +98,27 @@ def arithmetic_count(jaxpr) -> int:
 
 
 def fused_against_lanes(tree, batches, repeats, float32):
-    """Vmapped ABA and C v + G with `mb.fused_kernels` on (the default on a GPU) and off: rates,
+    """Vmapped CRBA, ABA and C v + G with `mb.fused_kernels` on (the default on a GPU) and off: rates,
     first calls, operations per evaluation of the fused kernel, achieved FLOP/s and bytes/s
     (inputs and outputs once each) against the peak given (H100/H200 SXM: ~67 TFLOP/s float32,
     ~34 float64 without tensor cores, ~3.35 / 4.8 TB/s)."""
     from jaxdrake import _lanes
     from jaxdrake.multibody import _algorithms
     width = 4 if float32 else 8
-    fns = {"ABA": (lambda q, v, t: mb.aba(tree, q, v, t), _algorithms._aba, 3, {"gravity": True}),
+    fns = {"H (CRBA)": (lambda q, v, t: mb.mass_matrix(tree, q), _algorithms._mass_matrix, 1, {}),
+           "ABA": (lambda q, v, t: mb.aba(tree, q, v, t), _algorithms._aba, 3, {"gravity": True}),
            "C v + G": (lambda q, v, t: mb.bias_forces(tree, q, v), _algorithms._rnea, 2, {"gravity": True})}
     for name, (fn, algorithm, arity, static) in fns.items():
         dtype = jnp.float32 if float32 else jnp.float64
         examples = [jax.ShapeDtypeStruct((n,), dtype) for n in (tree.nq, tree.nv, tree.nv)[:arity]]
 
-        def evaluation(*xs):
+        def evaluation(*xs, algorithm=algorithm, static=static):
             return algorithm(tree, *(x[..., None] for x in xs), unroll=float("inf"), **static)[..., 0]
 
         xla = _lanes.lane_map(evaluation, examples, _lanes.Budget("bench", name, 10**6, ""), kernel="xla")
         ops = arithmetic_count(jax.make_jaxpr(xla)(*[jnp.zeros((128, *e.shape), dtype) for e in examples]).jaxpr)
-        bytes_per = width * (sum(e.shape[0] for e in examples) + tree.nv)
+        out_size = np.prod(jax.eval_shape(evaluation, *examples).shape)
+        bytes_per = width * (sum(e.shape[0] for e in examples) + out_size)
         for n in batches:
             q, v, t = (jnp.asarray(a, dtype) for a in random_inputs(tree, n))
             row = {}

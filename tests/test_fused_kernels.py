@@ -50,7 +50,7 @@ def _cartpole():
 
 
 def test_fused_batches_equal_pinocchio_and_small_or_traced_trees_keep_the_lanes(fused_on_this_backend):
-    """A prismatic and a revolute joint: ABA, RNEA, C v + G and G of a fused batch equal
+    """A prismatic and a revolute joint: ABA, RNEA, C v + G, G and H of a fused batch equal
     Pinocchio member by member (an unbatched argument broadcast); a batch under the threshold,
     and a tree passed into `jit` (not a constant), are not fused and agree too."""
     tree, model, data, pin_q = _cartpole()
@@ -60,16 +60,20 @@ def test_fused_batches_equal_pinocchio_and_small_or_traced_trees_keep_the_lanes(
     tau = jax.jit(jax.vmap(lambda q, v, a: mb.rnea(tree, q, v, a)))(qs, vs, taus)
     bias = jax.jit(jax.vmap(lambda q: mb.bias_forces(tree, q, vs[0])))(qs)
     gravity = jax.jit(jax.vmap(lambda q: mb.gravity_forces(tree, q)))(qs)
-    assert fused_on_this_backend == ["cartpole's aba", "cartpole's rnea", "cartpole's rnea", "cartpole's rnea"]
+    H = jax.jit(jax.vmap(lambda q: mb.mass_matrix(tree, q)))(qs)
+    assert fused_on_this_backend == ["cartpole's aba", "cartpole's rnea", "cartpole's rnea", "cartpole's rnea",
+                                     "cartpole's mass_matrix"]
     for k in range(9):
         np.testing.assert_allclose(qdd[k], pin.aba(model, data, pin_q(qs[k]), vs[k], taus[k]), rtol=1e-10, atol=1e-10)
         np.testing.assert_allclose(tau[k], pin.rnea(model, data, pin_q(qs[k]), vs[k], taus[k]), rtol=1e-10, atol=1e-10)
         np.testing.assert_allclose(bias[k], pin.nonLinearEffects(model, data, pin_q(qs[k]), vs[0]), rtol=1e-10, atol=1e-10)
         np.testing.assert_allclose(gravity[k], pin.computeGeneralizedGravity(model, data, pin_q(qs[k])), rtol=1e-10,
                                    atol=1e-10)
+        crba = pin.crba(model, data, pin_q(qs[k]))
+        np.testing.assert_allclose(H[k], np.triu(crba) + np.triu(crba, 1).T, rtol=1e-10, atol=1e-10)
     small = jax.vmap(lambda q, v, t: mb.aba(tree, q, v, t))(qs[:3], vs[:3], taus[:3])
     as_argument = jax.jit(jax.vmap(mb.aba, in_axes=(None, 0, 0, 0)))(tree, qs, vs, taus)
-    assert len(fused_on_this_backend) == 4
+    assert len(fused_on_this_backend) == 5
     np.testing.assert_allclose(small, qdd[:3], rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(as_argument, qdd, rtol=1e-12, atol=1e-12)
 

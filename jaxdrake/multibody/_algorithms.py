@@ -576,7 +576,7 @@ _FUSED_PROGRAMS: collections.OrderedDict = collections.OrderedDict()
 
 
 def fused_kernels(min_batch: int | None = 16384) -> int | None:
-    """Sets when vmapped `aba`, `rnea`, `bias_forces` and `gravity_forces` run as one fused
+    """Sets when vmapped `aba`, `rnea`, `bias_forces`, `gravity_forces` and `mass_matrix` run as one fused
     kernel on a GPU: batches of at least `min_batch` members, for a tree that is a constant of
     the program (closed over, not a `jit` argument); None: never. Returns the previous setting.
 
@@ -680,13 +680,17 @@ def rnea(tree: KinematicTree, q, v, a, *, gravity: bool = True):
     return _fused_when_batched(_lane_batched(_rnea, gravity=gravity), _rnea, tree, (q, v, a), {"gravity": gravity})
 
 
-@compiled_query
 def mass_matrix(tree: KinematicTree, q):
     r"""H(q) by composite rigid bodies: with $I^c_i$ the inertia of body i's subtree,
     $H_{kl} = s_k^T I^c_{b(k)} s_l$ when coordinate l's body is an ancestor of (or is)
     coordinate k's body $b(k)$, its transpose in the other case, and 0 otherwise.
     (Vmapped, it keeps vmap's own batching: in lanes, the quadruped's CRBA at a batch of 1000
-    took 3.5 ms on a CPU instead of 1.7-2.0.)"""
+    took 3.5 ms on a CPU instead of 1.7-2.0; on a GPU, a large batch runs fused: `fused_kernels`.)"""
+    return _fused_when_batched(_one_lane_mass_matrix, _mass_matrix, tree, (q,), {})
+
+
+@compiled_query
+def _one_lane_mass_matrix(tree: KinematicTree, q):
     return _in_one_lane(_mass_matrix, tree, q)
 
 
