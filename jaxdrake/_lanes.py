@@ -259,18 +259,30 @@ def _unrolled_scan(eqn, inputs, shape, dtype, budget):
     """A `lax.scan` (a static length) unrolled: its body evaluated once per iteration, so that
     indices computed from the iteration counter are known while tracing."""
     p = eqn.params
-    consts, carry = inputs[:p["num_consts"]], inputs[p["num_consts"]:p["num_consts"] + p["num_carry"]]
-    xs, ys = inputs[p["num_consts"] + p["num_carry"]:], []
+    num_consts, num_carry = _scan_counts(p, len(inputs), budget)
+    consts, carry = inputs[:num_consts], inputs[num_consts:num_consts + num_carry]
+    xs, ys = inputs[num_consts + num_carry:], []
     order = range(p["length"] - 1, -1, -1) if p["reverse"] else range(p["length"])
     for i in order:
         outs = evaluate(*_open(p["jaxpr"]), [*consts, *carry, *[_element(x, i) for x in xs]], shape, dtype, budget)
-        carry, y = outs[:p["num_carry"]], outs[p["num_carry"]:]
+        carry, y = outs[:num_carry], outs[num_carry:]
         ys.append(y)
     if p["reverse"]:
         ys.reverse()
     stacked = [np.stack([y[k] for y in ys]) if all(concrete(y[k]) for y in ys)
                else np.stack([objects(y[k]) for y in ys]) for k in range(len(eqn.outvars) - len(carry))]
     return [*carry, *stacked]
+
+
+def _scan_counts(params, num_inputs, budget):
+    """(constants, carries) among a scan's operands: JAX 0.10 names the counts; later versions
+    give the three groups (constants, carries, scanned) as trees with a None per operand."""
+    if "num_consts" in params:
+        return params["num_consts"], params["num_carry"]
+    groups = [len(jax.tree.leaves(group, is_leaf=lambda x: x is None)) for group in params.get("ft_in", ())]
+    if len(groups) != 3 or sum(groups) != num_inputs:
+        budget.refuse("uses a `scan` whose operands this JAX version describes in a way not understood here")
+    return groups[0], groups[1]
 
 
 def _element(value, i):
