@@ -35,22 +35,29 @@ _MOVEMENT = {"slice", "reshape", "squeeze", "broadcast_in_dim", "transpose", "re
              "expand_dims"}
 # two-operand data movement of the same kind (the update's positions offset past the operand's)
 _OVERWRITE = {"dynamic_update_slice", "scatter"}
+_INDEXED = _MOVEMENT | _OVERWRITE | {"scatter-add"}  # their index operands must be known
 _CALLS = {"pjit": "jaxpr", "closed_call": "call_jaxpr", "core_call": "call_jaxpr", "custom_jvp_call": "call_jaxpr",
           "custom_vjp_call": "call_jaxpr", "custom_vmap_call": "call", "remat": "jaxpr", "checkpoint": "jaxpr",
           "jit": "jaxpr"}
 
 
 class Budget:
-    """Counts the lane vectors one evaluation makes and refuses more than `limit`; names the
-    caller (`who`), what is evaluated (`subject`), and what to do instead (`remedy`) in its
-    errors. Straight-line code is slow to trace and compile past a few thousand operations."""
+    """The terms of one evaluation: counts the lane vectors it makes and refuses more than
+    `limit`; names the caller (`who`), what is evaluated (`subject`), and what to do instead
+    (`remedy`) in its errors (straight-line code is slow to trace and compile past a few
+    thousand operations). `fold`: drop products with a known 0 or 1 and sums with a known 0
+    (`_folded`): exact for finite values to the sign of zero, but a known zero times an infinite
+    or NaN lane gives 0, so only for code whose zeros are structural (a rigid-body tree's axes
+    and offsets: the 7-dof arm's ABA, 7,000 -> 4,000 operations), not for `simulate_ensemble`,
+    whose members must fail as `simulate` does."""
 
-    def __init__(self, who, subject, limit, remedy):
-        self.who, self.subject, self.limit, self.remedy, self.spent = who, subject, limit, remedy, 0
+    def __init__(self, who, subject, limit, remedy, fold=False):
+        self.who, self.subject, self.limit, self.remedy, self.fold = who, subject, limit, remedy, fold
+        self.spent = 0
 
     def fresh(self):
-        """The same limits with nothing spent (one per trace)."""
-        return Budget(self.who, self.subject, self.limit, self.remedy)
+        """The same terms with nothing spent (one per trace)."""
+        return Budget(self.who, self.subject, self.limit, self.remedy, self.fold)
 
     def spend(self, outputs):
         self.spent += sum(np.size(v) for v in outputs if not concrete(v))
@@ -152,12 +159,12 @@ def evaluate(jaxpr, consts, args, shape, dtype, budget):
             outs = _known(eqn, [np.asarray(v) for v in inputs])
         elif name in _CALLS:
             outs = evaluate(*_open(eqn.params[_CALLS[name]]), inputs, shape, dtype, budget)
-        elif name in _MOVEMENT | _OVERWRITE | {"scatter-add"} and not all(concrete(v) for v in _indices(name, inputs)):
+        elif name in _INDEXED and not all(concrete(v) for v in _indices(name, inputs)):
             budget.refuse(f"takes the indices of its `{name}` from the state or time (traced indices)")
         elif name == "scan":
             outs = _unrolled_scan(eqn, inputs, shape, dtype, budget)
         elif name in _ELEMENTWISE:
-            outs = [_elementwise(eqn, inputs, shape)]
+            outs = [_elementwise(eqn, inputs, shape, budget.fold)]
         elif name in _MOVEMENT:
             outs = [_moved(eqn, inputs[0], inputs[1:])]
         elif name in _OVERWRITE:
@@ -173,9 +180,9 @@ def evaluate(jaxpr, consts, args, shape, dtype, budget):
         elif name == "split":
             outs = np.split(objects(inputs[0]), np.cumsum(eqn.params["sizes"])[:-1], axis=eqn.params["axis"])
         elif name in ("reduce_sum", "reduce_max", "reduce_min"):
-            outs = [_reduced(name, objects(inputs[0]), eqn.params["axes"])]
+            outs = [_reduced(name, objects(inputs[0]), eqn.params["axes"], budget.fold)]
         elif name == "dot_general":
-            outs = [_dot(eqn, inputs)]
+            outs = [_dot(eqn, inputs, budget.fold)]
         else:
             budget.refuse(f"uses `{name}`, which has no per-lane form here (loops, linear solves and traced "
                           "indices do not)")
@@ -197,7 +204,7 @@ _NUMPY = {"add": np.add, "sub": np.subtract, "mul": np.multiply, "neg": np.negat
           "min": np.minimum, "abs": np.abs, "sin": np.sin, "cos": np.cos, "sqrt": np.sqrt, "exp": np.exp,
           "square": np.square, "lt": np.less, "le": np.less_equal, "gt": np.greater, "ge": np.greater_equal,
           "eq": np.equal, "ne": np.not_equal, "and": np.bitwise_and, "or": np.bitwise_or, "not": np.invert,
-          "sign": np.sign, "floor": np.floor, "ceil": np.ceil}
+          "floor": np.floor, "ceil": np.ceil}
 
 
 @functools.lru_cache(maxsize=1)
@@ -215,6 +222,17 @@ def _known(eqn, inputs):
     arithmetic and data movement (JAX's eager dispatch compiled a program for each new
     primitive and shape: 4 s of the 7-dof ABA's 8-s trace), JAX otherwise."""
     name, params, x = eqn.primitive.name, eqn.params, (inputs[0] if inputs else None)
+    with np.errstate(all="ignore"):  # inf and NaN as XLA makes them, silently
+        out = _numpy_value(name, params, x, inputs)
+    if out is None:
+        with jax.ensure_compile_time_eval(), jax.default_device(_host()):
+            value = eqn.primitive.bind(*[jnp.asarray(v) for v in inputs], **params)
+        return [np.asarray(o) for o in (value if eqn.primitive.multiple_results else [value])]
+    return [np.asarray(out) if name in _MOVEMENT else np.asarray(out, eqn.outvars[0].aval.dtype)]
+
+
+def _numpy_value(name, params, x, inputs):
+    """A primitive's value by NumPy, or None where `_known` leaves it to JAX."""
     out = None
     if x is None:
         pass
@@ -224,8 +242,9 @@ def _known(eqn, inputs):
         out = x / inputs[1]
     elif name == "select_n" and inputs[0].dtype == bool and len(inputs) == 3:
         out = np.where(inputs[0], inputs[2], inputs[1])
-    elif name == "convert_element_type":
-        out = x.astype(params["new_dtype"])
+    elif name == "convert_element_type" and (np.issubdtype(params["new_dtype"], np.floating)
+                                             or not np.issubdtype(x.dtype, np.floating)):
+        out = x.astype(params["new_dtype"])  # (float to int: XLA saturates, NumPy wraps; JAX's below)
     elif name == "integer_pow":
         out = x ** params["y"]
     elif name == "slice":
@@ -243,11 +262,7 @@ def _known(eqn, inputs):
         out = np.transpose(x, params["permutation"])
     elif name == "rev":
         out = np.flip(x, axis=tuple(params["dimensions"]))
-    if out is None:
-        with jax.ensure_compile_time_eval(), jax.default_device(_host()):
-            value = eqn.primitive.bind(*[jnp.asarray(v) for v in inputs], **params)
-        return [np.asarray(o) for o in (value if eqn.primitive.multiple_results else [value])]
-    return [np.asarray(out) if name in _MOVEMENT else np.asarray(out, eqn.outvars[0].aval.dtype)]
+    return out
 
 
 def _open(closed):
@@ -321,11 +336,9 @@ def materialize(element, shape, dtype):
     return element.astype(dtype) if element.dtype != dtype else element
 
 
-def _elementwise(eqn, inputs, shape):
-    """An elementwise primitive, element by element. Known elements are folded while tracing:
-    all known, the result is computed now; a product with a known 0 is 0, with a known 1 the
-    other factor; a sum with a known 0 the other term (a rigid-body tree's axes and offsets
-    are mostly zeros and ones: the 7-dof arm's ABA, 7,000 -> 4,500 operations)."""
+def _elementwise(eqn, inputs, shape, fold):
+    """An elementwise primitive, element by element: all operands known, the result is computed
+    now; with `fold`, products with a known 0 or 1 and sums with a known 0 are dropped."""
     out_aval, name = eqn.outvars[0].aval, eqn.primitive.name
     arrays = np.broadcast_arrays(*[objects(v) for v in inputs])
     result = np.empty(out_aval.shape, dtype=object)
@@ -335,7 +348,7 @@ def _elementwise(eqn, inputs, shape):
         if all(known):
             result[index] = _known(eqn, [np.asarray(e, v.aval.dtype) for e, v in zip(operands, eqn.invars)])[0][()]
             continue
-        folded = _folded(name, operands, known, out_aval.dtype)
+        folded = _folded(name, operands, known, out_aval.dtype) if fold else None
         if folded is not None:
             result[index] = folded
             continue
@@ -383,7 +396,7 @@ def _overwritten(eqn, inputs):
     offset = operand.size
     positions = np.arange(operand.size, dtype=np.int32).reshape(operand.shape)
     update_positions = offset + np.arange(update.size, dtype=np.int32).reshape(update.shape)
-    with jax.ensure_compile_time_eval():
+    with jax.ensure_compile_time_eval(), jax.default_device(_host()):
         if eqn.primitive.name == "scatter":
             placed = eqn.primitive.bind(jnp.asarray(positions), jnp.asarray(others[0]), jnp.asarray(update_positions),
                                         **eqn.params)
@@ -402,7 +415,7 @@ def _scatter_added(eqn, inputs):
     for j in range(updates.size):
         one_hot = np.zeros(updates.size, dtype)
         one_hot[j] = 1
-        with jax.ensure_compile_time_eval():
+        with jax.ensure_compile_time_eval(), jax.default_device(_host()):
             hit = np.asarray(eqn.primitive.bind(jnp.zeros(np.shape(operand), dtype), jnp.asarray(indices),
                                                 jnp.asarray(one_hot.reshape(updates.shape)), **eqn.params))
         for target in np.flatnonzero(hit.reshape(-1)):
@@ -410,8 +423,9 @@ def _scatter_added(eqn, inputs):
     return out.reshape(np.shape(operand))
 
 
-def _reduced(name, operand, axes):
-    combine = {"reduce_sum": _plus, "reduce_max": jnp.maximum, "reduce_min": jnp.minimum}[name]
+def _reduced(name, operand, axes, fold):
+    combine = {"reduce_sum": functools.partial(_arithmetic, "add", fold=fold), "reduce_max": jnp.maximum,
+               "reduce_min": jnp.minimum}[name]
     moved = np.moveaxis(operand, axes, tuple(range(-len(axes), 0)))
     flat = moved.reshape(moved.shape[:moved.ndim - len(axes)] + (-1,))
     out = np.empty(flat.shape[:-1], dtype=object)
@@ -420,8 +434,8 @@ def _reduced(name, operand, axes):
     return out
 
 
-def _dot(eqn, inputs):
-    """`dot_general` as sums of products (folded, `_times` / `_plus`): batch dimensions first,
+def _dot(eqn, inputs, fold):
+    """`dot_general` as sums of products (`_arithmetic`): batch dimensions first,
     then the left operand's free dimensions and the right one's (XLA's order)."""
     (lhs_contract, rhs_contract), (lhs_batch, rhs_batch) = eqn.params["dimension_numbers"]
     lhs, rhs = objects(inputs[0]), objects(inputs[1])
@@ -437,18 +451,9 @@ def _dot(eqn, inputs):
     zero = np.zeros((), eqn.outvars[0].aval.dtype)[()]
     out = np.empty((lhs.shape[0], lhs.shape[1], rhs.shape[2]), dtype=object)
     for b, i, j in np.ndindex(*out.shape):
-        out[b, i, j] = functools.reduce(_plus, [_times(lhs[b, i, k], rhs[b, k, j]) for k in range(size)], zero)
+        products = [_arithmetic("mul", lhs[b, i, k], rhs[b, k, j], fold) for k in range(size)]
+        out[b, i, j] = functools.reduce(functools.partial(_arithmetic, "add", fold=fold), products) if size else zero
     return out.reshape(batch + left + right)
-
-
-def _times(a, b):
-    """a * b, folded where one factor is a known 0 or 1 (`_folded`)."""
-    return _arithmetic("mul", a, b)
-
-
-def _plus(a, b):
-    """a + b, folded where one term is a known 0."""
-    return _arithmetic("add", a, b)
 
 
 def _python_number(value):
@@ -456,12 +461,13 @@ def _python_number(value):
     return value.item() if hasattr(value, "item") else value
 
 
-def _arithmetic(name, a, b):
+def _arithmetic(name, a, b, fold):
+    """a * b or a + b ("mul", "add") of elements: known numbers now, `_folded` with `fold`."""
     known = [not isinstance(e, jax.Array) for e in (a, b)]
     if all(known):
         return a * b if name == "mul" else a + b
     dtype = (b if known[0] else a).dtype
-    folded = _folded(name, (a, b), known, dtype)
+    folded = _folded(name, (a, b), known, dtype) if fold else None
     if folded is not None:
         return folded
     a, b = (_python_number(e) if k else e for e, k in zip((a, b), known))

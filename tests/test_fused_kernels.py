@@ -141,3 +141,19 @@ def test_the_pallas_kernel_equals_the_lanes_program_on_a_gpu():
     finally:
         mb.fused_kernels(previous)
     assert error <= 2 * reference
+
+
+def test_lane_code_computes_known_values_as_xla_does_and_folds_only_when_asked():
+    """Known values computed while tracing equal XLA's (a float to int conversion saturates and
+    maps NaN to 0 there, where NumPy would wrap); without `fold`, a known zero times an infinite
+    lane is NaN as in the vmapped function, with `fold` it is dropped (structural zeros only)."""
+    def f(x):
+        known = jnp.array([jnp.nan, 3e9, -1.5, 2.7], jnp.float32).astype(jnp.int32).astype(jnp.float32)
+        return x * known + jnp.float32(0.0) * x
+
+    x = jnp.asarray([[1.0, -2.0, jnp.inf, 0.5]], jnp.float32)
+    examples = [jax.ShapeDtypeStruct((4,), jnp.float32)]
+    exact = _lanes.lane_map(f, examples, _lanes.Budget("test", "f", 1000, "-"), kernel="xla")(x)
+    np.testing.assert_array_equal(exact, jax.vmap(f)(x))   # NaN where inf * 0
+    folded = _lanes.lane_map(f, examples, _lanes.Budget("test", "f", 1000, "-", fold=True), kernel="xla")(x)
+    np.testing.assert_array_equal(folded, x * jnp.array([0.0, 2**31 - 1, -1.0, 2.0], jnp.float32))

@@ -586,8 +586,12 @@ def fused_kernels(min_batch: int | None = 16384) -> int | None:
     evaluations/s against 1.2e8 for the lanes program, but a first call of ~22 s instead of
     ~4 s (`jd.use_compilation_cache()` keeps it for later processes). Trees over 20,000 lane
     values (Solo-12's ABA) keep the lanes program. Derivatives are unchanged: JAX's, through
-    the one-lane program. Programs already compiled keep the setting they were traced with."""
-    if min_batch is not None and not (isinstance(min_batch, int) and min_batch >= 1):
+    the one-lane program. A product with one of the tree's structural zeros is dropped, so a
+    member with an infinite or NaN input may show it in fewer outputs than the lanes program.
+    A Pallas kernel is not partitioned by `jit` across devices: spread a batch over several
+    GPUs with `jd.run_batch` (a kernel per device), or turn fusion off. Programs already
+    compiled keep the setting they were traced with."""
+    if min_batch is not None and not (isinstance(min_batch, int) and not isinstance(min_batch, bool) and min_batch >= 1):
         raise ValueError(f"fused_kernels: min_batch must be a positive int or None, got {min_batch!r}")
     previous, _FUSED["min_batch"] = _FUSED["min_batch"], min_batch
     return previous
@@ -607,17 +611,34 @@ def _fused_when_batched(public, algorithm, tree, arrays, static):
     if _FUSED["min_batch"] is None or _fused_kernel() is None or any(
             isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(tree)):
         return public(tree, *arrays)
-    leaves, treedef = jax.tree.flatten(tree)
-    key = (public, algorithm, tuple(sorted(static.items())), treedef,
-           tuple((np.shape(v), str(np.asarray(v).dtype), np.asarray(v).tobytes()) for v in leaves))
+    key = (public, algorithm, tuple(sorted(static.items())), _tree_values(tree))
     try:
         fused = _FUSED_PROGRAMS.pop(key)
     except KeyError:
         fused = _fused_batches(public, algorithm, tree, static)
     _FUSED_PROGRAMS[key] = fused
-    if len(_FUSED_PROGRAMS) > 16:
+    if len(_FUSED_PROGRAMS) > 64:   # (a tree uses up to 7: each function and gravity flag)
         _FUSED_PROGRAMS.popitem(last=False)
     return fused(*arrays)
+
+
+_TREE_VALUES: collections.OrderedDict = collections.OrderedDict()
+
+
+def _tree_values(tree):
+    """A hashable key of the tree's values (structure and every leaf's bytes), found by the
+    leaves' identities when they are JAX arrays (immutable; kept alive here while keyed): a
+    call reads a GPU-resident tree back to the host once, not every time."""
+    leaves, treedef = jax.tree.flatten(tree)
+    ids = (treedef, tuple(id(v) for v in leaves))
+    hit = _TREE_VALUES.get(ids) if all(isinstance(v, jax.Array) for v in leaves) else None
+    if hit is None:
+        hit = (leaves, (treedef, tuple((np.shape(v), str(np.asarray(v).dtype), np.asarray(v).tobytes()) for v in leaves)))
+        if all(isinstance(v, jax.Array) for v in leaves):
+            _TREE_VALUES[ids] = hit
+            if len(_TREE_VALUES) > 64:
+                _TREE_VALUES.popitem(last=False)
+    return hit[1]
 
 
 def _fused_batches(public, algorithm, tree, static):
@@ -639,7 +660,7 @@ def _fused_batches(public, algorithm, tree, static):
                 out = algorithm(tree, *(x[..., None] for x in xs), unroll=math.inf, **static)
                 return jax.tree.map(lambda x: x[..., 0], out)
             budget = _lanes.Budget("fused_kernels", f"{tree.robot_name}'s {algorithm.__name__[1:]}",
-                                   _FUSED_OPERATIONS, "its batches keep the lanes program")
+                                   _FUSED_OPERATIONS, "its batches keep the lanes program", fold=True)
             try:
                 kernels[key] = _lanes.lane_map(evaluation, examples, budget, kernel=_fused_kernel())
             except NotImplementedError:
