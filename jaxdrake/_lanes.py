@@ -291,10 +291,11 @@ def _unrolled_scan(eqn, inputs, shape, dtype, budget):
 
 def _scan_counts(params, num_inputs, budget):
     """(constants, carries) among a scan's operands: JAX 0.10 names the counts; later versions
-    give the three groups (constants, carries, scanned) as trees with a None per operand."""
+    give the three groups (constants, carries, scanned) as the flat trees of `ft_in.elts`,
+    each as long as its operands."""
     if "num_consts" in params:
         return params["num_consts"], params["num_carry"]
-    groups = [len(jax.tree.leaves(group, is_leaf=lambda x: x is None)) for group in params.get("ft_in", ())]
+    groups = [len(group) for group in getattr(params.get("ft_in"), "elts", ())]
     if len(groups) != 3 or sum(groups) != num_inputs:
         budget.refuse("uses a `scan` whose operands this JAX version describes in a way not understood here")
     return groups[0], groups[1]

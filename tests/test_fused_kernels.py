@@ -157,3 +157,18 @@ def test_lane_code_computes_known_values_as_xla_does_and_folds_only_when_asked()
     np.testing.assert_array_equal(exact, jax.vmap(f)(x))   # NaN where inf * 0
     folded = _lanes.lane_map(f, examples, _lanes.Budget("test", "f", 1000, "-", fold=True), kernel="xla")(x)
     np.testing.assert_array_equal(folded, x * jnp.array([0.0, 2**31 - 1, -1.0, 2.0], jnp.float32))
+
+
+def test_lane_code_unrolls_scans_with_constants_carries_and_scanned_operands():
+    """Scans (a constant, a carry, scanned pairs; one reversed with no scanned operand) unroll
+    into lane code equal to the vmapped function (their operand counts are read as each JAX
+    version writes them: checked on 0.10 here and 0.11 on the GPU machine)."""
+    def f(x, w):
+        c, ys = jax.lax.scan(lambda c, xs: (c * xs[0] + jnp.sin(xs[1]) * w[0], c + xs[1]), x[0], (x, w))
+        c2, _ = jax.lax.scan(lambda c, _: (c * 0.5 + w[1], None), c, None, length=3, reverse=True)
+        return jnp.concatenate([ys, jnp.stack([c, c2])])
+
+    examples = [jax.ShapeDtypeStruct((4,), jnp.float64)] * 2
+    program = _lanes.lane_map(f, examples, _lanes.Budget("test", "f", 10**4, "-"), kernel="xla")
+    x, w = np.random.default_rng(7).normal(size=(2, 300, 4))
+    np.testing.assert_allclose(program(x, w), jax.vmap(f)(x, w), rtol=1e-14, atol=1e-14)
