@@ -521,7 +521,12 @@ def _in_lanes_when_vmapped(algorithm, **static):
 def _lane_batched(algorithm, **static):
     """`_in_lanes_when_vmapped(algorithm)`, differentiated (forward or reverse, any order) by
     JAX through the one-lane program."""
-    batched, one = _in_lanes_when_vmapped(algorithm, **static)
+    return _differentiated_through(*_in_lanes_when_vmapped(algorithm, **static))
+
+
+def _differentiated_through(batched, one):
+    """`batched` (a custom_vmap) with the derivatives of `one`, the same function unbatched
+    (a `custom_jvp`: symbolic zero tangents skipped, any order, reverse mode by JAX)."""
     public = jax.custom_jvp(batched)
 
     @functools.partial(public.defjvp, symbolic_zeros=True)
@@ -677,17 +682,7 @@ def _fused_batches(public, algorithm, tree, static):
             return jax.vmap(one, in_axes=[0 if b else None for b in in_batched])(*arrays), True
         return program(*full), True
 
-    fused = jax.custom_jvp(batched)
-
-    @functools.partial(fused.defjvp, symbolic_zeros=True)
-    def derivative(primals, tangents):
-        out_and_tangent = _jvp_of_live(one, primals, tangents)
-        if out_and_tangent is None:
-            out = one(*primals)
-            return out, jax.tree.map(jnp.zeros_like, out)
-        return out_and_tangent
-
-    return fused
+    return _differentiated_through(batched, one)
 
 
 # the most lane values one fused evaluation may make (`_lanes.Budget`): the 7-dof ABA makes 14,088
