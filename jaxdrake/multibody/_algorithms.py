@@ -581,9 +581,10 @@ _FUSED_PROGRAMS: collections.OrderedDict = collections.OrderedDict()
 
 
 def fused_kernels(min_batch: int | None = 16384) -> int | None:
-    """Sets when vmapped `aba`, `rnea`, `bias_forces`, `gravity_forces` and `mass_matrix` run as one fused
-    kernel on a GPU: batches of at least `min_batch` members, for a tree that is a constant of
-    the program (closed over, not a `jit` argument); None: never. Returns the previous setting.
+    """Sets when vmapped `aba`, `rnea`, `bias_forces`, `gravity_forces` and `mass_matrix` run
+    as one fused kernel on a GPU: batches of at least `min_batch` members, for a tree that is a
+    constant of the program (closed over, not a `jit` argument); None: never. Returns the
+    previous setting.
 
     The kernel (Pallas, Triton) gives each member a GPU thread and evaluates the algorithm as
     straight-line code with the tree's numbers folded in (`jaxdrake._lanes`): nothing goes to
@@ -636,10 +637,11 @@ def _tree_values(tree):
     call reads a GPU-resident tree back to the host once, not every time."""
     leaves, treedef = jax.tree.flatten(tree)
     ids = (treedef, tuple(id(v) for v in leaves))
-    hit = _TREE_VALUES.get(ids) if all(isinstance(v, jax.Array) for v in leaves) else None
+    immutable = all(isinstance(v, jax.Array) for v in leaves)
+    hit = _TREE_VALUES.get(ids) if immutable else None
     if hit is None:
         hit = (leaves, (treedef, tuple((np.shape(v), str(np.asarray(v).dtype), np.asarray(v).tobytes()) for v in leaves)))
-        if all(isinstance(v, jax.Array) for v in leaves):
+        if immutable:
             _TREE_VALUES[ids] = hit
             if len(_TREE_VALUES) > 64:
                 _TREE_VALUES.popitem(last=False)
