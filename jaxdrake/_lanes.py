@@ -14,6 +14,7 @@ rigid-body algorithms' fused batches (`lane_map`: one evaluation per lane, one P
 
 from __future__ import annotations
 
+import collections
 import functools
 
 import jax
@@ -67,6 +68,29 @@ class Budget:
 
     def refuse(self, what):
         raise NotImplementedError(f"{self.who}: {self.subject} {what}; {self.remedy}")
+
+
+_VALUE_KEYS: collections.OrderedDict = collections.OrderedDict()
+
+
+def value_key(tree):
+    """A hashable key of a pytree's values, for programs that compile them in as constants: its
+    structure, each array leaf's shape, dtype and bytes, the other leaves as they are. Found by
+    the leaves' identities when all are JAX arrays (immutable; kept alive while keyed), so a
+    tree on a GPU is read back to the host once, not at every call."""
+    leaves, treedef = jax.tree.flatten(tree)
+    ids = (treedef, tuple(id(v) for v in leaves))
+    immutable = all(isinstance(v, jax.Array) for v in leaves)
+    hit = _VALUE_KEYS.get(ids) if immutable else None
+    if hit is None:
+        arrays = [np.asarray(v) if isinstance(v, (jax.Array, np.ndarray, np.generic)) else None for v in leaves]
+        hit = (leaves, (treedef, tuple((a.shape, str(a.dtype), a.tobytes()) if a is not None else v
+                                       for a, v in zip(arrays, leaves))))
+        if immutable:
+            _VALUE_KEYS[ids] = hit
+            if len(_VALUE_KEYS) > 64:
+                _VALUE_KEYS.popitem(last=False)
+    return hit[1]
 
 
 def lane_map(fn, examples, budget, kernel="pallas"):

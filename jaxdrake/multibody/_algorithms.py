@@ -617,7 +617,7 @@ def _fused_when_batched(public, algorithm, tree, arrays, static):
     if _FUSED["min_batch"] is None or _fused_kernel() is None or any(
             isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(tree)):
         return public(tree, *arrays)
-    key = (public, algorithm, tuple(sorted(static.items())), _tree_values(tree))
+    key = (public, algorithm, tuple(sorted(static.items())), _lanes.value_key(tree))
     try:
         fused = _FUSED_PROGRAMS.pop(key)
     except KeyError:
@@ -626,26 +626,6 @@ def _fused_when_batched(public, algorithm, tree, arrays, static):
     if len(_FUSED_PROGRAMS) > 64:   # (a tree uses up to 7: each function and gravity flag)
         _FUSED_PROGRAMS.popitem(last=False)
     return fused(*arrays)
-
-
-_TREE_VALUES: collections.OrderedDict = collections.OrderedDict()
-
-
-def _tree_values(tree):
-    """A hashable key of the tree's values (structure and every leaf's bytes), found by the
-    leaves' identities when they are JAX arrays (immutable; kept alive here while keyed): a
-    call reads a GPU-resident tree back to the host once, not every time."""
-    leaves, treedef = jax.tree.flatten(tree)
-    ids = (treedef, tuple(id(v) for v in leaves))
-    immutable = all(isinstance(v, jax.Array) for v in leaves)
-    hit = _TREE_VALUES.get(ids) if immutable else None
-    if hit is None:
-        hit = (leaves, (treedef, tuple((np.shape(v), str(np.asarray(v).dtype), np.asarray(v).tobytes()) for v in leaves)))
-        if immutable:
-            _TREE_VALUES[ids] = hit
-            if len(_TREE_VALUES) > 64:
-                _TREE_VALUES.popitem(last=False)
-    return hit[1]
 
 
 def _fused_batches(public, algorithm, tree, static):

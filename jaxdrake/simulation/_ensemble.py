@@ -120,10 +120,7 @@ _PROGRAMS: collections.OrderedDict = collections.OrderedDict()
 
 def _program(system, n, m, dtype, settings, kernel):
     """The compiled ensemble program, kept per system values, sizes and settings (32 kept)."""
-    leaves, treedef = jax.tree.flatten(system)
-    arrays = [np.asarray(v) if eqx.is_array_like(v) else None for v in leaves]
-    values = tuple((a.shape, str(a.dtype), a.tobytes()) if a is not None else v for a, v in zip(arrays, leaves))
-    key = (treedef, values, n, m, dtype, settings, kernel)
+    key = (_lanes.value_key(system), n, m, dtype, settings, kernel)
     try:
         program = _PROGRAMS.pop(key)
     except KeyError:
