@@ -258,9 +258,9 @@ def _known(eqn, inputs):
 def _numpy_value(name, params, x, inputs):
     """A primitive's value by NumPy, or None where `_known` leaves it to JAX."""
     out = None
-    if x is None:
-        pass
-    elif name in _NUMPY and (name not in ("and", "or", "not") or x.dtype == bool):
+    if x is None:  # no operand (iota, ...)
+        return None
+    if name in _NUMPY and (name not in ("and", "or", "not") or x.dtype == bool):
         out = _NUMPY[name](*inputs)
     elif name == "div" and np.issubdtype(x.dtype, np.floating):
         out = x / inputs[1]

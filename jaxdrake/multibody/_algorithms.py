@@ -576,11 +576,12 @@ def _forward_dynamics(gravity: bool):
 
 # ----- fused batches on a GPU: one Pallas kernel, a member per lane --------------------------------
 
-_FUSED = {"min_batch": 16384}
+_FUSED_MIN_BATCH = 16384  # the default threshold of `fused_kernels`
+_FUSED = {"min_batch": _FUSED_MIN_BATCH}
 _FUSED_PROGRAMS: collections.OrderedDict = collections.OrderedDict()
 
 
-def fused_kernels(min_batch: int | None = 16384) -> int | None:
+def fused_kernels(min_batch: int | None = _FUSED_MIN_BATCH) -> int | None:
     """Sets when vmapped `aba`, `rnea`, `bias_forces`, `gravity_forces` and `mass_matrix` run
     as one fused kernel on a GPU: batches of at least `min_batch` members, for a tree that is a
     constant of the program (closed over, not a `jit` argument); None: never. Returns the
