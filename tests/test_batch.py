@@ -1,7 +1,7 @@
 """`jd.run_batch` on four CPU devices (a fresh process: the device count is fixed when JAX
 starts): chunked and sharded results equal one unsharded vmap, outputs left on the devices
 are sharded across all four, and a batch of eleven gathered chunks keeps none on the devices;
-value iteration with its mesh split across the four devices equals one device's, bit for bit."""
+value iteration with its mesh split across the four devices equals one device's, bit for bit (slow)."""
 
 import os
 import subprocess
@@ -9,6 +9,7 @@ import sys
 import textwrap
 
 import numpy as np
+import pytest
 
 import jaxdrake as jd
 
@@ -38,27 +39,43 @@ SCRIPT = textwrap.dedent("""
     before = live_bytes()
     result = jd.run_batch(final_state, x0, chunk_size=96, progress=True)
     assert isinstance(result, np.ndarray) and live_bytes() - before <= 96 * 2 * 8, live_bytes() - before
-    # value iteration with its 2601 mesh points split across the four devices: equal to one device
+    print("OK", np.max(np.abs(chunked - reference)))
+""")
+VALUE_ITERATION_SCRIPT = textwrap.dedent("""
+    import jax, numpy as np
+    jax.config.update("jax_enable_x64", True)
+    import jaxdrake as jd
     from jaxdrake.planning import fitted_value_iteration
+
+    assert len(jax.devices()) == 4, jax.devices()
+    pendulum = jd.models.Pendulum()
+    # value iteration with its 2601 mesh points split across the four devices: equal to one device
     grids = [np.linspace(0, 2 * np.pi, 51), np.linspace(-8, 8, 51)]
     problem = (pendulum, lambda x, u: (x[0] - np.pi) ** 2 + x[1] ** 2 + u[0] ** 2, grids, [np.linspace(-3, 3, 9)], 0.05)
     one = fitted_value_iteration(*problem, periodic=[(0, 0.0, 2 * np.pi)], tol=1e-6, devices=jax.devices()[:1])
     four = fitted_value_iteration(*problem, periodic=[(0, 0.0, 2 * np.pi)], tol=1e-6)
     assert int(one.iterations) == int(four.iterations) > 100
     assert np.array_equal(one.J, four.J) and np.array_equal(one.policy_table, four.policy_table)
-    print("OK", np.max(np.abs(chunked - reference)))
+    print("OK")
 """)
 
 
-def test_run_batch_on_four_cpu_devices_equals_one_vmap():
+def _on_four_cpu_devices(script):
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
-    done = subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True, env=env, timeout=600)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=600)
     assert done.returncode == 0 and "OK" in done.stdout, done.stderr[-3000:]
 
 
-def test_run_batch_errors_name_the_problem():
-    import pytest
+def test_run_batch_on_four_cpu_devices_equals_one_vmap():
+    _on_four_cpu_devices(SCRIPT)
 
+
+@pytest.mark.slow  # ~10 s alone; value iteration on one device runs by default (tests/test_planning.py)
+def test_value_iteration_on_four_cpu_devices_equals_one_device():
+    _on_four_cpu_devices(VALUE_ITERATION_SCRIPT)
+
+
+def test_run_batch_errors_name_the_problem():
     with pytest.raises(ValueError, match="same leading batch axis"):
         jd.run_batch(lambda a, b: a, (np.zeros(3), np.zeros(4)))
     with pytest.raises(ValueError, match="chunk_size must be a positive int"):

@@ -355,8 +355,12 @@ def test_float32_feedback_diagram_runs():
         np.testing.assert_allclose(traj.final_state[0], np.pi, atol=1e-2)
 
 
-@pytest.mark.parametrize("combinator", [jd.cascade, jd.feedback, jd.parallel])
-@pytest.mark.parametrize("linear", [True, False], ids=["LinearSystem", "Diagram"])
+# ~2.5 s each: the three combinators' structure-preserving LinearSystem algebra, and a Diagram
+# in its most intricate wiring (feedback) by default
+@pytest.mark.parametrize("combinator, linear", [(c, linear) if linear or c is jd.feedback else
+                                                pytest.param(c, linear, marks=pytest.mark.slow)
+                                                for linear in (True, False) for c in (jd.cascade, jd.feedback, jd.parallel)],
+                         ids=lambda v: {True: "LinearSystem", False: "Diagram"}.get(v, getattr(v, "__name__", None)))
 def test_gradient_through_each_combinator_matches_finite_differences(combinator, linear):
     def final(k):
         a = (jd.LinearSystem([[0.0, 1.0], [-1.0, -k]], [[0.0], [1.0]]) if linear

@@ -143,7 +143,7 @@ def moved_and_resized(model):
     model.qpos0[0] = 0.2
 
 
-@pytest.mark.parametrize("change", [heavier_hand, moved_and_resized])
+@pytest.mark.parametrize("change", [heavier_hand, pytest.param(moved_and_resized, marks=pytest.mark.slow)])  # ~6 s each
 def test_derived_constants_equal_c_mujocos_mj_set_const(change):
     """Slide, hinge, ball and free joints, a welded body, fixed and spatial tendons, motor and
     muscle actuators, a connect constraint, tracking camera and light: the model's arrays
