@@ -405,7 +405,6 @@ def test_contact_results_of_a_resting_ball_are_k_times_depth():
 def test_the_stiff_linearization_is_the_contact_springs_dampers_and_friction_slopes():
     hopper = _ours("hopper_landing")
     x = jnp.asarray(_random_state("hopper_landing", hopper, np.random.default_rng(3)))
-    derivatives = jax.jit(lambda plant, q, v: plant.contact.force_derivatives(plant.tree, q, v))
     # D is the contact force's derivative in v, exactly: points, normals and Jacobians depend on q
     # alone; on the hopper landing with spheres on every leg link too (36 candidates, of which
     # the deepest 16 are summed)
@@ -415,15 +414,7 @@ def test_the_stiff_linearization_is_the_contact_springs_dampers_and_friction_slo
                                                   name=f"extra{i}")
     touching = spheres.contact_results(x)
     assert 1 <= int(jnp.sum(touching.active)) and len(touching.depth) > 16 + int(jnp.sum(touching.active))
-    pusher = _ours("arm_pushing_free_bodies")   # and free bodies beside an arm on the world
-    x_pusher = jnp.asarray(_random_state("arm_pushing_free_bodies", pusher, np.random.default_rng(5)))
-    x_pusher = x_pusher.at[4].set(0.075).at[11].set(0.055).at[16:].multiply(0.1)   # ball and puck touch, slowly
-    assert int(jnp.sum(pusher.contact_results(x_pusher).active)) >= 2
-    for plant, x in ((spheres, x), (pusher, x_pusher)):
-        q, v = x[:plant.tree.nq], x[plant.tree.nq:]
-        K, D = derivatives(plant, q, v)
-        D_exact = jax.jacfwd(lambda v: plant.contact_force(q, v))(v)
-        np.testing.assert_allclose(np.asarray(D), np.asarray(D_exact), rtol=1e-10, atol=1e-10 * float(jnp.max(jnp.abs(D))))
+    _the_damping_matrix_is_exact(spheres, x)
     # a frictionless ball at rest on a half-space, moved: the force's line passes through the centre
     # and nothing moves, so what K leaves out (the motion of the points and Jacobians) is zero; turned:
     # the base's force in its own axes turns, a term of the force's size (here ~40 N) left out
@@ -432,12 +423,32 @@ def test_the_stiff_linearization_is_the_contact_springs_dampers_and_friction_slo
     quat = np.random.default_rng(4).normal(size=4)
     q = jnp.concatenate([jnp.array([0.1, -0.2, 0.098]), jnp.asarray(quat / np.linalg.norm(quat))])
     v = jnp.zeros(6)
-    K, D = derivatives(ball, q, v)
+    K, D = _force_derivatives(ball, q, v)
     along = lambda e: jax.jvp(lambda q: ball.contact_force(q, v), (q,),  # noqa: E731
                               (jd.multibody.configuration_derivative(ball.tree, q, e),))[1]
     K_exact = jax.vmap(along, out_axes=1)(jnp.eye(6))
     np.testing.assert_allclose(np.asarray(K[:, :3]), np.asarray(K_exact[:, :3]), rtol=1e-10, atol=1e-6)
     assert float(jnp.max(jnp.abs(K))) > 1e4 and float(jnp.max(jnp.abs(K[:, 3:] - K_exact[:, 3:]))) < 1e2
+
+
+_force_derivatives = jax.jit(lambda plant, q, v: plant.contact.force_derivatives(plant.tree, q, v))
+
+
+def _the_damping_matrix_is_exact(plant, x):
+    """D, the contact force's derivative in v, equals `jacfwd` of the force."""
+    q, v = x[:plant.tree.nq], x[plant.tree.nq:]
+    K, D = _force_derivatives(plant, q, v)
+    D_exact = jax.jacfwd(lambda v: plant.contact_force(q, v))(v)
+    np.testing.assert_allclose(np.asarray(D), np.asarray(D_exact), rtol=1e-10, atol=1e-10 * float(jnp.max(jnp.abs(D))))
+
+
+@pytest.mark.slow  # ~8 s; the hopper's case above runs by default
+def test_the_stiff_linearization_of_free_bodies_beside_an_arm():
+    pusher = _ours("arm_pushing_free_bodies")
+    x = jnp.asarray(_random_state("arm_pushing_free_bodies", pusher, np.random.default_rng(5)))
+    x = x.at[4].set(0.075).at[11].set(0.055).at[16:].multiply(0.1)   # ball and puck touch, slowly
+    assert int(jnp.sum(pusher.contact_results(x).active)) >= 2
+    _the_damping_matrix_is_exact(pusher, x)
 
 
 DUMBBELL_START = np.asarray([0.0, 0.0, 0.3, 0.1, 0.2, 0.0, 0.97467943, 0.5, 0.0, 0.0, 1.0, -2.0, 0.5]) / np.r_[
