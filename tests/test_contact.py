@@ -179,7 +179,10 @@ def _thrown_ball(mu, mass, x0, solver):
 
 @pytest.mark.parametrize("solver, h, rtol", [
     ("rk4", 1e-6, 1e-5),   # fixed steps: the derivative of the discrete scheme itself
-    pytest.param("dopri5", 1e-4, 2e-5, marks=pytest.mark.slow)])  # adaptive: differences see step-size noise ~ tol / h
+    # adaptive: differences see step-size noise ~ tol / h, and the computed solution's derivative
+    # in the height (which moves the impacts) is 3.7e-5 of the largest entry from differences of
+    # a run at rtol 1e-12
+    pytest.param("dopri5", 1e-4, 6e-5, marks=pytest.mark.slow)])
 def test_gradients_through_bounces_equal_central_differences(solver, h, rtol):
     # dropped with spin and a sideways throw: two impacts (onsets and releases) and sliding friction
     x0 = jnp.array([0.0, 0.0, 0.3, 0, 0, 0, 1, 1.0, 0.3, -1.0, 5.0, -3.0, 2.0])
