@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._numbers import scalar_argument
 from ..trajectories import Trajectory
 from ._result import SimulatedTrajectory
 
@@ -122,9 +123,12 @@ def leaves_to_arrays(tree, dtype):
 
 
 def leaf_to_array(v, dtype):
-    """One leaf as `leaves_to_arrays` converts it: a float or floating numpy array to a numpy
-    array of `dtype` (an argument of the compiled call), a floating JAX array to `dtype`."""
-    if isinstance(v, float) or (isinstance(v, np.ndarray) and np.issubdtype(v.dtype, np.floating)):
+    """One leaf as `leaves_to_arrays` converts it, to `dtype` (an argument of the compiled
+    call): a float through `scalar_argument`, a floating numpy array to a numpy array, a
+    floating JAX array by `astype`."""
+    if isinstance(v, float):
+        return scalar_argument(v, dtype)
+    if isinstance(v, np.ndarray) and np.issubdtype(v.dtype, np.floating):
         return np.asarray(v, dtype)
     if isinstance(v, jax.Array) and jnp.issubdtype(v.dtype, jnp.floating) and v.dtype != dtype:
         return v.astype(dtype)
