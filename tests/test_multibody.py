@@ -354,6 +354,21 @@ def test_four_bar_linkage_stays_closed():
     assert float(jnp.ptp(xs[:, 0])) > 0.5            # and the linkage does move
 
 
+def test_the_loop_jacobian_and_its_rate_are_the_residuals_derivatives():
+    """The four-bar's J(q) (both loop frames' Jacobians from one kinematics pass) is d phi/dq
+    (revolute joints: v = qdot), and the J'v of its constrained dynamics is d^2 phi/dt^2 at
+    zero acceleration."""
+    plant = jd.RigidBodySystem.from_urdf(DATA / "fourbar.urdf",
+                                         loops=[jd.LoopConstraint("coupler_end", "rocker_end", ("x", "z"))])
+    q, v = jnp.array([-1.2, 1.4, -1.9]), jnp.array([0.3, -0.7, 0.5])
+    np.testing.assert_allclose(plant.loop_jacobian(q), jax.jacfwd(plant.loop_residual)(q), atol=1e-13)
+    phi_ddot = jax.jvp(lambda q_: jax.jvp(plant.loop_residual, (q_,), (v,))[1], (q,), (v,))[1]
+    Jdot_v = jax.jvp(plant.loop_jacobian, (q,), (v,))[1] @ v
+    np.testing.assert_allclose(Jdot_v, phi_ddot, atol=1e-13)
+    np.testing.assert_array_equal(jd.multibody.frame_jacobian(plant.tree, q, "rocker_end"),
+                                  jd.multibody._algorithms.frame_jacobians(plant.tree, q, ["coupler_end", "rocker_end"])[1])
+
+
 @pytest.mark.slow  # long; the same property in a cheaper test runs by default
 def test_gradient_of_an_acrobot_simulation_wrt_a_link_mass():
     def loss(m2):

@@ -786,18 +786,30 @@ def frame_jacobian(tree: KinematicTree, q, frame: str):
     $\omega$ the frame's angular velocity and $\dot p$ the velocity of its origin, both in
     world coordinates: the columns $[s_\omega; s_v + s_\omega \times p]$ of the frame body's
     ancestors' joints."""
-    k = _frame_index(tree, frame)
-    body = tree.frame_bodies[k]
-    if body < 0:
-        return jnp.zeros((6, tree.nv), q.dtype)
+    return frame_jacobians(tree, q, (frame,))[0]
+
+
+def frame_jacobians(tree: KinematicTree, q, frames) -> jax.Array:
+    """`frame_jacobian` of each of `frames` (names), (len(frames), 6, nv), from one pass of
+    the kinematics."""
     L = tree.layout
+    indices = [_frame_index(tree, frame) for frame in frames]
+    if all(tree.frame_bodies[k] < 0 for k in indices):
+        return jnp.zeros((len(indices), 6, tree.nv), q.dtype)
     R, p, S1, S0 = _in_one_lane(_kinematics, tree, q)
-    b = L.position[body]
-    point = R[b] @ tree.frame_translation[k] + p[b]
     columns = _dof_columns(L, S1, S0)
-    columns = jnp.concatenate([columns[:, :3], columns[:, 3:] + jnp.cross(columns[:, :3], point)], 1)
-    moves = jnp.asarray(L.subtree[L.dof_body, b], q.dtype)   # coordinate's body is an ancestor
-    return (columns * moves[:, None]).T
+    jacobians = []
+    for k in indices:
+        body = tree.frame_bodies[k]
+        if body < 0:
+            jacobians.append(jnp.zeros((6, tree.nv), q.dtype))
+            continue
+        b = L.position[body]
+        point = R[b] @ tree.frame_translation[k] + p[b]
+        moved = jnp.concatenate([columns[:, :3], columns[:, 3:] + jnp.cross(columns[:, :3], point)], 1)
+        moves = jnp.asarray(L.subtree[L.dof_body, b], q.dtype)   # coordinate's body is an ancestor
+        jacobians.append((moved * moves[:, None]).T)
+    return jnp.stack(jacobians)
 
 
 def _frame_index(tree, frame):

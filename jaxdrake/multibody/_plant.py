@@ -389,10 +389,10 @@ class RigidBodySystem(System):
             return alg.aba(self.tree, q, v, tau)
         H = alg.mass_matrix(self.tree, q)
         rhs = tau - alg.bias_forces(self.tree, q, v)
-        J = self.constraint_jacobian(q)
         phi = self.constraint_residual(q)
         qdot = alg.configuration_derivative(self.tree, q, v)
-        Jdot_v = jax.jvp(lambda q_: self.constraint_jacobian(q_) @ v, (q,), (qdot,))[1]
+        J, Jdot = jax.jvp(self.constraint_jacobian, (q,), (qdot,))   # J once, as the primal
+        Jdot_v = Jdot @ v
         w = self.constraint_stiffness
         k = J.shape[0]
         kkt = jnp.block([[H, J.T], [J, jnp.zeros((k, k), H.dtype)]])
@@ -429,12 +429,11 @@ class RigidBodySystem(System):
 
     def loop_jacobian(self, q):
         """d phi / d q in velocity coordinates: phi_dot = J(q) v."""
-        parts = []
-        for loop in self.loops:
-            idx = 3 + np.array([_AXES[a] for a in loop.axes])
-            parts.append((alg.frame_jacobian(self.tree, q, loop.frame_a)
-                          - alg.frame_jacobian(self.tree, q, loop.frame_b))[idx])
-        return jnp.concatenate(parts) if parts else jnp.zeros((0, self.tree.nv), q.dtype)
+        if not self.loops:
+            return jnp.zeros((0, self.tree.nv), q.dtype)
+        ends = alg.frame_jacobians(self.tree, q, [f for loop in self.loops for f in (loop.frame_a, loop.frame_b)])
+        return jnp.concatenate([(ends[2 * i] - ends[2 * i + 1])[3 + np.array([_AXES[a] for a in loop.axes])]
+                                for i, loop in enumerate(self.loops)])
 
     def _coupler_rows(self, q):
         """phi and J of the couplers: q_joint - rho q_leader - offset, and its gradient in v."""
