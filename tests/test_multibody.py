@@ -366,7 +366,7 @@ def test_the_loop_jacobian_and_its_rate_are_the_residuals_derivatives():
     Jdot_v = jax.jvp(plant.loop_jacobian, (q,), (v,))[1] @ v
     np.testing.assert_allclose(Jdot_v, phi_ddot, atol=1e-13)
     np.testing.assert_array_equal(jd.multibody.frame_jacobian(plant.tree, q, "rocker_end"),
-                                  jd.multibody._algorithms.frame_jacobians(plant.tree, q, ["coupler_end", "rocker_end"])[1])
+                                  jd.multibody._algorithms._frame_jacobians(plant.tree, q, ["coupler_end", "rocker_end"])[1])
 
 
 @pytest.mark.slow  # long; the same property in a cheaper test runs by default

@@ -786,10 +786,10 @@ def frame_jacobian(tree: KinematicTree, q, frame: str):
     $\omega$ the frame's angular velocity and $\dot p$ the velocity of its origin, both in
     world coordinates: the columns $[s_\omega; s_v + s_\omega \times p]$ of the frame body's
     ancestors' joints."""
-    return frame_jacobians(tree, q, (frame,))[0]
+    return _frame_jacobians(tree, q, (frame,))[0]
 
 
-def frame_jacobians(tree: KinematicTree, q, frames) -> jax.Array:
+def _frame_jacobians(tree: KinematicTree, q, frames) -> jax.Array:
     """`frame_jacobian` of each of `frames` (names), (len(frames), 6, nv), from one pass of
     the kinematics."""
     L = tree.layout

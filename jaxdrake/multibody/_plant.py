@@ -431,7 +431,7 @@ class RigidBodySystem(System):
         """d phi / d q in velocity coordinates: phi_dot = J(q) v."""
         if not self.loops:
             return jnp.zeros((0, self.tree.nv), q.dtype)
-        ends = alg.frame_jacobians(self.tree, q, [f for loop in self.loops for f in (loop.frame_a, loop.frame_b)])
+        ends = alg._frame_jacobians(self.tree, q, [f for loop in self.loops for f in (loop.frame_a, loop.frame_b)])
         return jnp.concatenate([(ends[2 * i] - ends[2 * i + 1])[3 + np.array([_AXES[a] for a in loop.axes])]
                                 for i, loop in enumerate(self.loops)])
 
