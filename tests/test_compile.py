@@ -250,20 +250,22 @@ def test_compiled_keeps_one_program_per_call_signature():
 
 def test_python_numbers_are_kept_as_device_arrays_never_as_tracers():
     """`simulate`'s tolerances, time span and a model's float parameters are kept as one device
-    array per value (a repeated call from Python transfers nothing): also when the first use is
-    while tracing (a kept tracer would break every later call); -0.0, 0.0 and the two widths
-    are kept apart."""
+    array per value from its second use (a repeated call from Python transfers nothing; a sweep
+    of new values pays no `device_put`): also when that use is while tracing (a kept tracer
+    would break every later call); -0.0, 0.0 and the two widths are kept apart."""
     from jaxdrake._numbers import _SCALARS, scalar_argument
 
     b = 0.0123456789   # a value no other test uses
+    assert isinstance(scalar_argument(b), np.ndarray)   # first use: a numpy scalar
     jax.make_jaxpr(lambda x0: jd.simulate(jd.models.Pendulum(b=b), (0.0, 1.0), x0).final_state)(jnp.array([1.0, 0.0]))
     assert all(not isinstance(v, jax.core.Tracer) for v in _SCALARS.values())
     x = jd.simulate(jd.models.Pendulum(b=b), (0.0, 1.0), jnp.array([1.0, 0.0]), rtol=1e-10, atol=1e-12).final_state
     x_numpy = jd.simulate(jd.models.Pendulum(b=np.asarray(b)), (0.0, 1.0), jnp.array([1.0, 0.0]), rtol=1e-10,
                           atol=1e-12).final_state
     np.testing.assert_array_equal(x, x_numpy)
-    assert scalar_argument(b) is scalar_argument(b)
+    assert isinstance(scalar_argument(b), jax.Array) and scalar_argument(b) is scalar_argument(b)
     assert np.signbit(scalar_argument(-0.0)) and not np.signbit(scalar_argument(0.0))
+    assert np.signbit(scalar_argument(-0.0)) and not np.signbit(scalar_argument(0.0))   # kept ones too
     with jax.enable_x64(False):
         assert scalar_argument(b).dtype == np.float32
     assert scalar_argument(b).dtype == np.float64
