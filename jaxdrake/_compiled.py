@@ -51,7 +51,6 @@ def _program(fn, treedef, is_dynamic, static):
     structure: its treedef, which leaves are arrays, and the other leaves."""
     output = []
 
-    @jax.jit
     def program(dynamic):
         dynamic, others = iter(dynamic), iter(static)
         leaves = [next(dynamic) if d else next(others) for d in is_dynamic]
@@ -67,7 +66,8 @@ def _program(fn, treedef, is_dynamic, static):
         output[:] = [(out_treedef, out_is_array, [None if a else leaf for a, leaf in zip(out_is_array, out_leaves)])]
         return [leaf for a, leaf in zip(out_is_array, out_leaves) if a]
 
-    return program, output
+    program.__name__ = program.__qualname__ = getattr(fn, "__qualname__", "program")  # named in profiles and logs
+    return jax.jit(program), output
 
 
 def compiled_query(fn):
@@ -77,7 +77,11 @@ def compiled_query(fn):
     operations one by one; inside a trace it is inlined. Numbers and lists become arrays (a new
     value never recompiles); strings, None and keyword arguments stay static. For methods and
     functions alike."""
-    program = compiled(lambda owner, named, *args: fn(owner, *args, **dict(named)))
+    def query(owner, named, *args):
+        return fn(owner, *args, **dict(named))
+
+    query.__name__ = query.__qualname__ = fn.__qualname__
+    program = compiled(query)
 
     @functools.wraps(fn)
     def call(owner, *args, **named):

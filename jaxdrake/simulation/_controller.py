@@ -15,6 +15,16 @@ def rms(v):
     return jnp.sqrt(jnp.mean(v * v)) if v.shape[0] else jnp.zeros((), v.dtype)
 
 
+def smallest_step(t):
+    """The step size at or below which an adaptive solver's rejected step ends the simulation
+    with STEP_SIZE_TOO_SMALL: 16 units of the floating-point spacing at t (MATLAB's
+    `16*eps(t)`; SciPy's `solve_ivp` likewise scales its floor with t), at least the dtype's
+    smallest normal number. Relative to t, not to 1: float32 steps of ~1e-8 s at t = 0.01
+    are ~30 units of t's spacing, and stiff contact onsets need them."""
+    finfo = jnp.finfo(t.dtype)
+    return jnp.maximum(16 * finfo.eps * jnp.abs(t), finfo.tiny)
+
+
 class AbstractStepSizeController(eqx.Module):
     """Chooses step sizes: `initial_step(t0, y0, k0)` from the first stage $k_0 = f(t_0, y_0)$,
     and `adapt(h, y0, y1, error, finite)` -> `(accept, h_next, error_norm)` after an attempt."""

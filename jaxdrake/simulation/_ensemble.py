@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _lanes
+from ._controller import smallest_step
 from ._solvers import Dopri5
 from ._status import SimulationStatus
 
@@ -215,7 +216,7 @@ def _dopri5_lanes(f, x, t0, tf, rtol, atol, max_steps):
         accept = active & finite & (norm <= 1)
         h_next = step * factor
         h_next = jnp.where(accept & (step < h), jnp.maximum(h, h_next), h_next)  # a step cut at tf
-        tiny = active & ~accept & (h_next <= 16 * eps * jnp.maximum(jnp.abs(t), 1.0))
+        tiny = active & ~accept & (h_next <= smallest_step(t))
         status = jnp.where(tiny, jnp.where(finite, SimulationStatus.STEP_SIZE_TOO_SMALL,
                                            SimulationStatus.NONFINITE_STATE), status).astype(jnp.int32)
         return (jnp.where(accept, t_next, t), jnp.where(active, h_next, h),

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 from ..systems import System
 from ..trajectories import NUM_COEFFICIENTS, Trajectory, eval_polynomial
 from . import _events as ev
-from ._controller import AbstractStepSizeController
+from ._controller import AbstractStepSizeController, smallest_step
 from ._inputs import InputSource
 from ._result import SimulatedTrajectory
 from ._reverse import run_adjoint, run_reverse
@@ -404,8 +404,7 @@ class Loop(eqx.Module):
             # a step shortened to land on a stopping point does not shrink the next one
             h_next = jnp.where(a.accept & (a.h < a.h_proposed), jnp.maximum(a.h_proposed, a.h_next), a.h_next)
             h_next = jnp.where(hold, s.h, jnp.minimum(h_next, self.dt_max))
-            eps = jnp.finfo(s.x.dtype).eps
-            tiny = ~a.accept & ~hold & (h_next <= 16 * eps * jnp.maximum(jnp.abs(s.t), 1.0))
+            tiny = ~a.accept & ~hold & (h_next <= smallest_step(s.t))
             status = jnp.where(tiny, jnp.where(a.finite, SimulationStatus.STEP_SIZE_TOO_SMALL,
                                                SimulationStatus.NONFINITE_STATE), status)
         else:
