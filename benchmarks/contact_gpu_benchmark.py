@@ -23,7 +23,7 @@ u = KP (q_des - q) - KD qdot toward the crouched posture (HFE +-0.8, KFE -+1.6).
   `jd.simulate`.
 
 Per row: first call (trace + compile + run; a later row of the same solver reuses the
-program) and warm time, robot-seconds simulated per wall second, and env-steps/s at MJX's 2 ms
+program) and warm time (the best of --repeats calls), robot-seconds simulated per wall second, and env-steps/s at MJX's 2 ms
 (for our adaptive rows the equivalent: robots x T / 2 ms per wall second). Ours also: accepted
 and rejected steps per robot (accepted counted by a dense run of the first --count members)
 and the loop iterations of the slowest (the vmapped loop runs until its slowest member ends).
@@ -32,7 +32,7 @@ z axis within 18 degrees of vertical.
 
     python benchmarks/contact_gpu_benchmark.py [--batch 4096] [--duration 1.0]
         [--ours rosenbrock23:1e-2:1e-2:1e-2 rosenbrock23:1e-2:1e-2 dopri5:1e-2:1e-3:1e-2]
-        [--mjx default iter:4:8 fast system] [--urdf solo12.urdf]
+        [--mjx default iter:4:8 fast system] [--urdf solo12.urdf] [--float64 (ours only)]
 
 Results and the tolerance's justification: benchmarks/RESULTS.md, "Contact on the GPU (issue 38)".
 On a machine without libEGL, run with MUJOCO_GL=disable.
@@ -202,13 +202,17 @@ def contact_pairs(model):
 
 # ----- timing ----------------------------------------------------------------------------------
 
-def timed(fn, *args):
+def timed(fn, *args, repeats=1):
+    """(first call, the best of `repeats` warm calls, the output)."""
     start = time.perf_counter()
     jax.block_until_ready(fn(*args))
     first = time.perf_counter() - start
-    start = time.perf_counter()
-    out = jax.block_until_ready(fn(*args))
-    return first, time.perf_counter() - start, out
+    warm = np.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        out = jax.block_until_ready(fn(*args))
+        warm = min(warm, time.perf_counter() - start)
+    return first, warm, out
 
 
 def row(label, setting, first, warm, batch, duration, extra=""):
@@ -240,7 +244,16 @@ def main():
     parser.add_argument("--count", type=int, default=32, help="members of the dense run counting accepted steps")
     parser.add_argument("--max-steps", type=int, default=30000)
     parser.add_argument("--urdf", default=None, help="solo12.urdf (default: example-robot-data's)")
+    parser.add_argument("--repeats", type=int, default=1, help="warm calls per row, the best one reported")
+    parser.add_argument("--float64", action="store_true",
+                        help="our rows in float64 (the same float32-built starts); MJX's rows are timed in float32, "
+                             "so run them in a call of their own (--mjx with no names here)")
     args = parser.parse_args()
+    if args.float64 and args.mjx:
+        parser.error("--float64 times our rows only: give --mjx no names, and time MJX (float32) in another call")
+    if args.float64:
+        jax.config.update("jax_enable_x64", True)
+    dtype = jnp.float64 if args.float64 else jnp.float32
     print(machine_line())
     batch, duration = args.batch, args.duration
     with tempfile.TemporaryDirectory() as folder:
@@ -256,7 +269,7 @@ def main():
     print("| simulator | setting | first call (s) | warm (s) | robot-s / s | env-steps/s at 2 ms | notes |")
     print("|---|---|---|---|---|---|---|")
     rates = {}
-    xs = jnp.asarray(x0, jnp.float32)
+    xs = jnp.asarray(x0, dtype)
     if args.mjx:
         from mujoco import mjx
         qpos0, qvel0 = to_mujoco(plant, model, x0)
@@ -292,7 +305,7 @@ def main():
                 label = "MJX lax.scan(mjx.step)"
                 setting = (f"{variant}: Euler {MJX_DT * 1e3:g} ms, {m.opt.iterations} solver / "
                            f"{m.opt.ls_iterations} line-search iterations")
-            first, warm, qpos = timed(fn, qpos0, qvel0)
+            first, warm, qpos = timed(fn, qpos0, qvel0, repeats=args.repeats)
             qpos = np.asarray(qpos)
             up = 1.0 - 2.0 * (qpos[:, 4] ** 2 + qpos[:, 5] ** 2)  # w x y z
             note = f"{steps} steps of {MJX_DT * 1e3:g} ms; " + stand_summary(qpos[:, 2], up, h_nom)
@@ -314,8 +327,8 @@ def main():
                 simulate(*a, dense=True)), in_axes=(0, None, None, None)))
             compiled[solver] = timed_run, counting_run
         timed_run, counting_run = compiled[solver]
-        parameters = tuple(jnp.asarray(v, jnp.float32) for v in (rtol, atol, stiction))
-        first, warm, (final, rejected, status) = timed(timed_run, xs, *parameters)
+        parameters = tuple(jnp.asarray(v, dtype) for v in (rtol, atol, stiction))
+        first, warm, (final, rejected, status) = timed(timed_run, xs, *parameters, repeats=args.repeats)
         final, rejected, status = np.asarray(final), np.asarray(rejected), np.asarray(status)
         steps_note = ""
         if args.count:
