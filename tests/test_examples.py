@@ -12,6 +12,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
+from _ros1 import require_ros1  # tests/_ros1.py
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 EXAMPLES = sorted(p for p in (ROOT / "examples").glob("*.py") if not p.name.startswith("_"))
 # a notebook that repeats its example script at a much larger batch runs with `-m slow` only
@@ -53,6 +55,7 @@ SLOW = {"swing_up.ipynb", "lqr.ipynb", "swing_up.py",  # lqr.ipynb: 45 s, extend
         "rimless_wheel.py"}
 NOTEBOOKS = [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW else p
              for p in sorted((ROOT / "notebooks").glob("*.ipynb"))]
+NEEDS_ROS1 = {"ros_pendulum.py"}   # a real roscore
 WORKERS = 3
 
 EXECUTE_NOTEBOOK = """
@@ -100,6 +103,8 @@ def _run(command, env, out):
 @pytest.mark.parametrize("script", [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW else p
                                     for p in EXAMPLES], ids=lambda p: getattr(p, "name", None))
 def test_example_script_runs_and_saves_its_figure(script, runs):
+    if script.name in NEEDS_ROS1:
+        require_ros1()
     done, out = runs[script].result()
     assert done.returncode == 0, done.stderr[-3000:]
     figures = list(out.glob("*.png"))

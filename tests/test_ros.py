@@ -33,21 +33,9 @@ from jaxdrake.ros import (TO_LCM, TO_ROS, Float64MultiArray, JointState, Route, 
                           lcm_log_to_bag, read_mapping)
 from jaxdrake.systems import Frame
 
+from _ros1 import DEBIAN_PYTHON, HAVE_ROS1, require_ros1  # tests/_ros1.py
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-DEBIAN_PYTHON = "/usr/bin/python3"
-HAVE_ROS1 = all(shutil.which(tool) for tool in ("roscore", "rostopic", "rosbag")) and os.path.exists(DEBIAN_PYTHON)
-
-
-def require_ros1(tools_present=HAVE_ROS1, what="Debian's ROS 1 is"):
-    if tools_present:
-        return
-    reason = (f"{what} not installed (apt-get install ros-core python3-rospy python3-rostopic python3-std-msgs "
-              "python3-sensor-msgs python3-geometry-msgs python3-rosbag strace; .ci/run does)")
-    if os.environ.get("CI"):
-        pytest.fail(reason)
-    pytest.skip(reason)
-
-
 def free_port():
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
