@@ -158,3 +158,15 @@ def test_run_batch_picks_a_chunk_from_free_memory_and_names_out_of_memory(monkey
     monkeypatch.setattr(_batch, "_device_program", lambda fn, device: exhausted)
     with pytest.raises(MemoryError, match="chunk of 10 members.*bytes per member.*chunk_size.*dense=False"):
         jd.run_batch(final, x0)
+
+
+def test_a_vector_field_that_is_nan_from_the_start_is_a_non_finite_state_at_once():
+    """A NaN first stage made a NaN first step size, and NaN never compared as too small: the
+    loop rejected until max_steps and reported MAX_STEPS_REACHED (with stiff-solver advice)."""
+    broken = jd.System.from_functions(dynamics=lambda t, x, u: jnp.sqrt(x - 2.0), num_states=1)
+    for solver in ("dopri5", "rosenbrock23"):
+        traj = jd.simulate(broken, (0.0, 1.0), jnp.ones(1), solver=solver, throw=False)
+        assert int(traj.status) == S.NONFINITE_STATE and int(traj.num_rejected_steps) <= 2, solver
+    with pytest.raises(jd.SimulationError, match="non-finite"):
+        jd.simulate(broken, (0.0, 1.0), jnp.ones(1))
+    assert int(jd.simulate_ensemble(broken, (0.0, 1.0), [[1.0]]).status[0]) == S.NONFINITE_STATE

@@ -216,7 +216,7 @@ def _dopri5_lanes(f, x, t0, tf, rtol, atol, max_steps):
         accept = active & finite & (norm <= 1)
         h_next = step * factor
         h_next = jnp.where(accept & (step < h), jnp.maximum(h, h_next), h_next)  # a step cut at tf
-        tiny = active & ~accept & (h_next <= smallest_step(t))
+        tiny = active & ~accept & ~(h_next > smallest_step(t, finite))  # a NaN step size too
         status = jnp.where(tiny, jnp.where(finite, SimulationStatus.STEP_SIZE_TOO_SMALL,
                                            SimulationStatus.NONFINITE_STATE), status).astype(jnp.int32)
         return (jnp.where(accept, t_next, t), jnp.where(active, h_next, h),

@@ -404,7 +404,7 @@ class Loop(eqx.Module):
             # a step shortened to land on a stopping point does not shrink the next one
             h_next = jnp.where(a.accept & (a.h < a.h_proposed), jnp.maximum(a.h_proposed, a.h_next), a.h_next)
             h_next = jnp.where(hold, s.h, jnp.minimum(h_next, self.dt_max))
-            tiny = ~a.accept & ~hold & (h_next <= smallest_step(s.t))
+            tiny = ~a.accept & ~hold & ~(h_next > smallest_step(s.t, a.finite))  # a NaN step size too
             status = jnp.where(tiny, jnp.where(a.finite, SimulationStatus.STEP_SIZE_TOO_SMALL,
                                                SimulationStatus.NONFINITE_STATE), status)
         else:
