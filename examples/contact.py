@@ -23,8 +23,8 @@ stiction tolerance (1e-4 m/s), with which the light lower legs make friction sti
 feet (Hunt-Crossley dissipation 2 s/m). It runs the linearly implicit
 `Rosenbrock23(jacobian="stiff")`, whose matrix comes from the contact's springs, dampers,
 friction slopes and the contact points' motion alone (`RigidBodySystem.stiff_linearization`):
-1019 accepted and 414 rejected steps, about 0.3 s once compiled. With a stiction tolerance of
-3 cm/s it would take 425 steps (0.2-0.3 s), dopri5 3761.
+459 accepted and 69 rejected steps, about 0.07 s once compiled. With a stiction tolerance of
+3 cm/s it would take 425 + 20 steps (0.06 s), dopri5 3779 + 355 (0.5 s).
 
 Needs the example-robot-data package (installed with the test extras) and the viz extra.
 
