@@ -170,3 +170,16 @@ def test_a_vector_field_that_is_nan_from_the_start_is_a_non_finite_state_at_once
     with pytest.raises(jd.SimulationError, match="non-finite"):
         jd.simulate(broken, (0.0, 1.0), jnp.ones(1))
     assert int(jd.simulate_ensemble(broken, (0.0, 1.0), [[1.0]]).status[0]) == S.NONFINITE_STATE
+
+
+def test_a_float32_simulation_whose_steps_became_too_small_is_told_about_float64():
+    """An oscillation of period 6e-7 s near t = 1 needs steps of ~1e-8 s, below float32's
+    spacing of t there (1.2e-7 s); float64 resolves them (closed form cos(w (t - 1)))."""
+    w = 1e7
+    fast = jd.System.from_functions(dynamics=lambda t, x, u: w * jnp.stack([x[1], -x[0]]), num_states=2)
+    x0 = jnp.array([1.0, 0.0])
+    with pytest.raises(jd.SimulationError, match="STEP_SIZE_TOO_SMALL.*float64") as raised:
+        jd.simulate(fast, (1.0, 1.0 + 1e-5), x0.astype(jnp.float32))
+    assert raised.value.status == S.STEP_SIZE_TOO_SMALL
+    traj = jd.simulate(fast, (1.0, 1.0 + 1e-5), x0, rtol=1e-10, atol=1e-12, dense=False)
+    np.testing.assert_allclose(traj.final_state, [np.cos(w * 1e-5), -np.sin(w * 1e-5)], atol=1e-7)

@@ -16,8 +16,8 @@ def rms(v):
 
 
 def smallest_step(t, finite):
-    """The step size at or below which a rejected step ends an adaptive simulation: for a
-    finite attempt 16 units of the floating-point spacing at t (MATLAB's `16*eps(t)`; SciPy's
+    """The smallest step an adaptive simulation attempts (a smaller one would not move t),
+    and the size at or below which a rejected step ends it: for a finite attempt 16 units of the floating-point spacing at t (MATLAB's `16*eps(t)`; SciPy's
     `solve_ivp` likewise scales its floor with t), at least the dtype's smallest normal
     number, then STEP_SIZE_TOO_SMALL; relative to t, not to 1, because float32 steps of
     ~1e-8 s at t = 0.01 are ~30 units of t's spacing, and stiff contact onsets need them.

@@ -282,6 +282,9 @@ class Loop(eqx.Module):
         if self.solver.adaptive and self.num_continuous:
             h = jnp.where(jnp.isnan(h), jnp.minimum(self.controller.initial_step(s.t, s.x[self.num_discrete:], k0),
                                                     self.dt_max), h)
+            # no step below the floor: t + h would not move t (a zero step, accepted, then grown from
+            # zero); the step is rejected there instead, and the floor ends the simulation
+            h = jnp.maximum(h, smallest_step(s.t, True))
         eps = jnp.finfo(s.x.dtype).eps
         t_next = s.t + h
         t_next = jnp.where(t_next >= target - (1e-6 * h + 64 * eps * jnp.abs(target)), target, t_next)

@@ -165,7 +165,8 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     if throw and _concrete(traj.status):
         status = SimulationStatus(int(traj.status))
         if not SimulationStatus.is_success(status):
-            raise SimulationError(status, _failure_message(system, status, t0, tf, traj) + _solver_advice(solver, status))
+            raise SimulationError(status, _failure_message(system, status, t0, tf, traj)
+                                  + _solver_advice(solver, status) + _precision_advice(x0.dtype, status))
     return traj
 
 
@@ -215,6 +216,17 @@ def _solver_advice(solver, status) -> str:
                 "the stiction tolerance (stiction_tolerance=) or soften the contact")
     return (". Stiff solvers: solver='rosenbrock23' (the exact Jacobian); for rigid bodies in stiff contact "
             "solver=jd.simulation.Rosenbrock23(jacobian='stiff')")
+
+
+def _precision_advice(dtype, status) -> str:
+    """For a float32 simulation whose steps became too small: float32 resolves neither steps
+    far below t's spacing nor error estimates near its rounding (a stiff contact's touchdown
+    at rtol 1e-4: benchmarks/RESULTS.md)."""
+    if status != SimulationStatus.STEP_SIZE_TOO_SMALL or np.dtype(dtype) != np.float32:
+        return ""
+    return (". The state is float32: unless the solution blows up here, its 7 digits may be what stops the steps "
+            "(a step below t's spacing, an error estimate at its rounding): simulate in float64 "
+            "(jax.config.update('jax_enable_x64', True) and a float64 x0) or loosen rtol / atol")
 
 
 def _parameters_as_arrays(system, dtype):
