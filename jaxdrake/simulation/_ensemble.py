@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _lanes
-from ._controller import smallest_step
+from ._controller import least_step, smallest_step
 from ._solvers import Dopri5
 from ._status import SimulationStatus
 
@@ -201,7 +201,7 @@ def _dopri5_lanes(f, x, t0, tf, rtol, atol, max_steps):
     def body(carry):
         t, h, x, k0, status, attempts = carry
         active = running(t, status) & (attempts < max_steps)
-        h = jnp.maximum(h, smallest_step(t, True))  # as simulate's loop: no step that does not move t
+        h = jnp.maximum(h, least_step(t))  # as simulate's loop: no step that does not move t
         t_next = t + h
         t_next = jnp.where(t_next >= tf - (1e-6 * h + 64 * eps * abs(tf)), tf, t_next)
         step = t_next - t

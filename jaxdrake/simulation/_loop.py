@@ -36,7 +36,7 @@ import jax.numpy as jnp
 from ..systems import System
 from ..trajectories import NUM_COEFFICIENTS, Trajectory, eval_polynomial
 from . import _events as ev
-from ._controller import AbstractStepSizeController, smallest_step
+from ._controller import AbstractStepSizeController, least_step, smallest_step
 from ._inputs import InputSource
 from ._result import SimulatedTrajectory
 from ._reverse import run_adjoint, run_reverse
@@ -280,11 +280,10 @@ class Loop(eqx.Module):
         where the step ends: t + h, snapped onto the next stopping point when within rounding."""
         h = s.h
         if self.solver.adaptive and self.num_continuous:
-            h = jnp.where(jnp.isnan(h), jnp.minimum(self.controller.initial_step(s.t, s.x[self.num_discrete:], k0),
-                                                    self.dt_max), h)
-            # no step below the floor: t + h would not move t (a zero step, accepted, then grown from
-            # zero); the step is rejected there instead, and the floor ends the simulation
-            h = jnp.maximum(h, smallest_step(s.t, True))
+            # the first step at least one unit of t's spacing (`least_step`): after it, steps shrink
+            # only by rejections, which end the simulation at `smallest_step`, 16 units
+            first = jnp.minimum(self.controller.initial_step(s.t, s.x[self.num_discrete:], k0), self.dt_max)
+            h = jnp.where(jnp.isnan(h), jnp.maximum(first, least_step(s.t)), h)
         eps = jnp.finfo(s.x.dtype).eps
         t_next = s.t + h
         t_next = jnp.where(t_next >= target - (1e-6 * h + 64 * eps * jnp.abs(target)), target, t_next)
