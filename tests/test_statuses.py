@@ -87,6 +87,9 @@ def test_a_lone_free_floating_body_falls_freely(tmp_path):
     urdf = tmp_path / "one.urdf"
     urdf.write_text('<robot name="one"><link name="body"><inertial><mass value="2"/><inertia ixx="0.1" '
                     'iyy="0.2" izz="0.3" ixy="0" ixz="0" iyz="0"/></inertial></link></robot>')
+    # without floating_base the root link is the world's frame: the error names the remedy
+    with pytest.raises(jd.multibody.URDFError, match="no movable joint.*'body'.*floating_base=True"):
+        jd.RigidBodySystem.from_urdf(urdf)
     body = jd.RigidBodySystem.from_urdf(urdf, floating_base=True)
     traj = jd.simulate(body, (0.0, 1.0))
     np.testing.assert_allclose(traj.final_state[:3], [0.0, 0.0, -0.5 * 9.81], atol=1e-9)  # z = -g t^2 / 2

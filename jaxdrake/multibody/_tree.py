@@ -482,7 +482,11 @@ def _build_tree(robot_name, fixed, free, links, joints, gravity, path):
         missing = sorted(set(links) - set(link_body))
         raise URDFError(f"{path}: links {missing} are not connected to any root (the joints form a cycle)")
     if not bodies:
-        raise URDFError(f"{path}: the URDF has no movable joint")
+        if fixed not in (None, "world"):
+            raise URDFError(f"{path}: the URDF has no movable joint: its root link {fixed!r} is fixed as the world's "
+                            "frame (floating_base=False, the default); from_urdf(..., floating_base=True) makes it a "
+                            "free body, as Drake's parser does for a root link that no joint holds")
+        raise URDFError(f"{path}: the URDF has no movable joint: every link is welded to the world")
     frames = [(name, body, R, p) for name, (body, R, p) in link_body.items()]   # body -1: the world
     return assemble_tree(robot_name, bodies, frames, gravity, path)
 
