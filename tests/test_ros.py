@@ -36,6 +36,8 @@ from jaxdrake.systems import Frame
 from _ros1 import DEBIAN_PYTHON, HAVE_ROS1, require_ros1  # tests/_ros1.py
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
 def free_port():
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))

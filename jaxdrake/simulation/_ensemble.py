@@ -188,6 +188,7 @@ def _dopri5_lanes(f, x, t0, tf, rtol, atol, max_steps):
     d0, d1 = rms([v / s for v, s in zip(x, scale)]), rms([k / s for k, s in zip(k0, scale)])
     small = (d0 < 1e-5) | (d1 < 1e-5)
     h0 = jnp.where(small, 1e-6, 0.01 * d0 / jnp.where(small, 1.0, d1)).astype(dtype)
+    h0 = jnp.maximum(h0, least_step(jnp.full(shape, t0, dtype)))  # as simulate's loop: a first step that moves t
     finite0 = functools.reduce(lambda p, q: p & q, [jnp.isfinite(v) for v in x])
     status0 = jnp.where(finite0, SimulationStatus.SUCCESS, SimulationStatus.NONFINITE_INITIAL_STATE).astype(jnp.int32)
 
@@ -201,7 +202,6 @@ def _dopri5_lanes(f, x, t0, tf, rtol, atol, max_steps):
     def body(carry):
         t, h, x, k0, status, attempts = carry
         active = running(t, status) & (attempts < max_steps)
-        h = jnp.maximum(h, least_step(t))  # as simulate's loop: no step that does not move t
         t_next = t + h
         t_next = jnp.where(t_next >= tf - (1e-6 * h + 64 * eps * abs(tf)), tf, t_next)
         step = t_next - t
