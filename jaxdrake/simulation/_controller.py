@@ -15,26 +15,25 @@ def rms(v):
     return jnp.sqrt(jnp.mean(v * v)) if v.shape[0] else jnp.zeros((), v.dtype)
 
 
-def smallest_step(t, finite):
-    """The step size at or below which a rejected step ends an adaptive simulation: for a
-    finite attempt 16 units of the floating-point spacing at t (MATLAB's `16*eps(t)`; SciPy's
-    `solve_ivp` likewise scales its floor with t), at least the dtype's smallest normal
-    number, then STEP_SIZE_TOO_SMALL; relative to t, not to 1, because float32 steps of
-    ~1e-8 s at t = 0.01 are ~30 units of t's spacing, and stiff contact onsets need them.
-    For a non-finite attempt 16 eps max(|t|, 1), then NONFINITE_STATE: a NaN or overflow
-    that persists down to such steps is the vector field's, and near t = 0 the relative floor
-    would take hundreds of rejections to say so."""
-    finfo = jnp.finfo(t.dtype)
-    relative = jnp.maximum(16 * finfo.eps * jnp.abs(t), finfo.tiny)
-    return jnp.where(finite, relative, 16 * finfo.eps * jnp.maximum(jnp.abs(t), 1.0))
-
-
 def least_step(t):
     """The smallest step an adaptive simulation attempts: one unit of t's spacing (eps |t|,
     at least the smallest normal number). A smaller one would not move t: a zero step,
     accepted and grown from zero, on which the loop would spin until max_steps."""
     finfo = jnp.finfo(t.dtype)
     return jnp.maximum(finfo.eps * jnp.abs(t), finfo.tiny)
+
+
+def smallest_step(t, finite):
+    """The step size at or below which a rejected step ends an adaptive simulation: for a
+    finite attempt 16 units of the floating-point spacing at t (16 `least_step`s: MATLAB's
+    `16*eps(t)`; SciPy's `solve_ivp` likewise scales its floor with t), then
+    STEP_SIZE_TOO_SMALL; relative to t, not to 1, because float32 steps of ~1e-8 s at
+    t = 0.01 are ~30 units of t's spacing, and stiff contact onsets need them. For a
+    non-finite attempt 16 eps max(|t|, 1), then NONFINITE_STATE: a NaN or overflow that
+    persists down to such steps is the vector field's, and near t = 0 the relative floor
+    would take hundreds of rejections to say so."""
+    eps = jnp.finfo(t.dtype).eps
+    return jnp.where(finite, 16 * least_step(t), 16 * eps * jnp.maximum(jnp.abs(t), 1.0))
 
 
 class AbstractStepSizeController(eqx.Module):
