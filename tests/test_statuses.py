@@ -175,6 +175,23 @@ def test_a_vector_field_that_is_nan_from_the_start_is_a_non_finite_state_at_once
     assert int(jd.simulate_ensemble(broken, (0.0, 1.0), [[1.0]]).status[0]) == S.NONFINITE_STATE
 
 
+def test_an_rtol_below_the_state_dtypes_resolution_is_an_error_that_names_the_dtype():
+    """A float32 x0 (measured data) keeps the simulation in float32 even with x64 on; an rtol
+    of 1e-10 is below float32's epsilon, which no step meets (it ran to MAX_STEPS_REACHED with
+    advice for stiff systems). Named before it runs; the float64 x0 meets it (closed form)."""
+    osc = jd.System.from_functions(dynamics=lambda t, x, u: jnp.stack([x[1], -x[0]]), num_states=2)
+    x0 = np.array([1.0, 0.0])
+    for run in (lambda: jd.simulate(osc, (0.0, 5.0), x0.astype(np.float32), rtol=1e-10, atol=1e-12),
+                lambda: jd.simulate_ensemble(osc, (0.0, 5.0), x0[None].astype(np.float32), rtol=1e-10, atol=1e-12)):
+        with pytest.raises(ValueError, match=r"rtol=1e-10 is below the resolution of the state's float32 .*"
+                                             r"as float64.*or use rtol >= 1.2e-07"):
+            run()
+    with pytest.raises(ValueError, match="float64 .*Use rtol >= 2.2e-16"):
+        jd.simulate(osc, (0.0, 5.0), x0, rtol=1e-17)
+    traj = jd.simulate(osc, (0.0, 5.0), x0, rtol=1e-10, atol=1e-12, dense=False)
+    np.testing.assert_allclose(traj.final_state, [np.cos(5.0), -np.sin(5.0)], atol=1e-8)
+
+
 def test_a_float32_simulation_whose_steps_became_too_small_is_told_about_float64():
     """An oscillation of period 6e-7 s near t = 1 needs steps of ~1e-8 s, below float32's
     spacing of t there (1.2e-7 s); float64 resolves them (closed form cos(w (t - 1)))."""

@@ -81,7 +81,8 @@ class SimulatedTrajectory(eqx.Module, Reported):
 
     @property
     def num_steps(self) -> int:
-        """The number of accepted integration steps (also when `dense=False`)."""
+        """The number of accepted integration steps (also when `dense=False`), a Python int
+        read on the host; inside `jit`, use the array `num_accepted_steps`."""
         return int(self.num_accepted_steps)
 
     def __getitem__(self, i) -> "SimulatedTrajectory":
@@ -121,7 +122,9 @@ class SimulatedTrajectory(eqx.Module, Reported):
         return self._vectorize(lambda s: self.modes[self.state_trajectory.piece_index(s, side)], t)
 
     def state(self, t, side: str | None = None):
-        """The state x(t) (shape (n,), or (len(t), n) for an array of times)."""
+        """The state x(t) (shape (n,), or (len(t), n) for an array of times). Outside
+        [t0, t_final] it holds the value at the nearer end (no extrapolation, as Drake's
+        trajectories); a simulation that failed inside `jit` ends at its `t_final`."""
         self._check_dense()
         return self.state_trajectory.eval(t, side)
 
@@ -144,7 +147,8 @@ class SimulatedTrajectory(eqx.Module, Reported):
 
     @compiled_when_eager
     def eval(self, t, side: str | None = None):
-        """The output y(t) = g(t, x(t), u(t)) of the simulated system at any time (dense)."""
+        """The output y(t) = g(t, x(t), u(t)) of the simulated system at any time (dense), with
+        x held at the nearer end outside [t0, t_final] (as `state`)."""
         self._check_dense()
         side = check_side(self.side if side is None else side)
         return self._vectorize(lambda s: self.eval_piece(self.piece_index(s, side), s), t)

@@ -24,7 +24,7 @@ from .._compiled import compiled
 from .._numbers import call_argument
 from ..systems import System
 from ..systems import check_initialised
-from ._controller import ConstantStepSize, IController
+from ._controller import ConstantStepSize, IController, check_resolution
 from ._inputs import NoisyInput, leaf_to_array, make_source
 from ._loop import run_simulation
 from ._result import SimulatedTrajectory, trajectory_bytes
@@ -131,6 +131,8 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
                     ("event_tol", event_tol)):
         if v is not None and _concrete(v) and not float(v) > 0:
             raise ValueError(f"{name} must be positive, got {v}")
+    if solver.adaptive and _concrete(rtol):
+        check_resolution(float(rtol), dtype)
     if autodiff not in ("reverse", "forward", "checkpointed", "adjoint"):
         raise ValueError(f"autodiff must be 'reverse', 'forward', 'checkpointed' or 'adjoint', got {autodiff!r}")
     if not (isinstance(max_steps, int) and max_steps > 0):
