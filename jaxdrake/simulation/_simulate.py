@@ -79,7 +79,9 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
       `"adjoint"` (`jax.grad` always by the discrete adjoint: the VJP of one loop iteration,
       looped backwards over the kept iteration states), `"checkpointed"` (`jax.grad` through
       JAX's transpose of the checkpointed loop) or `"forward"` (`jax.jvp` / `jax.jacfwd`
-      work, `jax.grad` does not).
+      work, `jax.grad` does not). Second derivatives: `jax.hessian` (forward over reverse)
+      in the reverse modes, `jax.jacfwd(jax.jacfwd(...))` with `"forward"`; reverse over
+      reverse (`jax.grad` of a `jax.grad`) is not supported (JAX cannot transpose the loop).
     - `throw`: outside `jit` / `vmap`, raise `SimulationError` on failure; inside, the
       status is on the result (`traj.status`, `traj.success`) either way.
     - `device`: where a call from Python (outside `jit` / `vmap` / `grad`) runs. None: the
