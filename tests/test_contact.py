@@ -507,3 +507,22 @@ def test_float32_contact_dynamics_on_a_gpu_equal_float64_to_float32_rounding():
         cpu = np.asarray(dynamics(plant, jnp.asarray(xs, jnp.float64)))
     error = np.abs(gpu - cpu) / np.maximum(np.abs(cpu), 1.0)
     assert np.median(error) < 1e-6 and np.sum(error.max(1) > 1e-3) <= 0.005 * len(xs)
+
+
+def test_two_free_bodies_land_and_rest_under_rosenbrock_at_their_closed_form_depths(tmp_path):
+    """A crate falls 3 m beside a ball: Rosenbrock's over-long step through the crate's
+    landing shot the ball to 8e7 m, a finite y1 whose vector field is NaN, so a NaN error
+    estimate, which grew the rejected step (10x, clipped at tf) until max_steps. A NaN error
+    estimate is a rejection that shrinks the step. At rest each body sinks m g / k: the ball
+    on one contact, the crate on its four lower corners (k: the geometries' 1e6 N/m in series)."""
+    (tmp_path / "two.urdf").write_text("""<robot name="two">
+      <link name="crate"><inertial><mass value="1.5"/><inertia ixx="0.01" iyy="0.0125" izz="0.0125" ixy="0" ixz="0" iyz="0"/></inertial>
+        <collision><geometry><box size="0.3 0.2 0.2"/></geometry></collision></link>
+      <link name="ball"><inertial><mass value="0.5"/><inertia ixx="5e-4" iyy="5e-4" izz="5e-4" ixy="0" ixz="0" iyz="0"/></inertial>
+        <collision><geometry><sphere radius="0.05"/></geometry></collision></link></robot>""")
+    plant = jd.RigidBodySystem.from_urdf(tmp_path / "two.urdf", floating_base=True, contact=True).with_ground()
+    x0 = jnp.zeros(26).at[6].set(1.0).at[13].set(1.0).at[2].set(3.0).at[7].set(1.0).at[9].set(0.5)
+    k, g = 1e6 / 2, 9.81
+    x = jd.simulate(plant, (0.0, 1.5), x0, solver=jd.simulation.Rosenbrock23(jacobian="stiff"), dense=False).final_state
+    np.testing.assert_allclose([x[2], x[9]], [0.1 - 1.5 * g / (4 * k), 0.05 - 0.5 * g / k], atol=1e-10)
+    np.testing.assert_allclose(x[14:], 0.0, atol=1e-10)

@@ -211,8 +211,8 @@ def _dopri5_lanes(f, x, t0, tf, rtol, atol, max_steps):
             ks.append(f(t + float(c[s]) * step, [x[i] + step * combine(a[s, :s], ks, i) for i in range(n)]))
         x1 = [x[i] + step * combine(b, ks, i) for i in range(n)]
         error = [step * combine(e, ks, i) for i in range(n)]
-        finite = functools.reduce(lambda p, q: p & q, [jnp.isfinite(v) for v in x1])
         norm = rms([err / (atol + rtol * jnp.maximum(jnp.abs(x0), jnp.abs(y1))) for err, x0, y1 in zip(error, x, x1)])
+        finite = functools.reduce(lambda p, q: p & q, [jnp.isfinite(v) for v in x1]) & jnp.isfinite(norm)
         factor = jnp.where(norm > 0, 0.9 * jnp.where(norm > 0, norm, 1.0) ** -0.2, 10.0)
         factor = jnp.where(finite, jnp.clip(factor, 0.2, 10.0), 0.2)
         accept = active & finite & (norm <= 1)

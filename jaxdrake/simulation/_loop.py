@@ -308,7 +308,10 @@ class Loop(eqx.Module):
                                       s.k0 if self.fsal else None, stiff, s.linearization)
             h_proposed, t_next = self.step_end(s, result.k_first, target)
             xc1, coefficients = result.y1, result.coefficients
-            finite = jnp.all(jnp.isfinite(xc1)) & (jnp.all(jnp.isfinite(coefficients)) if self.dense else True)
+            # the error estimate too: a finite y1 whose last stage was NaN (an absurd y1 after an
+            # over-long step) has a NaN estimate, which would otherwise grow the step it rejects
+            finite = (jnp.all(jnp.isfinite(xc1)) & (True if result.error is None else jnp.all(jnp.isfinite(result.error)))
+                      & (jnp.all(jnp.isfinite(coefficients)) if self.dense else True))
             accept, h_next, _ = self.controller.adapt(result.h, xc, xc1, result.error, finite)
             k_last, linearization = result.k_last, result.linearization
         else:
