@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from jaxdrake.geometry import Box, Capsule, Convex, Cylinder, HalfSpace, Sphere
-from jaxdrake.multibody import MJCFError, RigidBodySystem, body_poses
+from jaxdrake.multibody import MJCFError, RigidBodySystem, body_poses, frame_pose
 
 mujoco = pytest.importorskip("mujoco")
 DATA = pathlib.Path(__file__).parent / "data"
@@ -395,3 +395,25 @@ def test_compiler_errors_are_named(tmp_path):
                     '<geom size=".1"/></body></body></worldbody></mujoco>')
     with pytest.raises(MJCFError, match=r"nested_free.xml: MuJoCo's compiler refused the model: .*free joint"):
         RigidBodySystem.from_mjcf(path)
+
+
+def test_the_initial_state_is_the_files_configuration_as_mujocos_reset():
+    """x0 = None starts where `mj_resetData` does (qpos0): free bodies where the file places
+    them (they sat at the world origin, inside each other), hinges and slides at their `ref`;
+    every body frame then sits where MuJoCo's kinematics puts it."""
+    tilted = """<mujoco><worldbody>
+      <body name="crate" pos="0.3 -0.2 0.1" euler="10 20 30"><freejoint/><geom type="box" size=".1 .1 .1"/></body>
+      <body name="ball" pos="1 0 0.5"><freejoint name="ball_free"/><geom type="sphere" size=".05"/></body>
+    </worldbody></mujoco>"""
+    for text in (tilted, FREE_BODIES_BESIDE_AN_ARM, CHAIN):
+        model = compiled(text)
+        plant = RigidBodySystem.from_mjcf(model)
+        x0 = np.asarray(plant.initial_state())
+        np.testing.assert_allclose(x0, to_plant(model, model.qpos0, np.zeros(model.nv)), atol=1e-15)
+        data = mujoco.MjData(model)
+        mujoco.mj_kinematics(model, data)
+        for b in range(1, model.nbody):
+            name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b)
+            R, p = frame_pose(plant.tree, x0[: plant.tree.nq], name)
+            np.testing.assert_allclose(p, data.xpos[b], atol=1e-12)
+            np.testing.assert_allclose(R, data.xmat[b].reshape(3, 3), atol=1e-12)

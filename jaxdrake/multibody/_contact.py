@@ -48,7 +48,9 @@ URDF_DEFAULT_FRICTION = (1.0, 1.0)
 @dataclasses.dataclass(frozen=True)
 class ContactMaterial:
     """A geometry's contact properties (Drake's `drake:proximity_properties`); None: Drake's
-    default (module docstring)."""
+    default, filled in where a geometry lacks a value: stiffness 1e6 N/m, dissipation 50 s/m,
+    friction 0.5 / 0.5 (1.0 / 1.0 for a URDF `<collision>`, as Drake's parser gives). Two
+    geometries' properties combine by Drake's rules ("The contact model" on the API page)."""
 
     point_contact_stiffness: float | None = None
     hunt_crossley_dissipation: float | None = None
@@ -194,7 +196,7 @@ class ContactModel(eqx.Module):
         return tuple(jnp.concatenate(x) for x in zip(*parts)), tuple(ia), tuple(ib)
 
     def results(self, tree, q, v) -> ContactResults:
-        """The contact forces at (q, v) (module docstring)."""
+        """The contact forces at (q, v) ("The contact model" on the API page)."""
         return self._results(alg.body_motion(tree, q, v))
 
     def _results(self, motion: alg.BodyMotion) -> ContactResults:

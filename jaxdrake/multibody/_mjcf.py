@@ -74,13 +74,20 @@ def tree_from_mjcf(source, *, contact: bool = False, actuated=None, ignore_armat
     **Returns:** `(tree, actuated_joints, collision)`: the tree; the names of the joints that
     are inputs (the motors' joints in the order of their actuators, or `actuated`); and the
     `URDFCollisions` record of the collision geometry (None without `contact`)."""
+    return plant_parts_from_mjcf(source, contact=contact, actuated=actuated, ignore_armature=ignore_armature)[:3]
+
+
+def plant_parts_from_mjcf(source, *, contact: bool = False, actuated=None, ignore_armature: bool = False):
+    """`tree_from_mjcf`'s `(tree, actuated_joints, collision)` and the file's configuration:
+    MuJoCo's `qpos0` (each free body where the file places it, each hinge and slide at its
+    `ref`, where `mj_resetData` starts) in the tree's coordinates."""
     mujoco = _mujoco()
     model, where = _compile(mujoco, source)
     reader = _Reader(mujoco, model, where)
     reader.check_supported(contact, ignore_armature)
     joints = reader.actuated_joints() if actuated is None else list(actuated)
     tree = reader.tree()
-    return tree, joints, (reader.collisions() if contact else None)
+    return tree, joints, (reader.collisions() if contact else None), reader.default_positions(tree)
 
 
 def _mujoco():
@@ -299,6 +306,19 @@ class _Reader:
         gravity = np.zeros(3) if self.disabled("mjDSBL_GRAVITY") else np.array(m.opt.gravity, float)
         robot_name = bytes(m.names[: list(m.names).index(0)]).decode() if m.nnames else "mjcf_model"
         return assemble_tree(robot_name or "mjcf_model", bodies, frames, gravity, self.where, MJCFError)
+
+    def default_positions(self, tree) -> np.ndarray:
+        """MuJoCo's `qpos0` in the tree's coordinates: a free joint's [x y z qw qx qy qz] as
+        [x y z qx qy qz qw], a hinge's or slide's value as it is (the tree's joint frames
+        take `ref` into account)."""
+        q = np.zeros(tree.nq)
+        for name, kind, start in zip(tree.joint_names, tree.joint_types, tree.q_starts):
+            qpos = self.m.qpos0[self.m.jnt_qposadr[self.joint_name.index(name)]:]
+            if kind == JointType.FLOATING:
+                q[start: start + 7] = np.concatenate([qpos[:3], qpos[4:7], qpos[3:4]])
+            else:
+                q[start] = qpos[0]
+        return q
 
     # ----- actuators ----------------------------------------------------------------------------
 

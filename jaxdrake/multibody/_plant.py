@@ -104,7 +104,7 @@ class RigidBodySystem(System):
     - Damping acts in the dynamics; the URDF's Coulomb friction is recorded on `tree`, not applied.
     - Contact (`from_urdf(..., contact=True)`, `with_collision_geometry`, `with_ground`): the
       `<collision>` shapes touch each other and the world by Drake's compliant point contact
-      (Hunt-Crossley normal force, regularised Stribeck friction; `jaxdrake.multibody._contact`),
+      (Hunt-Crossley normal force, regularised Stribeck friction; "The contact model" on the API page),
       their generalized force $\sum J^T f$ added to the dynamics. `contact` holds the
       geometry's leaves (stiffness, dissipation, friction, sizes, poses) that you may
       replace; `contact_results(x)` gives the points and forces. Solvers: Drake's stiction
@@ -133,11 +133,13 @@ class RigidBodySystem(System):
     collision: URDFCollisions | None = eqx.field(static=True, default=None)  # what `contact` was built from
     stiction_tolerance: float = eqx.field(static=True, default=DEFAULT_STICTION_TOLERANCE)  # seeds contact models built later
     linearization: str = eqx.field(static=True, default="exact")  # "stiff": see stiff_linearization
+    default_positions: tuple | None = eqx.field(static=True, default=None)  # the file's q (MJCF: qpos0), else neutral
 
     def __init__(self, tree: KinematicTree, actuated_joints=None, *, loops=(), couplers=(),
                  constraint_stiffness: float = 20.0, effort_limits: bool = True,
                  joint_limits: bool = True, limit_period: float = 0.02, source=None, collision=None,
-                 stiction_tolerance: float = DEFAULT_STICTION_TOLERANCE, package_map=None):
+                 stiction_tolerance: float = DEFAULT_STICTION_TOLERANCE, package_map=None,
+                 default_positions=None):
         names = tree.joint_names
         if actuated_joints is None:
             actuated_joints = [n for n, k in zip(names, tree.joint_types) if k != JointType.FLOATING]
@@ -173,6 +175,10 @@ class RigidBodySystem(System):
         self.package_map = tuple(sorted((str(k), str(v)) for k, v in dict(package_map or {}).items()))
         self.collision = collision
         self.stiction_tolerance = float(stiction_tolerance)
+        if default_positions is not None and np.shape(default_positions) != (tree.nq,):
+            raise ValueError(f"{tree.robot_name}: default_positions must have the {tree.nq} position coordinates "
+                             f"{tree.position_names()}, got shape {np.shape(default_positions)}")
+        self.default_positions = None if default_positions is None else tuple(float(x) for x in default_positions)
         self.contact = None if collision is None else build_contact_model(
             tree, collision.geometries, excluded_pairs=collision.excluded_link_pairs,
             stiction_tolerance=stiction_tolerance, source=tree.robot_name)
@@ -237,19 +243,21 @@ class RigidBodySystem(System):
         """Load an MJCF file (or a compiled `mujoco.MjModel`), compiled by MuJoCo: bodies, hinge /
         slide joints and a free root (the floating base), inertias, damping, gravity, ranges as
         compliant limits, `<motor>`s on joints as the inputs (joint forces) or the joints named
-        in `actuated`; `contact=True` makes the geoms touch by Drake's point contact (see
-        `jaxdrake.multibody._mjcf` for what is translated and what is refused, by name).
+        in `actuated`; `contact=True` makes the geoms touch by Drake's point contact ("What an
+        MJCF file becomes" on the API page: what is translated, what is refused by name;
+        friction combines by Drake's rule, not MuJoCo's maximum; `solref` / `solimp` are not
+        read). `initial_state()` is the file's configuration, MuJoCo's `qpos0`.
         MuJoCo's free joint has q = [x, y, z, qw, qx, qy, qz] and a world-frame linear velocity;
         the plant's floating base has [x, y, z, qx, qy, qz, qw] and body-frame velocities."""
-        from ._mjcf import tree_from_mjcf
+        from ._mjcf import plant_parts_from_mjcf
 
         with jax.ensure_compile_time_eval():  # parsing is host work, also inside jit / vmap
-            tree, inputs, collision = tree_from_mjcf(path, contact=contact, actuated=actuated,
-                                                     ignore_armature=ignore_armature)
+            tree, inputs, collision, qpos0 = plant_parts_from_mjcf(path, contact=contact, actuated=actuated,
+                                                                   ignore_armature=ignore_armature)
             source = pathlib.Path(path).resolve() if isinstance(path, (str, pathlib.PurePath)) else None
             return RigidBodySystem(tree, inputs, effort_limits=effort_limits, joint_limits=joint_limits,
                                    limit_period=limit_period, source=source, collision=collision,
-                                   stiction_tolerance=stiction_tolerance)
+                                   stiction_tolerance=stiction_tolerance, default_positions=qpos0)
 
     @property
     def name(self) -> str:
@@ -406,10 +414,13 @@ class RigidBodySystem(System):
                                 self.forward_dynamics(q, v, u)])
 
     def initial_state(self):
-        """At rest in the neutral configuration, with each joint whose zero lies outside its
-        position limits at its nearest limit (the Panda's joint 4), and coupled joints placed
-        by their couplers."""
-        q = jnp.clip(self.tree.neutral_configuration(), self.tree.position_lower, self.tree.position_upper)
+        """At rest in the file's configuration (an MJCF's `qpos0`: its free bodies where the file
+        places them, its joints at their `ref`, as MuJoCo's `mj_resetData`), else the neutral
+        one; each joint outside its position limits at its nearest limit (the Panda's joint 4
+        at zero), and coupled joints placed by their couplers."""
+        q = (self.tree.neutral_configuration() if self.default_positions is None
+             else jnp.asarray(self.default_positions))
+        q = jnp.clip(q, self.tree.position_lower, self.tree.position_upper)
         for coupler in self.couplers:
             iq, lq = (self.tree.q_starts[self.tree.joint_names.index(j)] for j in (coupler.joint, coupler.leader))
             q = q.at[iq].set(coupler.gear_ratio * q[lq] + coupler.offset)
