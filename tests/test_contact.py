@@ -149,6 +149,23 @@ def test_a_sliding_box_stops_after_v0_squared_over_2_mu_g():
     assert abs(x[7]) < 1e-3 and abs(x[2] - 0.1) < 1e-4   # stopped, upright on the floor
 
 
+def test_a_float32_box_slides_its_closed_form_distance_at_the_default_tolerances():
+    """float32 with float64's atol 1e-9 (below float32's rounding near 1) ran out of steps
+    within 0.06 s; float32's default atol is 1e-5, and an explicit 1e-9 is told why it failed.
+    Drake's stiction tolerance 1e-4 m/s (the stiff solver's case)."""
+    mu, v0, g = 0.3, 1.5, 9.81
+    box = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True)
+    box = box.with_collision_geometry("ball", Box(0.3, 0.2, 0.2), material=_material(1e6, 50.0, mu, mu))
+    box = box.with_ground(material=_material(1e6, 50.0, mu, mu))
+    x0 = np.array([0.0, 0.0, 0.1, 0, 0, 0, 1, v0, 0, 0, 0, 0, 0], np.float32)
+    solver = jd.simulation.Rosenbrock23(jacobian="stiff")
+    x = jd.simulate(box, (0.0, v0 / (mu * g) + 0.2), x0, solver=solver, dense=False).final_state
+    assert x.dtype == jnp.float32
+    np.testing.assert_allclose(x[0], v0 ** 2 / (2 * mu * g), rtol=2e-3)
+    with pytest.raises(jd.SimulationError, match="MAX_STEPS_REACHED.*float32.*atol >= 1e-05"):
+        jd.simulate(box, (0.0, 0.5), x0, solver=solver, atol=1e-9, max_steps=2000, dense=False)
+
+
 def test_a_ball_sliding_then_rolling_ends_at_five_sevenths_of_its_speed():
     ball = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True, contact=True).with_ground(
         material=_material(1e6, 50.0, 0.8, 0.6))

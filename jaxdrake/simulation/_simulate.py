@@ -44,8 +44,11 @@ def _run_simulation(system, solver, step_control, source, t0, tf, x0, *args):
     return run_simulation(system, solver, controller, source, t0, tf, x0, *args)
 
 
+DEFAULT_ATOL = {"float64": 1e-9, "float32": 1e-5}
+
+
 def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="dopri5", rtol=1e-6,
-             atol=1e-9, dt=None, max_step_size=None, max_steps: int = 4096,
+             atol=None, dt=None, max_step_size=None, max_steps: int = 4096,
              max_events: int = 256, event_tol=1e-10, dense: bool = True,
              constraint_projection: bool = False, autodiff: str = "reverse",
              throw: bool = True, device=None) -> SimulatedTrajectory:
@@ -67,8 +70,11 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
       systems), `"rk4"`, `"midpoint"` or `"euler"` (fixed step `dt`), or a solver instance
       (`Rosenbrock23(jacobian="stiff")`: for rigid bodies in stiff contact, its matrix from
       the systems' `stiff_linearization`).
-    - `rtol`, `atol`: tolerances of the adaptive solvers; `dt`: the fixed step (or the first
-      step of an adaptive one); `max_step_size`: an upper bound on steps.
+    - `rtol`, `atol`: tolerances of the adaptive solvers (atol: 1e-9 for a float64 state,
+      1e-5 for a float32 one, whose rounding near 1 is 6e-8: at 1e-9 a box sliding on the
+      floor ran out of steps within 0.06 s, and at 1e-6 Rosenbrock23 rejected 62% of its
+      steps there); `dt`: the fixed step (or the first step of an adaptive one);
+      `max_step_size`: an upper bound on steps.
     - `max_steps`: the bound on loop iterations (accepted + rejected steps) and the size of
       the trajectory buffers; `max_events`: the bound on events (Zeno protection).
     - `event_tol`: the time tolerance to which event instants are located.
@@ -133,6 +139,8 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
                     ("event_tol", event_tol)):
         if v is not None and _concrete(v) and not float(v) > 0:
             raise ValueError(f"{name} must be positive, got {v}")
+    if atol is None:
+        atol = DEFAULT_ATOL[np.dtype(dtype).name]
     if solver.adaptive and _concrete(rtol):
         check_resolution(float(rtol), dtype)
     if autodiff not in ("reverse", "forward", "checkpointed", "adjoint"):
@@ -170,7 +178,7 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
         status = SimulationStatus(int(traj.status))
         if not SimulationStatus.is_success(status):
             raise SimulationError(status, _failure_message(system, status, t0, tf, traj)
-                                  + _solver_advice(solver, status) + _precision_advice(x0.dtype, status))
+                                  + _solver_advice(solver, status) + _precision_advice(x0.dtype, status, atol))
     return traj
 
 
@@ -222,11 +230,19 @@ def _solver_advice(solver, status) -> str:
             "solver=jd.simulation.Rosenbrock23(jacobian='stiff')")
 
 
-def _precision_advice(dtype, status) -> str:
+def _precision_advice(dtype, status, atol) -> str:
     """For a float32 simulation whose steps became too small: float32 resolves neither steps
     far below t's spacing nor error estimates near its rounding (a stiff contact's touchdown
-    at rtol 1e-4: benchmarks/RESULTS.md)."""
-    if status != SimulationStatus.STEP_SIZE_TOO_SMALL or np.dtype(dtype) != np.float32:
+    at rtol 1e-4: benchmarks/RESULTS.md); or that ran out of steps under an atol below
+    float32's default (1e-9: a box sliding on the floor took 20,000 steps for 0.06 s)."""
+    if np.dtype(dtype) != np.float32:
+        return ""
+    if (status == SimulationStatus.MAX_STEPS_REACHED and _concrete(atol)
+            and float(atol) < DEFAULT_ATOL["float32"]):
+        return (f". The state is float32, whose rounding near 1 is 6e-8: with atol={float(atol):g} the error test may "
+                f"never pass; use atol >= {DEFAULT_ATOL['float32']:g} (float32's default) or simulate in float64 "
+                "(jax.config.update('jax_enable_x64', True) and a float64 x0)")
+    if status != SimulationStatus.STEP_SIZE_TOO_SMALL:
         return ""
     return (". The state is float32: unless the solution blows up here, its 7 digits may be what stops the steps "
             "(a step below t's spacing, an error estimate at its rounding): simulate in float64 "

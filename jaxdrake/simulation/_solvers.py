@@ -277,8 +277,8 @@ class Dopri5(AbstractExplicitRungeKutta):
                         -2 * _DP_A[6] + _E0 + _E6 - 2 * _DP_D, _DP_D, num_stages=7)
 
 
-_ROS_D = 1.0 / (2.0 + np.sqrt(2.0))
-_ROS_E32 = 6.0 + np.sqrt(2.0)
+_ROS_D = float(1.0 / (2.0 + np.sqrt(2.0)))   # Python floats: weakly typed, so a float32 step stays float32
+_ROS_E32 = float(6.0 + np.sqrt(2.0))
 
 
 class Rosenbrock23(AbstractSolver):
