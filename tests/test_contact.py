@@ -314,6 +314,9 @@ def test_bad_collision_elements_are_named_errors(tmp_path):
     with pytest.raises(URDFError, match="mu_dynamic must be a non-negative"):
         jd.RigidBodySystem.from_urdf(_urdf(tmp_path, sphere.format(
             '<drake:proximity_properties><drake:mu_dynamic value="-0.1"/></drake:proximity_properties>')), contact=True)
+    with pytest.raises(URDFError, match="<sphere> has no radius attribute"):   # a typo: radis
+        jd.RigidBodySystem.from_urdf(_urdf(tmp_path, '<collision><geometry><sphere radis="0.1"/></geometry></collision>'),
+                                     contact=True)
     with pytest.raises(URDFError, match="unsupported collision shape <cone>"):
         jd.RigidBodySystem.from_urdf(_urdf(tmp_path, '<collision><geometry><cone radius="1" length="1"/></geometry></collision>'),
                                      contact=True)
@@ -324,6 +327,11 @@ def test_bad_collision_elements_are_named_errors(tmp_path):
     with pytest.raises(URDFError, match="ring.stl: the collision mesh is not convex.*Split it into convex pieces"):
         jd.RigidBodySystem.from_urdf(_urdf(tmp_path, '<collision><geometry><mesh filename="ring.stl"/></geometry>'
                                      '</collision>'), contact=True)
+    ball = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True, contact=True)
+    with pytest.raises(GeometryError, match=r"rotation is not a rotation matrix .*det R = 8"):
+        ball.with_collision_geometry("ball", Sphere(0.1), rotation=2 * np.eye(3))
+    with pytest.raises(TypeError, match="material must be a jd.multibody.ContactMaterial, got dict"):
+        ball.with_ground(material={"mu_static": 0.3})
     outside = '<collision><geometry><mesh filename="{}"/></geometry></collision>'
     for filename, message in (("../secret.stl", "outside the model's folder"), ("/etc/passwd", "not a path relative"),
                               ("package://robot/x.stl", "pass package_map")):
@@ -543,3 +551,21 @@ def test_two_free_bodies_land_and_rest_under_rosenbrock_at_their_closed_form_dep
     x = jd.simulate(plant, (0.0, 1.5), x0, solver=jd.simulation.Rosenbrock23(jacobian="stiff"), dense=False).final_state
     np.testing.assert_allclose([x[2], x[9]], [0.1 - 1.5 * g / (4 * k), 0.05 - 0.5 * g / k], atol=1e-10)
     np.testing.assert_allclose(x[14:], 0.0, atol=1e-10)
+
+
+def test_a_ground_under_unread_collisions_warns_and_traced_materials_name_the_remedy():
+    """A file's <collision> elements are read only with contact=True: a ground added without
+    them touches nothing (a dropped ball fell through it), so it warns; a material built from
+    traced values (inside jax.grad) is named, with the leaf to replace instead; a state of the
+    wrong size is named before an XLA gather error."""
+    with pytest.warns(UserWarning, match=r"1 <collision> element\(s\), not read.*contact=True"):
+        jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True).with_ground()
+    plant = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True, contact=True)
+
+    def slide(mu):
+        return plant.with_ground(material=ContactMaterial(mu_static=mu, mu_dynamic=mu)).contact.mu_static[0]
+
+    with pytest.raises(GeometryError, match=r"mu_static is traced.*eqx.tree_at\(lambda p: p.contact.mu_static"):
+        jax.grad(slide)(0.3)
+    with pytest.raises(ValueError, match=r"x must be one state \[q; v\] of 13 coordinates \(7 q, 6 v\), got shape \(5,\)"):
+        plant.with_ground().contact_results(jnp.zeros(5))

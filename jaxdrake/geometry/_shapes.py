@@ -130,8 +130,8 @@ class Convex:
                     f"{path}: the collision mesh is not convex (its volume is "
                     f"{abs(mesh.volume * np.prod(scale)) / hull_volume:.0%} of its convex hull's); point contact would "
                     "act on the hull, not the surface. Split it into convex pieces (one <collision> "
-                    "each), or collide with its hull: from_urdf(..., mesh_hulls=True) (require_convex=False "
-                    "here)")
+                    "each), or collide with its hull: from_urdf(..., mesh_hulls=True), or "
+                    "Convex.from_mesh_file(..., require_convex=False) for a shape of your own")
         return shape
 
 

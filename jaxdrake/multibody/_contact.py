@@ -60,6 +60,12 @@ class ContactMaterial:
     def check(self, where: str):
         for name in ("point_contact_stiffness", "hunt_crossley_dissipation", "mu_static", "mu_dynamic"):
             value = getattr(self, name)
+            if isinstance(value, jax.core.Tracer):
+                raise GeometryError(
+                    f"{where}: {name} is traced (a material built inside jax.grad / jit / vmap); a plant's "
+                    "geometry is built once, outside: build it with a number there, then replace the leaf, "
+                    "e.g. eqx.tree_at(lambda p: p.contact.mu_static, plant, new_values) (one value per "
+                    "geometry, plant.contact.names; also mu_dynamic, stiffness, dissipation)")
             if value is not None and not (np.isfinite(value) and value >= 0):
                 raise GeometryError(f"{where}: {name} must be a non-negative finite number, got {value}")
         mu_s, mu_d = self.friction()
@@ -88,9 +94,13 @@ class CollisionGeometry:
 
     def __post_init__(self):  # tuples: hashable, so a plant holding them stays a static structure
         R, p = np.asarray(self.rotation, float), np.asarray(self.translation, float)
-        if R.shape != (3, 3) or p.shape != (3,) or not np.allclose(R @ R.T, np.eye(3), atol=1e-9):
+        if R.shape != (3, 3) or p.shape != (3,):
             raise GeometryError(f"collision {self.name!r}: rotation must be a 3x3 rotation matrix and "
                                 f"translation a 3-vector, got shapes {R.shape}, {p.shape}")
+        if not (np.allclose(R @ R.T, np.eye(3), atol=1e-9) and np.linalg.det(R) > 0):
+            raise GeometryError(f"collision {self.name!r}: rotation is not a rotation matrix (R R^T = I, det R = "
+                                f"+1 to 1e-9): R R^T = {np.round(R @ R.T, 6).tolist()}, det R = {np.linalg.det(R):.6g}; "
+                                "e.g. jd.multibody.rpy(roll, pitch, yaw) makes one")
         object.__setattr__(self, "rotation", tuple(map(tuple, R.tolist())))
         object.__setattr__(self, "translation", tuple(p.tolist()))
 

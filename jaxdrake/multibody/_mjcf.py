@@ -404,7 +404,7 @@ class _Reader:
                     start = m.mesh_vertadr[mesh]
                     shape = Convex.from_points(m.mesh_vert[start: start + m.mesh_vertnum[mesh]], name=name)
                 else:
-                    raise MJCFError(f"{where} is a {G(kind).name.removeprefix('mjGEOM_').lower()}, which the "
+                    raise MJCFError(f"{where} has type=\"{G(kind).name.removeprefix('mjGEOM_').lower()}\", which the "
                                     "plant cannot collide; use a sphere, capsule, box, cylinder, plane or mesh, "
                                     "or make the geom visual only (contype=\"0\" conaffinity=\"0\")")
             except GeometryError as error:

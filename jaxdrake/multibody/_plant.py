@@ -302,6 +302,10 @@ class RigidBodySystem(System):
         if self.contact is None:
             raise ValueError(f"{self.name} has no collision geometry: load it with from_urdf(..., contact=True) "
                              "or add some with with_collision_geometry / with_ground")
+        if jnp.shape(x) != (self.num_states,):
+            raise ValueError(f"{self.name}.contact_results: x must be one state [q; v] of {self.num_states} "
+                             f"coordinates ({self.tree.nq} q, {self.tree.nv} v), got shape {jnp.shape(x)}; "
+                             "for many states, jax.vmap(plant.contact_results)")
         return _contact_results(self, x)
 
     def with_collision_geometry(self, link: str, shape, *, rotation=np.eye(3), translation=(0.0, 0.0, 0.0),
@@ -315,6 +319,9 @@ class RigidBodySystem(System):
             return self._with_collision_geometry(link, shape, rotation, translation, name, material)
 
     def _with_collision_geometry(self, link, shape, rotation, translation, name, material):
+        if material is not None and not isinstance(material, ContactMaterial):
+            raise TypeError(f"{self.name}: material must be a jd.multibody.ContactMaterial, got "
+                            f"{type(material).__name__}; e.g. ContactMaterial(mu_static=0.3, mu_dynamic=0.3)")
         collision = self.collision or URDFCollisions((), _joint_link_pairs(self.tree))
         name = name or f"{link}_{type(shape).__name__.lower()}_{len(collision.geometries)}"
         geometry = CollisionGeometry(name, link, shape, rotation, translation, material or ContactMaterial())
@@ -352,8 +359,23 @@ class RigidBodySystem(System):
         if n.shape != (3,) or not np.linalg.norm(n) > 0:
             raise ValueError(f"with_ground: normal must be a non-zero 3-vector, got {normal!r}")
         n = n / np.linalg.norm(n)
+        self._warn_of_unread_collisions()
         return self.with_collision_geometry("world", HalfSpace(), rotation=_rotation_to(n),
                                             translation=height * n, name=name, material=material)
+
+    def _warn_of_unread_collisions(self):
+        """A ground under a plant whose file has collision elements that were not read (loaded
+        without contact=True) would touch nothing: said once, with the remedy."""
+        if self.collision is not None or self.source is None:
+            return
+        path = pathlib.Path(self.source)
+        tag = "<geom" if path.suffix.lower() == ".xml" else "<collision"
+        count = path.read_text(errors="replace").count(tag) if path.is_file() else 0
+        if count:
+            loader = "from_mjcf" if tag == "<geom" else "from_urdf"
+            warnings.warn(f"{self.name}: its file has {count} {tag}> element(s), not read (the plant was loaded "
+                          f"without contact=True), so the ground touches nothing; load it with {loader}(..., "
+                          "contact=True)", stacklevel=5)
 
     def joint_limit_torque(self, q, v):
         r"""The compliant limits' generalized force: $\mathrm{clip}(k p + d\dot p, 0, 2 k p)$

@@ -107,14 +107,25 @@ def _collision(element, link, index, path, package_map, mesh_hulls) -> Collision
                              material=material)
 
 
+_REQUIRED = {"sphere": ("radius",), "box": ("size",), "cylinder": ("radius", "length"),
+             "capsule": ("radius", "length"), "drake:capsule": ("radius", "length")}
+
+
 def _shape(element, path, where, package_map, mesh_hulls):
     kind = _local(element.tag)
-    number = lambda attribute: float(_numbers(element, attribute, 1, np.nan, path, where))  # noqa: E731
+
+    def required(attribute, count=1):
+        if element.get(attribute) is None and kind in _REQUIRED and attribute in _REQUIRED[kind]:
+            raise URDFError(f"{path}: {where}: <{kind}> has no {attribute} attribute (it needs "
+                            f"{' and '.join(_REQUIRED[kind])})")
+        return _numbers(element, attribute, count, np.nan if count == 1 else [np.nan] * count, path, where)
+
+    number = lambda attribute: float(required(attribute))  # noqa: E731
     try:
         if kind == "sphere":
             return Sphere(number("radius"))
         if kind == "box":
-            return Box(*_numbers(element, "size", 3, [np.nan] * 3, path, where))
+            return Box(*required("size", 3))
         if kind == "cylinder":
             return Cylinder(number("radius"), number("length"))
         if kind in ("capsule", "drake:capsule"):
