@@ -569,3 +569,26 @@ def test_a_ground_under_unread_collisions_warns_and_traced_materials_name_the_re
         jax.grad(slide)(0.3)
     with pytest.raises(ValueError, match=r"x must be one state \[q; v\] of 13 coordinates \(7 q, 6 v\), got shape \(5,\)"):
         plant.with_ground().contact_results(jnp.zeros(5))
+
+
+def test_a_ball_dropped_on_a_small_sphere_rests_on_it_instead_of_passing_through():
+    """A free fall is a quadratic, which Rosenbrock23 and Dormand-Prince integrate exactly:
+    their error estimates vanish and the steps grew tenfold until one carried the ball through
+    a 10-cm sphere between two evaluations of the force (it fell to z = -10.4 m with every
+    solver). Steps are bounded so that no geometry moves half the thinnest one's thickness;
+    the ball comes to rest on the sphere's top, sunk m g / k (the two stiffnesses in series)."""
+    ball = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True, contact=True)
+    ball = ball.with_collision_geometry("world", Sphere(0.05))
+    k_a, k_b = np.asarray(ball.contact.stiffness)
+    rest = 0.05 + 0.1 - float(ball.tree.mass[0]) * 9.81 / (k_a * k_b / (k_a + k_b))
+    x0 = jnp.array([0.0, 0.0, 0.6, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0])
+    for solver in (jd.simulation.Rosenbrock23(jacobian="stiff"), "dopri5"):
+        x = jd.simulate(ball, (0.0, 1.5), x0, solver=solver, dense=False).final_state
+        np.testing.assert_allclose(x[2], rest, atol=1e-9)
+        np.testing.assert_allclose(x[7:], 0.0, atol=1e-7)
+    # the bound: no point of the moving ball (radius 0.1 at its origin) travels delta / 2 =
+    # 0.05 m (the small sphere's thickness 0.1) under speed s + gravity
+    s, g = 2.0 + 0.1 * 3.0, 9.81
+    x = jnp.zeros(13).at[6].set(1.0).at[7].set(2.0).at[10:].set(1.0)
+    h = float(ball.max_step_size(0.0, x))
+    np.testing.assert_allclose(s * h + 0.5 * g * h ** 2, 0.05, rtol=1e-12)

@@ -363,6 +363,17 @@ class RigidBodySystem(System):
         return self.with_collision_geometry("world", HalfSpace(), rotation=_rotation_to(n),
                                             translation=height * n, name=name, material=material)
 
+    @property
+    def bounds_steps(self) -> bool:
+        return self.contact is not None and self.contact.moves()
+
+    def max_step_size(self, t, x):
+        """`ContactModel.step_bound`: no geometry moves through half the thinnest one's
+        thickness within one step (inf without collision geometry on a body)."""
+        if not self.bounds_steps:
+            return jnp.asarray(jnp.inf, x.dtype)
+        return self.contact.step_bound(self.tree, x[self.tree.nq:])
+
     def _warn_of_unread_collisions(self):
         """A ground under a plant whose file has collision elements that were not read (loaded
         without contact=True) would touch nothing: said once, with the remedy."""

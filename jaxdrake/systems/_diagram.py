@@ -308,6 +308,16 @@ class Diagram(System):
                 runs.append([i, j, j + 1])
         return jnp.concatenate([ys[i][start:stop] for i, start, stop in runs])
 
+    @property
+    def bounds_steps(self) -> bool:
+        return any(s.bounds_steps for s in self.subsystems)
+
+    def max_step_size(self, t, x):
+        """The subsystems' smallest bound."""
+        return functools.reduce(jnp.minimum, [s.max_step_size(t, self.subsystem_state(i, x))
+                                              for i, s in enumerate(self.subsystems) if s.bounds_steps],
+                                jnp.asarray(jnp.inf, x.dtype))
+
     def transition_guards(self, mode, t, x, u):
         us, _ = self.signals(mode, t, x, u)
         parts = [s.transition_guards(self.subsystem_mode(i, mode), t, self.subsystem_state(i, x), us[i])

@@ -278,6 +278,14 @@ class System(eqx.Module):
     def apply_transition(self, mode, k, t, x, u):
         raise NotImplementedError(f"{self.name} has no transitions")
 
+    # ----- a state-dependent bound on adaptive steps (a contact plant's: no tunnelling) -------
+
+    bounds_steps = False
+
+    def max_step_size(self, t, x):
+        """The longest adaptive step the system allows from (t, x) (`bounds_steps`; inf here)."""
+        return jnp.asarray(jnp.inf, jnp.asarray(x).dtype)
+
     # ----- derived facts --------------------------------------------------------------------
 
     @property
