@@ -88,6 +88,8 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
       work, `jax.grad` does not). Second derivatives: `jax.hessian` (forward over reverse)
       in the reverse modes, `jax.jacfwd(jax.jacfwd(...))` with `"forward"`; reverse over
       reverse (`jax.grad` of a `jax.grad`) is not supported (JAX cannot transpose the loop).
+      Nothing controls the derivative's own error: through a stiff impact it needs a tighter
+      rtol than the value (docs/from_drake.md: a bouncing ball's at 1e-6 had the wrong sign).
     - `throw`: outside `jit` / `vmap`, raise `SimulationError` on failure; inside, the
       status is on the result (`traj.status`, `traj.success`) either way.
     - `device`: where a call from Python (outside `jit` / `vmap` / `grad`) runs. None: the
