@@ -590,5 +590,30 @@ def test_a_ball_dropped_on_a_small_sphere_rests_on_it_instead_of_passing_through
     # 0.05 m (the small sphere's thickness 0.1) under speed s + gravity
     s, g = 2.0 + 0.1 * 3.0, 9.81
     x = jnp.zeros(13).at[6].set(1.0).at[7].set(2.0).at[10:].set(1.0)
-    h = float(ball.max_step_size(0.0, x))
+    h = float(ball.step_size_bound(0.0, x))
     np.testing.assert_allclose(s * h + 0.5 * g * h ** 2, 0.05, rtol=1e-12)
+
+
+def test_the_step_bound_counts_a_prismatic_extension_and_holds_in_diagrams_and_hybrid_modes(tmp_path):
+    """A ball on a slider extended 2 m from a yaw joint turning at 5 rad/s, a 1-cm wall across
+    its path: the bound counts the extension (at q = 0 it saw 5 cm of lever, and the ball passed
+    through the wall). The ball stops at the wall; a feedback diagram and a hybrid mode keep the
+    plant's bound."""
+    inertial = '<inertial><mass value="1"/><inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial>'
+    (tmp_path / "slider.urdf").write_text(f"""<robot name="slider">
+      <link name="base">{inertial}</link>
+      <joint name="yaw" type="continuous"><parent link="world"/><child link="base"/><axis xyz="0 0 1"/></joint>
+      <link name="tip">{inertial}<collision><geometry><sphere radius="0.05"/></geometry></collision></link>
+      <joint name="ext" type="prismatic"><parent link="base"/><child link="tip"/><axis xyz="1 0 0"/>
+        <limit lower="1.999" upper="2.0" effort="100" velocity="10"/></joint></robot>""")
+    arm = jd.RigidBodySystem.from_urdf(tmp_path / "slider.urdf", contact=True).with_collision_geometry(
+        "world", Box(0.01, 0.4, 0.4), translation=(0.0, 2.0, 0.0))
+    x0 = jnp.array([0.0, 2.0, 5.0, 0.0])
+    g, delta, s = 9.81, 0.01, 5.0 * (2.0 + 0.05)   # yaw rate x (the extension + the ball's radius)
+    np.testing.assert_allclose(float(arm.step_size_bound(0.0, x0)), delta / (s + np.sqrt(s * s + g * delta)), rtol=1e-12)
+    x = jd.simulate(arm, (0.0, 0.5), x0, solver=jd.simulation.Rosenbrock23(jacobian="stiff"), rtol=1e-3).final_state
+    assert x[0] < np.pi / 2 - 0.02 and abs(x[2]) < 0.1   # stopped at the wall, not through it
+    damper = jd.System.from_functions(output=lambda t, x, u: -u[2:], num_states=0, num_inputs=4, num_outputs=2)
+    for composed in (jd.feedback(arm, damper), jd.HybridSystem([arm], [])):
+        assert composed.bounds_steps
+        np.testing.assert_allclose(composed.step_size_bound(0.0, x0), arm.step_size_bound(0.0, x0), rtol=1e-15)

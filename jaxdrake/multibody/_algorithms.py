@@ -3,8 +3,10 @@ r"""Featherstone's algorithms on a `KinematicTree`, in JAX, level by level.
 Inverse dynamics (RNEA), the mass matrix (CRBA), forward dynamics (ABA), forward kinematics
 and frame Jacobians (R. Featherstone, *Rigid Body Dynamics Algorithms*, Springer 2008,
 ch. 5-7), written in *world coordinates*: every spatial vector and inertia is expressed in
-one fixed frame, world-aligned, whose origin O is the world's (the floating base's position
-for a floating-base tree, which keeps float32 accurate far from the world origin). Then
+a fixed frame, world-aligned, whose origin O is the world's for the bodies that hang from
+the world and a free body's own position for the bodies it carries (subtrees never exchange
+forces in these algorithms, so each may have its own O; float32 then stays accurate however
+far a robot walks and however far apart free bodies are). Then
 
 $$V_i = V_{\lambda(i)} + s_i \dot q_i, \qquad
   A_i = A_{\lambda(i)} + s_i \ddot q_i + V_i \times s_i \dot q_i$$
@@ -117,7 +119,7 @@ def _rotation_about(axis, angle):
 
 def _kinematics(tree: KinematicTree, q, *, unroll):
     """World rotations R (n, 3, 3, B) and positions p (n, 3, B) of the body frames relative to
-    O, in level order, and the motion subspaces: S1 (m, 6, B), one column per one-dof body, and
+    their subtree's O (`_origins`), in level order, and the motion subspaces: S1 (m, 6, B), one column per one-dof body, and
     the free bodies' 6x6 S0 (F, 6, 6, B) (None without any), columns [v_lin; omega] in each
     one's frame."""
     L = tree.layout
@@ -135,11 +137,10 @@ def _kinematics(tree: KinematicTree, q, *, unroll):
     zero3 = jnp.zeros((3, lanes), dtype)
     if f:   # the free bodies, then the world (their slots and the world slot of the depth above)
         R_root = jnp.moveaxis(quaternion_matrix(q[L.free_q[:, 3:].T]), 2, 0)
-        origin = q[L.free_q[0, :3]]                                               # O: the first free body
-        p_root = q[L.free_q[:, :3]] - origin
+        p_root = jnp.zeros((f, 3, lanes), dtype)        # each free body: its subtree's O (`_origins`)
         pad = L.width - f
         init = (jnp.concatenate([R_root, jnp.broadcast_to(eye, (pad, 3, 3, lanes))]),
-                jnp.concatenate([p_root, jnp.broadcast_to(-origin, (pad, 3, lanes))]))   # the world at -O
+                jnp.concatenate([p_root, jnp.zeros((pad, 3, lanes), dtype)]))
     else:
         init = (jnp.broadcast_to(eye, (L.width, 3, 3, lanes)), jnp.zeros((L.width, 3, lanes), dtype))
 
@@ -164,9 +165,8 @@ def _kinematics(tree: KinematicTree, q, *, unroll):
                           _cross(p[f:], axis_world) * revolute + axis_world * (1 - revolute)], axis=1)
     S0 = None
     if f:   # [v_lin; omega] in the body's frame -> [omega; velocity of the body point at O]
-        zero = jnp.zeros((f, 3, 3, lanes), dtype)
-        S0 = jnp.concatenate([jnp.concatenate([zero, R_root], 2),
-                              jnp.concatenate([R_root, _mm(_skew(p_root), R_root)], 2)], 1)
+        zero = jnp.zeros((f, 3, 3, lanes), dtype)   # (O is the free body's own origin)
+        S0 = jnp.concatenate([jnp.concatenate([zero, R_root], 2), jnp.concatenate([R_root, zero], 2)], 1)
     return R, p, S1, S0
 
 
@@ -341,8 +341,8 @@ def _rnea(tree: KinematicTree, q, v=None, a=None, *, gravity: bool, unroll):
 
 
 def _contact_kinematics(tree: KinematicTree, q, v, *, unroll):
-    """Level order, lanes: R, p (relative to O), V (spatial velocities about O) and the dof
-    columns (nv, 6), tree coordinate order."""
+    """Level order, lanes: R, p (relative to each body's O), V (spatial velocities about it)
+    and the dof columns (nv, 6), tree coordinate order."""
     R, p, S1, S0, _, V = _velocities(tree, q, v, unroll=unroll)
     return R, p, V, _dof_columns(tree.layout, S1, S0)
 
@@ -718,8 +718,10 @@ def aba(tree: KinematicTree, q, v, tau, *, gravity: bool = True):
 class BodyMotion(NamedTuple):
     r"""One kinematics pass, what forces applied to bodies need: every body's world `rotation`
     (n, 3, 3), `position` (n, 3) and spatial velocity `velocity` (n, 6) rows
-    $[\omega_B; v_{B_o}]$ (tree order), and the velocity coordinates' motion subspaces
-    `columns` (nv, 6) about the point `origin` (world axes)."""
+    $[\omega_B; v_{B_o}]$ (tree order), the velocity coordinates' motion subspaces `columns`
+    (nv, 6, world axes), and each body's `origin` (n, 3, world): the point O its subtree's
+    spatial quantities are taken about (its free body's position, or the world's origin), about
+    which the columns of the coordinates that move it are taken (`column_origins`)."""
 
     rotation: jax.Array
     position: jax.Array
@@ -735,8 +737,8 @@ def body_motion(tree: KinematicTree, q, v) -> BodyMotion:
     position = tree.layout.position
     R, p, V = R[position], p[position], V[position]
     w = V[:, :3]
-    return BodyMotion(R, p + _offset(tree, q), jnp.concatenate([w, V[:, 3:] + jnp.cross(w, p)], 1), columns,
-                      _offset(tree, q))
+    origin = _origins(tree, q)
+    return BodyMotion(R, p + origin, jnp.concatenate([w, V[:, 3:] + jnp.cross(w, p)], 1), columns, origin)
 
 
 def external_forces(tree: KinematicTree, motion: BodyMotion, F):
@@ -754,10 +756,20 @@ def external_forces(tree: KinematicTree, motion: BodyMotion, F):
 # ----- frames -----------------------------------------------------------------------------------
 
 
-def _offset(tree, q):
-    """O in world coordinates: the first free body's position, else the world origin."""
+def _origins(tree, q):
+    """Each body's O in world coordinates (n, 3), tree order: the position of the free body
+    whose subtree holds it, else the world origin."""
     L = tree.layout
-    return q[L.free_q[0, :3]] if L.num_floating else jnp.zeros(3, q.dtype)
+    if not L.num_floating:
+        return jnp.zeros((tree.num_bodies, 3), q.dtype)
+    return jnp.where(L.free_root[:, None] >= 0, q[L.free_q[np.maximum(L.free_root, 0), :3]], 0.0)
+
+
+def column_origins(tree, motion: "BodyMotion"):
+    """The point (nv, 3) about which each velocity coordinate's column of `motion.columns` is
+    taken: the O of the body it moves."""
+    L = tree.layout
+    return motion.origin[L.order[L.dof_body]]
 
 
 @compiled_query
@@ -765,7 +777,7 @@ def body_poses(tree: KinematicTree, q):
     """World rotation and position of every body frame: arrays (n, 3, 3) and (n, 3)."""
     R, p, _, _ = _in_one_lane(_kinematics, tree, q)
     position = tree.layout.position
-    return R[position], p[position] + _offset(tree, q)
+    return R[position], p[position] + _origins(tree, q)
 
 
 def frame_pose(tree: KinematicTree, q, frame: str, *, poses=None):

@@ -120,20 +120,21 @@ def shape_kind(shape) -> str:
 
 def _extents_and_thicknesses(kinds, size, vertices, valid, planes):
     """Each geometry's largest distance of its points from its frame's origin (0: a half-space,
-    which sits on the world) and its thinnest width (a hull's along its faces' normals; inf: a
-    half-space), over all geometries at once."""
+    which sits on the world) and a lower bound on its thinnest width (a hull's: its inscribed
+    ball's about the vertices' mean; inf: a half-space), over all geometries at once."""
     kind = np.asarray(kinds)
     r, half = size[:, 0], size[:, 1]
     norms = jnp.where(valid, jnp.linalg.norm(vertices, axis=-1), 0.0)
-    heights = jnp.einsum("gvk,gfk->gvf", vertices, planes[..., :3])                 # (g, vertices, faces)
-    widths = (jnp.max(jnp.where(valid[..., None], heights, -jnp.inf), axis=1, initial=-jnp.inf)
-              - jnp.min(jnp.where(valid[..., None], heights, jnp.inf), axis=1, initial=jnp.inf))
+    # a hull's width is at least the diameter of the ball about its vertices' mean that its
+    # faces n . x <= d leave room for
+    centre = jnp.sum(jnp.where(valid[..., None], vertices, 0.0), 1) / jnp.maximum(jnp.sum(valid, 1), 1)[:, None]
+    room = planes[..., 3] - jnp.einsum("gfk,gk->gf", planes[..., :3], centre)
+    inscribed = 2 * jnp.min(room, axis=1, initial=jnp.inf)
     extent = jnp.select([kind == "sphere", kind == "box", kind == "capsule", kind == "cylinder", kind == "convex"],
                         [r, jnp.linalg.norm(size, axis=1), r + half, jnp.hypot(r, half), jnp.max(norms, axis=1, initial=0.0)], 0.0)
     thickness = jnp.select([(kind == "sphere") | (kind == "capsule"), kind == "box", kind == "cylinder",
                             kind == "convex"],
-                           [2 * r, 2 * jnp.min(size, axis=1), 2 * jnp.minimum(r, half),
-                            jnp.min(widths, axis=1, initial=jnp.inf)],
+                           [2 * r, 2 * jnp.min(size, axis=1), 2 * jnp.minimum(r, half), inscribed],
                            jnp.inf)
     return extent, thickness
 
@@ -205,18 +206,19 @@ class ContactModel(eqx.Module):
         R_B, p_B = Rs[b], ps[b]
         return R_B @ self.rotation, jnp.einsum("gij,gj->gi", R_B, self.translation) + p_B
 
-    def step_bound(self, tree, v):
+    def step_bound(self, tree, q, v):
         r"""The longest step in which no geometry moves more than half the thinnest one's
-        thickness $\delta$: a longer step may carry a body through a small obstacle between two
-        evaluations of the force (`Rosenbrock23`, exact for a free fall, stepped a ball through
-        a 10-cm sphere in one step). A geometry point's speed is at most $s = \sum_k c_k |v_k|$
-        ($c_k$ 1 for a translation; for a rotation the reach from its axis to the farthest
-        geometry point it carries, along the tree's segments: a prismatic joint's extension is
-        not counted), its acceleration gravity's |g| (contact and joint forces are the error
-        control's), so the step is the root of $s h + \tfrac12 |g| h^2 = \delta / 2$:
+        thickness $\delta$ (of those in a candidate pair): a longer step may carry a body
+        through a small obstacle between two evaluations of the force (`Rosenbrock23`, exact
+        for a free fall, stepped a ball through a 10-cm sphere in one step). Geometry g's points
+        move at most at $s_g = \sum_k c_{kg} |v_k|$ ($c_{kg}$: 1 for a translation that moves
+        g, for a rotation the reach from its axis to g's farthest point along the tree's
+        segments, a prismatic joint's at its present extension), with gravity's acceleration
+        |g| (contact and joint forces are the error control's), so the step is the root of
+        $s h + \tfrac12 |g| h^2 = \delta / 2$ for the fastest geometry, $s = \max_g s_g$:
         $h = \delta / (s + \sqrt{s^2 + |g| \delta})$."""
-        coefficients, thickness = self._step_bound_parts(tree)
-        s = jnp.sum(coefficients.astype(v.dtype) * jnp.abs(v))
+        reach, thickness = self._reach_and_thickness(tree, q)
+        s = jnp.max(jnp.abs(v) @ reach.astype(v.dtype), initial=0.0)
         g = jnp.linalg.norm(tree.gravity).astype(v.dtype)
         delta = thickness.astype(v.dtype)
         return delta / (s + jnp.sqrt(s * s + g * delta))
@@ -225,30 +227,36 @@ class ContactModel(eqx.Module):
         """Whether a geometry is fixed to a body (not all to the world)."""
         return any(b >= 0 for b in self.bodies)
 
-    def _step_bound_parts(self, tree):
-        """(c (nv,), delta) of `step_bound`."""
-        n, kinds = len(tree.parents), self.kinds
+    def _reach_and_thickness(self, tree, q):
+        """(c (nv, geometries), delta) of `step_bound`."""
+        n = len(tree.parents)
         ancestors = np.zeros((n, n))   # [b, c]: c is b or an ancestor of b
         for b in range(n):
             a = b
             while a >= 0:
                 ancestors[b, a], a = 1.0, tree.parents[a]
-        depth_along = jnp.asarray(ancestors) @ jnp.linalg.norm(tree.origin_translation, axis=1)  # D_b
+        prismatic = [b for b, kind in enumerate(tree.joint_types) if kind == JointType.PRISMATIC]
+        segment = jnp.linalg.norm(tree.origin_translation, axis=1).astype(q.dtype)
+        if prismatic:   # a prismatic joint's segment at its present extension
+            segment = segment.at[np.asarray(prismatic)].add(jnp.abs(q[np.asarray(tree.q_starts)[prismatic]]))
+        along = jnp.asarray(ancestors, q.dtype) @ segment                               # root to each body
+        extent, thickness = _extents_and_thicknesses(self.kinds, self.size, self.vertices, self.vertex_valid,
+                                                     self.planes)
         bodies = np.asarray(self.bodies)
-        moving = bodies >= 0
-        extent, thickness = _extents_and_thicknesses(kinds, self.size, self.vertices, self.vertex_valid, self.planes)
-        radius = jnp.linalg.norm(self.translation, axis=1) + extent
-        carries = ancestors[np.where(moving, bodies, 0)].T * moving        # [c, g]: body c carries geometry g
-        reach = jnp.max(jnp.where(carries > 0, depth_along[np.where(moving, bodies, 0)][None] - depth_along[:, None]
-                                  + radius[None], 0.0), axis=1, initial=0.0)
-        per_dof, angular, carried = [], [], carries.any(axis=1)
-        for body, kind in enumerate(tree.joint_types):
-            kind = JointType(kind)
-            per_dof += [body] * kind.num_velocities
-            angular += [False, False, False, True, True, True] if kind == JointType.FLOATING else [kind == JointType.REVOLUTE]
-        per_dof = np.asarray(per_dof, int)
-        coefficients = jnp.where(np.asarray(angular), reach[per_dof], 1.0) * carried[per_dof]
-        return coefficients, jnp.min(thickness)
+        body = np.maximum(bodies, 0)
+        radius = jnp.linalg.norm(self.translation, axis=1) + extent                     # from its body's frame
+        dof_body, angular = [], []
+        for b, kind in enumerate(tree.joint_types):
+            dof_body += [b] * JointType(kind).num_velocities
+            angular += [False] * 3 + [True] * 3 if kind == JointType.FLOATING else [kind == JointType.REVOLUTE]
+        dof_body, angular = np.asarray(dof_body, int), np.asarray(angular)
+        moves = (ancestors[body][:, dof_body].T > 0) & (bodies >= 0)[None]              # [k, g]: v_k moves g
+        lever = along[body][None] - along[dof_body][:, None] + radius[None]
+        reach = jnp.where(moves, jnp.where(angular[:, None], lever, 1.0), 0.0)
+        paired = np.zeros(len(bodies), bool)
+        for _, _, a, b in self.groups:
+            paired[list(a) + list(b)] = True
+        return reach, jnp.min(jnp.where(paired, thickness, jnp.inf))
 
     def point_pairs(self, motion: alg.BodyMotion):
         """Candidate contacts of every pair: depth, C_a, C_b, n_BA (arrays over candidates) and
@@ -343,7 +351,8 @@ class ContactModel(eqx.Module):
         params = per_pair + (stiction_tolerance,)
         C = 0.5 * (pa + pb)
         w, u = motion.columns[:, :3], motion.columns[:, 3:]                             # (nv, 3) each
-        at = lambda point: u[None] + jnp.cross(w[None], (point - motion.origin)[:, None, :])  # noqa: E731
+        origin = alg.column_origins(tree, motion)                                        # (nv, 3)
+        at = lambda point: u[None] + jnp.cross(w[None], point[:, None, :] - origin[None])  # noqa: E731
         G = at(C) * (mask_b - mask_a)[:, :, None]                                       # (P, nv, 3)
         dC = ((1.0 - weight_b)[:, None, None] * at(pa + rho_a[:, None] * n) * mask_a[:, :, None]
               + weight_b[:, None, None] * at(pb - rho_b[:, None] * n) * mask_b[:, :, None])   # (P, nv_j, 3)
@@ -358,7 +367,7 @@ class ContactModel(eqx.Module):
         # (S_j x S_k) paired with the relative twist's coordinates and with the forces' wrenches
         turns = jnp.asarray(_axis_carried_by(tree), C.dtype)                            # (nv_j, nv_k)
         relative = mask_b - mask_a                                                      # (P, nv)
-        lever = C - motion.origin
+        lever = C[:, None, :] - origin[None]                                           # (P, nv, 3)
         nv, P = tree.nv, C.shape[0]
         carried = (relative[:, :, None] * motion.columns[None]).transpose(1, 0, 2)     # (nv_k, P, 6)
         T = (turns * v[None]) @ carried.reshape(nv, P * 6)                              # sum_k turns v_k m_k S_k
@@ -367,8 +376,10 @@ class ContactModel(eqx.Module):
         dw_v = jnp.cross(w[None], Tw)                                                   # (P, nv_j, 3)
         du_v = jnp.cross(w[None], Tu) + jnp.cross(u[None], Tw)
         omega_rel = relative @ (v[:, None] * w)                                         # (P, 3)
-        dv_AcBc = du_v + jnp.cross(dw_v, lever[:, None, :]) + jnp.cross(omega_rel[:, None, :], dC)   # (P, nv_j, 3)
-        wrench = relative.T @ jnp.concatenate([jnp.cross(lever, f_A), f_A], 1)          # (nv_k, 6)
+        dv_AcBc = du_v + jnp.cross(dw_v, lever) + jnp.cross(omega_rel[:, None, :], dC)   # (P, nv_j, 3)
+        # each column k's wrench about its own O: sum_p rel_pk [(C_p - O_k) x f_p; f_p]
+        wrench = relative.T @ jnp.concatenate([jnp.cross(C, f_A), f_A], 1)               # (nv_k, 6)
+        wrench = wrench.at[:, :3].add(-jnp.cross(origin, wrench[:, 3:]))
         # (S_j x S_k) . W_k = (w_j x w_k) . W_k,ang + (w_j x u_k + u_j x w_k) . W_k,lin
         turned = (w @ jnp.cross(w, wrench[:, :3]).T + w @ jnp.cross(u, wrench[:, 3:]).T
                   + u @ jnp.cross(w, wrench[:, 3:]).T) * turns

@@ -367,25 +367,23 @@ class RigidBodySystem(System):
     def bounds_steps(self) -> bool:
         return self.contact is not None and self.contact.moves()
 
-    def max_step_size(self, t, x):
+    def step_size_bound(self, t, x):
         """`ContactModel.step_bound`: no geometry moves through half the thinnest one's
         thickness within one step (inf without collision geometry on a body)."""
         if not self.bounds_steps:
             return jnp.asarray(jnp.inf, x.dtype)
-        return self.contact.step_bound(self.tree, x[self.tree.nq:])
+        return self.contact.step_bound(self.tree, x[: self.tree.nq], x[self.tree.nq:])
 
     def _warn_of_unread_collisions(self):
         """A ground under a plant whose file has collision elements that were not read (loaded
         without contact=True) would touch nothing: said once, with the remedy."""
         if self.collision is not None or self.source is None:
             return
-        path = pathlib.Path(self.source)
-        tag = "<geom" if path.suffix.lower() == ".xml" else "<collision"
-        count = path.read_text(errors="replace").count(tag) if path.is_file() else 0
+        path = pathlib.Path(self.source)   # a URDF's (an MJCF's geoms may be visual only)
+        count = path.read_text(errors="replace").count("<collision") if path.suffix.lower() == ".urdf" else 0
         if count:
-            loader = "from_mjcf" if tag == "<geom" else "from_urdf"
-            warnings.warn(f"{self.name}: its file has {count} {tag}> element(s), not read (the plant was loaded "
-                          f"without contact=True), so the ground touches nothing; load it with {loader}(..., "
+            warnings.warn(f"{self.name}: its file has {count} <collision> element(s), not read (the plant was loaded "
+                          "without contact=True), so the ground touches nothing; load it with from_urdf(..., "
                           "contact=True)", stacklevel=5)
 
     def joint_limit_torque(self, q, v):

@@ -143,7 +143,8 @@ class TreeLayout:
     - `num_floating`: the free bodies (floating joints; only roots may have one), at
       positions 0 .. num_floating - 1, depth 0, each with position coordinates `free_q[k]`
       (7: x, y, z, then the quaternion) and velocity coordinates `free_v[k]` (6: linear, then
-      angular, in its frame); with any of them, the
+      angular, in its frame), and `free_root[i]` the free body k whose subtree holds tree body
+      i (-1: none, it hangs from the world); with any of them, the
       other roots (joined to the world) count as depth 1, children of the world. The other
       bodies have one degree of freedom each, `revolute[k]` (1.0) or prismatic (0.0), with
       position coordinate `q_index[k]` (k over the one-dof bodies in level order).
@@ -189,6 +190,13 @@ class TreeLayout:
                 self.subtree[self.position[j], self.position[i]] = 1.0
                 j = parents[j]
         roots, one_dof = self.order[:F], self.order[F:]
+        self.free_root = np.full(n, -1, int)   # tree order: the free body whose subtree holds it, or -1
+        for i in range(n):
+            j = i
+            while parents[j] >= 0:
+                j = parents[j]
+            if free[j]:
+                self.free_root[i] = int(np.flatnonzero(roots == j)[0])
         dofs = [k.num_velocities for k in joint_types]
         v_starts = np.concatenate([[0], np.cumsum(dofs)])[:-1].astype(int)
         q_starts = np.concatenate([[0], np.cumsum([k.num_positions for k in joint_types])])[:-1]

@@ -8,28 +8,11 @@ import abc
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 
 def rms(v):
     """Root mean square of a vector (0 for an empty one)."""
     return jnp.sqrt(jnp.mean(v * v)) if v.shape[0] else jnp.zeros((), v.dtype)
-
-
-def check_resolution(rtol: float, dtype):
-    """Raise a ValueError for an rtol below the state dtype's machine epsilon, which no step's
-    error estimate can meet (SciPy's `solve_ivp` raises such an rtol to 100 eps with a warning;
-    here an error that names the remedy)."""
-    eps = float(np.finfo(dtype).eps)
-    if rtol >= eps:
-        return
-    remedy = f"use rtol >= {eps:.1e}"
-    if np.dtype(dtype) == np.float32:
-        how = ("pass x0 as float64 (its dtype is the simulation's precision), e.g. jnp.asarray(x0, jnp.float64)"
-               if jax.config.jax_enable_x64 else "enable float64 with jax.config.update('jax_enable_x64', True)")
-        remedy = f"{how}, or {remedy}"
-    raise ValueError(f"rtol={rtol:g} is below the resolution of the state's {np.dtype(dtype).name} (machine "
-                     f"epsilon {eps:.1e}): no step can meet it. {remedy[0].upper()}{remedy[1:]}")
 
 
 def least_step(t):

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _lanes
-from ._controller import check_resolution, least_step, smallest_step
+from ._controller import least_step, smallest_step
 from ._solvers import Dopri5
 from ._status import SimulationStatus
 
@@ -88,7 +88,6 @@ def simulate_ensemble(system, tspan, x0s, *, inputs=None, rtol: float = 1e-6, at
         raise ValueError(f"simulate_ensemble: tspan must be finite with t0 < tf, got {tspan}")
     if not (rtol > 0 and atol > 0):
         raise ValueError(f"simulate_ensemble: rtol and atol must be positive, got {rtol}, {atol}")
-    check_resolution(rtol, dtype)
     if not (isinstance(max_steps, int) and max_steps > 0):
         raise ValueError(f"simulate_ensemble: max_steps must be a positive int, got {max_steps!r}")
     kernel = kernel or ("pallas" if jax.default_backend() == "gpu" else "xla")

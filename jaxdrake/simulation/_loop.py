@@ -282,8 +282,10 @@ class Loop(eqx.Module):
         if self.solver.adaptive and self.num_continuous:
             # the first step at least one unit of t's spacing (`least_step`): after it, steps shrink
             # only by rejections, which end the simulation at `smallest_step`, 16 units
-            first = jnp.minimum(self.controller.initial_step(s.t, s.x[self.num_discrete:], k0), self.step_limit(s.t, s.x))
+            first = jnp.minimum(self.controller.initial_step(s.t, s.x[self.num_discrete:], k0), self.dt_max)
             h = jnp.where(jnp.isnan(h), jnp.maximum(first, least_step(s.t)), h)
+            if self.system.bounds_steps:   # every attempt, a given first step and a held one too
+                h = jnp.minimum(h, self.step_limit(s.t, s.x))
         eps = jnp.finfo(s.x.dtype).eps
         t_next = s.t + h
         t_next = jnp.where(t_next >= target - (1e-6 * h + 64 * eps * jnp.abs(target)), target, t_next)
@@ -401,13 +403,11 @@ class Loop(eqx.Module):
         return a, jnp.where(took_transition, x_after, x_projected)
 
     def step_limit(self, t, x):
-        """The longest step from (t, x): `max_step_size`, and the system's own bound where it
-        has one (a contact plant's, so that no body passes through a thin geometry unseen)."""
-        if not self.system.bounds_steps:
-            return self.dt_max
-        return jnp.minimum(self.dt_max, self.system.max_step_size(t, x))
+        """The system's bound on a step from (t, x) (a contact plant's, so that no body passes
+        through a thin geometry unseen), not differentiated: step sizes are held."""
+        return jax.lax.stop_gradient(self.system.step_size_bound(t, x))
 
-    def adapt_step_size(self, s: LoopState, ready: Ready, a: Attempt, x_after):
+    def adapt_step_size(self, s: LoopState, ready: Ready, a: Attempt):
         """(8) The next step size and the failures of this attempt (non-finite state, a step
         size that collapsed). Returns (h_next, status)."""
         hold = ready.fired | a.priming
@@ -415,8 +415,7 @@ class Loop(eqx.Module):
         if self.solver.adaptive:
             # a step shortened to land on a stopping point does not shrink the next one
             h_next = jnp.where(a.accept & (a.h < a.h_proposed), jnp.maximum(a.h_proposed, a.h_next), a.h_next)
-            h_next = jnp.where(hold, s.h, jnp.minimum(h_next, self.step_limit(
-                jnp.where(a.accept, a.t_end, s.t), jnp.where(a.accept, x_after, s.x))))
+            h_next = jnp.where(hold, s.h, jnp.minimum(h_next, self.dt_max))
             tiny = ~a.accept & ~hold & ~(h_next > smallest_step(s.t, a.finite))  # a NaN step size too
             status = jnp.where(tiny, jnp.where(a.finite, SimulationStatus.STEP_SIZE_TOO_SMALL,
                                                SimulationStatus.NONFINITE_STATE), status)
@@ -439,7 +438,7 @@ class Loop(eqx.Module):
         x_after, mode_after, saturation, stop = self.take_event(s, ready, a)
         took_transition = a.event & (a.which >= self.num_limit_guards)
         a, x_after = self.project_onto_constraints(a, x_after, took_transition)
-        h_next, status = self.adapt_step_size(s, ready, a, x_after)
+        h_next, status = self.adapt_step_size(s, ready, a)
         accept = a.accept & SimulationStatus.is_success(status)
         status = jnp.where((accept & stop) | (ready.fired & stop), SimulationStatus.STOPPED_BY_RESET, status)
         return self.record(s, ready, a, accept, x_after, mode_after, saturation, h_next, status)

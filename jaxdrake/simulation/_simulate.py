@@ -24,7 +24,7 @@ from .._compiled import compiled
 from .._numbers import call_argument
 from ..systems import System
 from ..systems import check_initialised
-from ._controller import ConstantStepSize, IController, check_resolution
+from ._controller import ConstantStepSize, IController
 from ._inputs import NoisyInput, leaf_to_array, make_source
 from ._loop import run_simulation
 from ._result import SimulatedTrajectory, trajectory_bytes
@@ -143,8 +143,6 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
             raise ValueError(f"{name} must be positive, got {v}")
     if atol is None:
         atol = DEFAULT_ATOL[np.dtype(dtype).name]
-    if solver.adaptive and _concrete(rtol):
-        check_resolution(float(rtol), dtype)
     if autodiff not in ("reverse", "forward", "checkpointed", "adjoint"):
         raise ValueError(f"autodiff must be 'reverse', 'forward', 'checkpointed' or 'adjoint', got {autodiff!r}")
     if not (isinstance(max_steps, int) and max_steps > 0):
@@ -180,7 +178,7 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
         status = SimulationStatus(int(traj.status))
         if not SimulationStatus.is_success(status):
             raise SimulationError(status, _failure_message(system, status, t0, tf, traj)
-                                  + _solver_advice(solver, status) + _precision_advice(x0.dtype, status, atol))
+                                  + _solver_advice(solver, status) + _precision_advice(x0.dtype, status, rtol, atol))
     return traj
 
 
@@ -232,18 +230,23 @@ def _solver_advice(solver, status) -> str:
             "solver=jd.simulation.Rosenbrock23(jacobian='stiff')")
 
 
-def _precision_advice(dtype, status, atol) -> str:
+def _precision_advice(dtype, status, rtol, atol) -> str:
     """For a float32 simulation whose steps became too small: float32 resolves neither steps
     far below t's spacing nor error estimates near its rounding (a stiff contact's touchdown
-    at rtol 1e-4: benchmarks/RESULTS.md); or that ran out of steps under an atol below
-    float32's default (1e-9: a box sliding on the floor took 20,000 steps for 0.06 s)."""
+    at rtol 1e-4: benchmarks/RESULTS.md); or that ran out of steps with atol below float32's
+    default 1e-5 (at 1e-9 a box sliding on the floor took 20,000 steps for 0.06 s) or rtol
+    within 100 eps of float32's resolution (a float32 x0 keeps a simulation in float32 under
+    x64: a pendulum at rtol 1e-10 ran out of steps, where float64 takes 655)."""
     if np.dtype(dtype) != np.float32:
         return ""
-    if (status == SimulationStatus.MAX_STEPS_REACHED and _concrete(atol)
-            and float(atol) < DEFAULT_ATOL["float32"]):
-        return (f". The state is float32, whose rounding near 1 is 6e-8: with atol={float(atol):g} the error test may "
-                f"never pass; use atol >= {DEFAULT_ATOL['float32']:g} (float32's default) or simulate in float64 "
-                "(jax.config.update('jax_enable_x64', True) and a float64 x0)")
+    tight = [f"{name}={float(value):g}" for name, value, floor in (
+        ("rtol", rtol, 100 * float(np.finfo(np.float32).eps)), ("atol", atol, DEFAULT_ATOL["float32"]))
+        if _concrete(value) and float(value) < floor]
+    if status == SimulationStatus.MAX_STEPS_REACHED and tight:
+        return (f". The state is float32, whose rounding near 1 is 6e-8: with {' and '.join(tight)} the error test "
+                f"may never pass; use rtol >= 1e-5 and atol >= {DEFAULT_ATOL['float32']:g} (float32's default), or "
+                "simulate in float64 (jax.config.update('jax_enable_x64', True) and x0 as float64, e.g. "
+                "jnp.asarray(x0, jnp.float64): x0's dtype is the simulation's)")
     if status != SimulationStatus.STEP_SIZE_TOO_SMALL:
         return ""
     return (". The state is float32: unless the solution blows up here, its 7 digits may be what stops the steps "

@@ -312,9 +312,9 @@ class Diagram(System):
     def bounds_steps(self) -> bool:
         return any(s.bounds_steps for s in self.subsystems)
 
-    def max_step_size(self, t, x):
+    def step_size_bound(self, t, x):
         """The subsystems' smallest bound."""
-        return functools.reduce(jnp.minimum, [s.max_step_size(t, self.subsystem_state(i, x))
+        return functools.reduce(jnp.minimum, [s.step_size_bound(t, self.subsystem_state(i, x))
                                               for i, s in enumerate(self.subsystems) if s.bounds_steps],
                                 jnp.asarray(jnp.inf, x.dtype))
 

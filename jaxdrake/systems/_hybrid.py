@@ -233,6 +233,16 @@ class HybridSystem(System):
 
     # ----- the contract, per mode -------------------------------------------------------------
 
+    @property
+    def bounds_steps(self) -> bool:
+        return any(m.bounds_steps for m in self.modes)
+
+    def step_size_bound(self, t, x):
+        """The smallest of the modes' bounds (each read from its share of the state), whichever
+        mode is active: the simulator asks it without the mode."""
+        bounds = [m.step_size_bound(t, self.mode_state(i, x)) for i, m in enumerate(self.modes) if m.bounds_steps]
+        return jnp.min(jnp.stack(bounds)) if bounds else jnp.asarray(jnp.inf, x.dtype)
+
     def mode_dynamics(self, mode, t, x, u):
         def branch(i, t, x, u):
             m = self.modes[i]

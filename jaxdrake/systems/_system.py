@@ -282,7 +282,7 @@ class System(eqx.Module):
 
     bounds_steps = False
 
-    def max_step_size(self, t, x):
+    def step_size_bound(self, t, x):
         """The longest adaptive step the system allows from (t, x) (`bounds_steps`; inf here)."""
         return jnp.asarray(jnp.inf, jnp.asarray(x).dtype)
 
