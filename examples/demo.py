@@ -49,7 +49,7 @@ def phase_portrait(ax, num=1000):
           f"then {again * 1e3:.0f} ms")
     ts = jnp.linspace(0.0, 6.0, 300)
     states = np.asarray(jax.vmap(lambda tr: tr.state(ts))(trajs))  # (num, 300, 2)
-    energy0 = np.asarray(Pendulum().energy(x0))
+    energy0 = np.asarray(Pendulum().energy(x0)) + 9.81 * 0.5   # above the bottom, as the panel beside it
     cmap = plt.get_cmap("viridis")
     norm = matplotlib.colors.Normalize(energy0.min(), energy0.max())
     for s, e in zip(states[:150], energy0[:150]):
@@ -59,7 +59,7 @@ def phase_portrait(ax, num=1000):
             ax.plot(seg_theta, seg_dot, color=cmap(norm(e)), lw=0.7, alpha=0.8)
     ax.set(xlabel=r"$\theta$ (rad)", ylabel=r"$\dot\theta$ (rad/s)", xlim=(-np.pi, np.pi),
            title=f"{num} damped pendulums in one vmap (150 drawn)")
-    plt.colorbar(matplotlib.cm.ScalarMappable(norm, cmap), ax=ax, label="initial energy (J)")
+    plt.colorbar(matplotlib.cm.ScalarMappable(norm, cmap), ax=ax, label="initial energy above the bottom (J)")
     return trajs
 
 
