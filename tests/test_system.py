@@ -64,6 +64,8 @@ def test_construction_errors_name_the_problem():
         jd.System(num_discrete_states=1, sample_time=-1.0)
     with pytest.raises(ValueError, match="no discrete state"):
         jd.System(num_continuous_states=1, sample_time=0.1)
+    with pytest.raises(TypeError, match="sample_time is traced .* but it is static"):   # not a raw conversion error
+        jax.grad(lambda h: jd.LinearSystem([[0.9]], [[1.0]], sample_time=h).A[0, 0])(0.1)
     with pytest.raises(ValueError, match="non-negative int"):
         jd.System(num_continuous_states=-1)
     with pytest.raises(ValueError, match="state frame .* has 3 coordinates"):

@@ -120,6 +120,11 @@ class System(eqx.Module):
         num_outputs = num_states if num_outputs is None else num_outputs
         if num_discrete_states > 0 and sample_time is None:
             sample_time = 1.0
+        if any(isinstance(v, jax.core.Tracer) for v in jax.tree.leaves(sample_time)):
+            raise TypeError(f"{name}: sample_time is traced (inside jax.grad / jit / vmap), but it is static: it "
+                            "fixes the simulator's update instants and the program's structure. Pass a Python "
+                            "number; where the period also enters the update (a discretization), make that a parameter "
+                            "(a field) of the system")
         periods = () if sample_time is None else np.atleast_1d(np.asarray(sample_time, float))
         for period in periods:
             if not (period > 0 and np.isfinite(period)):
