@@ -492,3 +492,23 @@ def test_multi_rate_loop_vmaps_over_gains_and_differentiates_in_float64_and_floa
     batch = jax.vmap(cost)(gains)
     np.testing.assert_allclose(batch, [cost(k) for k in gains], rtol=1e-10)
     assert float(cost(8.0, jnp.float32)) == pytest.approx(float(cost(8.0)), rel=1e-3)
+
+
+def test_the_pid_docstrings_set_point_loop_holds_the_pendulum_where_asked():
+    """The wiring PidController's docstring shows (feedback feeds one vector, the controller has
+    two ports: its error names the remedy). With integral action the equilibrium is the set
+    point exactly, the integral holding gravity's torque: k_i z = m g l sin(q_d)."""
+    pid = jd.PidController(kp=20.0, ki=5.0, kd=4.0)
+    with pytest.raises(ValueError, match="several ports; feedback feeds one vector.*DiagramBuilder"):
+        jd.feedback(jd.models.Pendulum(), pid)
+    builder = jd.DiagramBuilder()
+    builder.add(jd.models.Pendulum(), "plant")
+    builder.add(pid, "pid")
+    builder.connect("plant", ("pid", pid.input_port("estimated_state")))
+    builder.connect("pid", "plant")
+    builder.export_input(("pid", pid.input_port("desired_state")))
+    builder.export_output("plant")
+    loop = builder.build("PendulumPid")
+    x = jd.simulate(loop, (0.0, 100.0), inputs=lambda t: jnp.array([0.5, 0.0]), rtol=1e-9, atol=1e-12).final_state
+    p = jd.models.Pendulum()
+    np.testing.assert_allclose(x, [0.5, 0.0, p.m * p.g * p.l * np.sin(0.5) / 5.0], atol=1e-6)

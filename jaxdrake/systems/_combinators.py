@@ -114,7 +114,14 @@ def feedback(a: System, b: System, sign: float = 1.0) -> System:
                          "with a system without direct feedthrough; if one of them does not read u in "
                          "its output, declare it with direct_feedthrough=False (to System.__init__ or "
                          "from_functions) or leave it undeclared to have it inferred from output().")
-    forward = frame_conversion(a.output_frame, b.input_frame)
+    try:
+        forward = frame_conversion(a.output_frame, b.input_frame)
+    except ValueError as error:
+        if not hasattr(b, "input_port"):
+            raise
+        raise ValueError(f"{error}. {b.name}'s input has several ports; feedback feeds one vector into it: "
+                         f"wire its ports one by one with a jd.DiagramBuilder ({b.name}.input_port(name) gives "
+                         "a port's coordinates; see PidController's docstring)") from None
     back = frame_conversion(b.output_frame, a.input_frame)
     s = float(sign)
     if (_both_linear(a, b) and forward is None and back is None

@@ -255,6 +255,19 @@ class PidController(LinearSystem):
     **Arguments:** `kp`, `ki`, `kd` (vectors of size nq, or scalars for nq = 1);
     `state_projection` $P_x$ (2 nq, n_in), identity by default; `output_projection` $P_y$
     (n_out, nq), identity by default; `sample_time`: None (continuous) or h.
+
+    Its two input ports are wired one by one (`jd.feedback` feeds a single vector), e.g. a
+    pendulum held at the set point the diagram's input gives::
+
+        pid = jd.PidController(kp=20.0, ki=5.0, kd=4.0)
+        builder = jd.DiagramBuilder()
+        builder.add(jd.models.Pendulum(), "plant"); builder.add(pid, "pid")
+        builder.connect("plant", ("pid", pid.input_port("estimated_state")))
+        builder.connect("pid", "plant")
+        builder.export_input(("pid", pid.input_port("desired_state")))   # x_d = (q_d, v_d)
+        builder.export_output("plant")
+        loop = builder.build("PendulumPid")
+        jd.simulate(loop, (0.0, 10.0), inputs=lambda t: jnp.array([0.5, 0.0]))
     """
 
     def __init__(self, kp, ki, kd, *, state_projection=None, output_projection=None,
