@@ -229,12 +229,8 @@ class ContactModel(eqx.Module):
 
     def _reach_and_thickness(self, tree, q):
         """(c (nv, geometries), delta) of `step_bound`."""
-        n = len(tree.parents)
-        ancestors = np.zeros((n, n))   # [b, c]: c is b or an ancestor of b
-        for b in range(n):
-            a = b
-            while a >= 0:
-                ancestors[b, a], a = 1.0, tree.parents[a]
+        L = tree.layout
+        ancestors = L.subtree[np.ix_(L.position, L.position)].T   # tree order, [b, c]: c is b or an ancestor of b
         prismatic = [b for b, kind in enumerate(tree.joint_types) if kind == JointType.PRISMATIC]
         segment = jnp.linalg.norm(tree.origin_translation, axis=1).astype(q.dtype)
         if prismatic:   # a prismatic joint's segment at its present extension
@@ -245,11 +241,9 @@ class ContactModel(eqx.Module):
         bodies = np.asarray(self.bodies)
         body = np.maximum(bodies, 0)
         radius = jnp.linalg.norm(self.translation, axis=1) + extent                     # from its body's frame
-        dof_body, angular = [], []
-        for b, kind in enumerate(tree.joint_types):
-            dof_body += [b] * JointType(kind).num_velocities
-            angular += [False] * 3 + [True] * 3 if kind == JointType.FLOATING else [kind == JointType.REVOLUTE]
-        dof_body, angular = np.asarray(dof_body, int), np.asarray(angular)
+        dof_body = L.order[L.dof_body]                                                 # tree order
+        angular = np.concatenate([[False] * 3 + [True] * 3 if kind == JointType.FLOATING else [kind == JointType.REVOLUTE]
+                                  for kind in tree.joint_types])
         moves = (ancestors[body][:, dof_body].T > 0) & (bodies >= 0)[None]              # [k, g]: v_k moves g
         lever = along[body][None] - along[dof_body][:, None] + radius[None]
         reach = jnp.where(moves, jnp.where(angular[:, None], lever, 1.0), 0.0)
