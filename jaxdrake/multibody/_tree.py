@@ -190,13 +190,9 @@ class TreeLayout:
                 self.subtree[self.position[j], self.position[i]] = 1.0
                 j = parents[j]
         roots, one_dof = self.order[:F], self.order[F:]
-        self.free_root = np.full(n, -1, int)   # tree order: the free body whose subtree holds it, or -1
-        for i in range(n):
-            j = i
-            while parents[j] >= 0:
-                j = parents[j]
-            if free[j]:
-                self.free_root[i] = int(np.flatnonzero(roots == j)[0])
+        # tree order: the free body (level positions 0 .. F-1) whose subtree holds it, or -1
+        held = self.subtree[:F, self.position]
+        self.free_root = np.where(held.any(axis=0), held.argmax(axis=0), -1) if F else np.full(n, -1, int)
         dofs = [k.num_velocities for k in joint_types]
         v_starts = np.concatenate([[0], np.cumsum(dofs)])[:-1].astype(int)
         q_starts = np.concatenate([[0], np.cumsum([k.num_positions for k in joint_types])])[:-1]

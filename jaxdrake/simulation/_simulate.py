@@ -245,13 +245,15 @@ def _precision_advice(dtype, status, rtol, atol) -> str:
     if status == SimulationStatus.MAX_STEPS_REACHED and tight:
         return (f". The state is float32, whose rounding near 1 is 6e-8: with {' and '.join(tight)} the error test "
                 f"may never pass; use rtol >= 1e-5 and atol >= {DEFAULT_ATOL['float32']:g} (float32's default), or "
-                "simulate in float64 (jax.config.update('jax_enable_x64', True) and x0 as float64, e.g. "
-                "jnp.asarray(x0, jnp.float64): x0's dtype is the simulation's)")
+                f"{_IN_FLOAT64}")
     if status != SimulationStatus.STEP_SIZE_TOO_SMALL:
         return ""
     return (". The state is float32: unless the solution blows up here, its 7 digits may be what stops the steps "
-            "(a step below t's spacing, an error estimate at its rounding): simulate in float64 "
-            "(jax.config.update('jax_enable_x64', True) and a float64 x0) or loosen rtol / atol")
+            f"(a step below t's spacing, an error estimate at its rounding): {_IN_FLOAT64}, or loosen rtol / atol")
+
+
+_IN_FLOAT64 = ("simulate in float64 (jax.config.update('jax_enable_x64', True) and x0 as float64, e.g. "
+               "jnp.asarray(x0, jnp.float64): x0's dtype is the simulation's)")
 
 
 def _parameters_as_arrays(system, dtype):
