@@ -101,7 +101,7 @@ def measure(name, make, make_x0, options=None, autodiff=("reverse",)):
 def main():
     parser = argument_parser(__doc__, repeats=1, gpu_help="unused")
     parser.add_argument("--systems", nargs="*", default=list(systems()))
-    parser.add_argument("--autodiff", nargs="*", default=["reverse"], choices=["reverse", "checkpointed", "adjoint"],
+    parser.add_argument("--autodiff", nargs="*", default=["reverse"], choices=["reverse", "adjoint"],
                         help="the reverse modes whose gradient rows are timed")
     args = parser.parse_args()
     print(machine_line())

@@ -1,8 +1,8 @@
 """Reverse mode of `simulate` (`autodiff="reverse"`, `_reverse.py`): forward sensitivities
-contracted with the cotangent for few differentiated scalars, the checkpointed loop's VJP
-(or chunked sensitivities) for many. Each feature's gradient is checked against JAX's own
-transpose of the checkpointed loop (`autodiff="checkpointed"`, an independent derivation) and
-against central differences; the loop's Python code is traced once for a gradient."""
+contracted with the cotangent for few differentiated scalars, the discrete adjoint (or
+chunked sensitivities) for many. Each feature's gradient is checked against central
+differences, and the adjoint against the forward sensitivities (two independent derivations);
+the loop's Python code is traced once for a gradient."""
 
 import equinox as eqx
 import jax
@@ -95,17 +95,15 @@ def tape_gradient_equal_to_central_differences(w, mode):
     return g
 
 
-# slow: four checkpointed gradient programs; by default the same features' gradients are
-# checked against central differences in test_input_limits, test_hybrid, test_compose and
-# test_transforms, and the two ways of this file's other tests against each other
+# slow: by default the same features' gradients are checked against central differences in
+# test_input_limits, test_hybrid, test_compose and test_transforms, and the two ways of this
+# file's other tests against each other
 @pytest.mark.slow
 @pytest.mark.parametrize("case", CASES, ids=lambda c: c.__name__)
-def test_reverse_equals_the_checkpointed_transpose_and_central_differences(case):
+def test_reverse_equals_central_differences(case):
     loss_reverse, p = case("reverse")
-    loss_checkpointed, _ = case("checkpointed")
-    g = jax.grad(loss_reverse)(jnp.asarray(p))
-    np.testing.assert_allclose(g, jax.grad(loss_checkpointed)(jnp.asarray(p)), rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(g, central_difference(loss_reverse, p), rtol=2e-5, atol=1e-7)
+    np.testing.assert_allclose(jax.grad(loss_reverse)(jnp.asarray(p)), central_difference(loss_reverse, p),
+                               rtol=2e-5, atol=1e-7)
 
 
 def test_many_differentiated_scalars_take_the_adjoint_or_chunked_tangents(monkeypatch):
@@ -123,15 +121,35 @@ def test_many_differentiated_scalars_take_the_adjoint_or_chunked_tangents(monkey
     assert adjoints, "80 tape knots should take the discrete adjoint"
 
 
-@pytest.mark.slow  # ~8 s: two more gradient programs
-def test_many_differentiated_scalars_equal_the_checkpointed_loops_vjp(monkeypatch):
-    """Where the adjoint's kept states would not fit, the checkpointed loop's VJP (equal to
-    the adjoint); the chunked tangents of a closure equal JAX's transpose of that loop."""
+def test_the_adjoint_keeping_every_stride_th_state_equals_keeping_them_all(monkeypatch):
+    """Where every iteration's state would not fit in `KEPT_BYTES`, the adjoint keeps every
+    stride-th (stride ~ sqrt(max_steps)) and the backward pass re-runs each stretch from its
+    first state: the same gradient, over two stretches, the last one partial."""
     w = jnp.sin(3.0 * KNOT_TIMES) / KNOTS
-    g_closure, g_tape = jax.grad(by_closure)(w), jax.grad(by_tape)(w)
-    np.testing.assert_allclose(jax.grad(lambda w: by_closure(w, "checkpointed"))(w), g_closure, rtol=1e-9, atol=1e-14)
+    g = jax.grad(by_tape)(w)
+    strides = _record_strides(monkeypatch)
+    np.testing.assert_allclose(jax.grad(by_tape)(w), g, rtol=1e-12, atol=1e-15)
+    assert strides == [64] and int(jd.simulate(FIRST_ORDER, (0.0, 1.0), jnp.ones(1), inputs=jd.Trajectory.from_samples(
+        KNOT_TIMES, w[:, None]), **TOL).num_steps) > 64
+
+
+def _record_strides(monkeypatch):
+    """Every iteration's state over `KEPT_BYTES`; the strides the adjoint takes, recorded."""
+    strides, kept_stride = [], _reverse.kept_stride
     monkeypatch.setattr(_reverse, "KEPT_BYTES", 0)
-    np.testing.assert_allclose(jax.grad(by_tape)(w), g_tape, rtol=1e-9, atol=1e-14)
+    monkeypatch.setattr(_reverse, "kept_stride", lambda *args: strides.append(kept_stride(*args)) or strides[-1])
+    jax.clear_caches()   # the programs compiled before are traced again
+    return strides
+
+
+@pytest.mark.slow  # two more adjoint programs
+@pytest.mark.parametrize("case", ["bouncing_ball", "stiff_van_der_pol"])
+def test_the_adjoint_over_stretches_holds_through_impacts_and_reused_matrices(case, monkeypatch):
+    loss, p = globals()[case]("adjoint")
+    g = jax.grad(loss)(jnp.asarray(p))
+    strides = _record_strides(monkeypatch)
+    np.testing.assert_allclose(jax.grad(loss)(jnp.asarray(p)), g, rtol=1e-12, atol=1e-15)
+    assert strides == [64]
 
 
 @pytest.mark.parametrize("mode", ["reverse", "adjoint"])

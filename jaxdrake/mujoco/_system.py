@@ -13,7 +13,7 @@ gains, geometry sizes, ...) are pytree leaves: `vmap` over them does not recompi
 reaches them. Gradients through contacts: `jax.grad` of a simulation goes through MJX's
 solver whatever its iteration count (its `while_loop` is differentiated by forward
 sensitivities, for up to 32 differentiated scalars); more scalars (the discrete adjoint),
-`autodiff="adjoint"` or `"checkpointed"`, and `jax.grad` of `discrete_update` alone, need a
+`autodiff="adjoint"`, and `jax.grad` of `discrete_update` alone, need a
 one-iteration solver
 (`<option iterations="1" ls_iterations="4"/>`, MuJoCo Playground's setting). Needs `pip install mujoco==3.17.0 mujoco-mjx==3.17.0` (the `mujoco` extra).
 

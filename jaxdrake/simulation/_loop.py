@@ -487,22 +487,21 @@ class Loop(eqx.Module):
 
     def run(self, t0, x0, h0, status, autodiff: str) -> LoopState:
         """The loop from its start to its end, differentiable as `autodiff` says: "forward"
-        (the plain loop, for `jax.jvp`), "reverse" (`_reverse.run_reverse`),
-        "adjoint" (`_reverse.run_adjoint`) or "checkpointed" (`jax.grad` through the
-        checkpointed loop)."""
+        (the plain loop, for `jax.jvp`), "reverse" (`_reverse.run_reverse`) or "adjoint"
+        (`_reverse.run_adjoint`)."""
         if autodiff == "reverse":
             return run_reverse(self, t0, x0, h0, status)
         if autodiff == "adjoint":
             return run_adjoint(self, t0, x0, h0, status)
-        return self.run_loop(t0, x0, h0, status, kind="lax" if autodiff == "forward" else "checkpointed")
+        return self.run_loop(t0, x0, h0, status)
 
     def continues(self, s: LoopState):
         """Whether the loop takes another iteration."""
         return (s.status == SimulationStatus.SUCCESS) & (s.t < self.tf) & (s.iterations < self.max_steps)
 
-    def run_loop(self, t0, x0, h0, status, kind: str) -> LoopState:
+    def run_loop(self, t0, x0, h0, status) -> LoopState:
         return eqxi.while_loop(self.continues, self.iterate, self.initial_state(t0, x0, h0, status),
-                               max_steps=self.max_steps, kind=kind, buffers=LoopState.buffers)
+                               max_steps=self.max_steps, kind="lax", buffers=LoopState.buffers)
 
 
 def initial_status(system, source, t0, tf, x0):

@@ -12,23 +12,22 @@ ways, picked while tracing from the number $P$ of differentiated scalars:
   $\bar p_i = \langle \bar y, J e_i \rangle$ (where the tangents would not fit in
   `TANGENT_BYTES`, it re-runs them in chunks instead). The program holds the loop and its
   tangent: no transpose of the loop, no recomputation of checkpoints, so it compiles 2.3-3.3x
-  faster than the checkpointed VJP (`benchmarks/RESULTS.md`) and runs faster for the
+  faster than JAX's transpose of a checkpointed loop (`benchmarks/RESULTS.md`) and runs faster for the
   few-parameter gradients of system identification and design; it also differentiates
   inner `while_loop`s that JAX cannot transpose (MJX's solver).
 - **The discrete adjoint** (larger $P$: a floating robot's x0, a neural controller's
   weights, a long input tape), whose cost does not grow with $P$ (`run_adjoint`: one
-  iteration's VJP, looped backwards); where its kept states would pass `KEPT_BYTES`, the
-  loop re-run as `equinox.internal.while_loop(kind="checkpointed")` (recursive
-  checkpointing bounded by `max_steps`) and transposed by JAX; when a closed-over value is
-  among the differentiated ones, the traced loop's tangents in chunks instead.
+  iteration's VJP, looped backwards); when a closed-over value is among the differentiated
+  ones, the traced loop's tangents in chunks instead.
 
 Either way it is the same derivative, that of the computed solution (step sizes held, event
-times by the implicit-function theorem). `autodiff="checkpointed"` always takes the
-checkpointed loop's VJP, `autodiff="adjoint"` always the discrete adjoint (`run_adjoint`).
+times by the implicit-function theorem). `autodiff="adjoint"` always takes the discrete
+adjoint. JAX never transposes the loop.
 """
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import equinox as eqx
 import equinox.internal as eqxi
@@ -38,9 +37,9 @@ import numpy as np
 
 from ._result import trajectory_bytes
 
-MAX_FORWARD_DIRECTIONS = 32  # Solo-12 from x0 (37): 10x the checkpointed warm time; the Panda (18): faster both ways
+MAX_FORWARD_DIRECTIONS = 32  # Solo-12 from x0 (37): 7x the adjoint's warm time; the Panda (18): faster both ways
 TANGENT_BYTES = 256 * 2**20
-KEPT_BYTES = 1024 * 2**20   # the adjoint's kept states at most (else the checkpointed loop's VJP)
+KEPT_BYTES = 1024 * 2**20   # the adjoint keeps every iteration's state up to this (else every stride-th)
 
 
 def run_reverse(loop, t0, x0, h0, status):
@@ -48,7 +47,7 @@ def run_reverse(loop, t0, x0, h0, status):
     once into a jaxpr whose closed-over values (a traced gain inside an input function or a
     controller) become arguments, so that they are differentiated too."""
     inputs = (loop, t0, x0, h0)
-    run = eqx.filter_closure_convert(lambda i: i[0].run_loop(i[1], i[2], i[3], status, kind="lax"), inputs)
+    run = eqx.filter_closure_convert(lambda i: i[0].run_loop(i[1], i[2], i[3], status), inputs)
     return _differentiable_run((run, inputs), status)
 
 
@@ -78,20 +77,19 @@ def _forward(perturbed, vjp_arg, status):
 @_differentiable_run.def_bwd
 def _backward(residuals, cotangent, perturbed, vjp_arg, status):
     directions = _Directions(vjp_arg, perturbed)
+    if not directions.count:
+        return directions.gradient([])
     if directions.adjoint(status) is not None:   # the adjoint's pullback
         out, pullback = residuals
         return directions.gradient(pullback(_dense_cotangent(out, cotangent))[0])
     if residuals is not None:  # the tangents, stored by the forward pass
         flat = jax.vmap(lambda t: _contract(cotangent, t))(residuals)
-    elif directions.forward or directions.in_closure:
+    else:
         # tangents over the memory bound, or a closed-over value among many differentiated
         # ones (only the traced jaxpr may be re-run then): the tangents again, in chunks
         flat = jax.lax.map(lambda e: _contract(cotangent, jax.jvp(directions.run, (directions.values,),
                                                                    (directions.split(e),))[1]),
                            directions.basis(), batch_size=directions.chunk())
-    else:   # the adjoint's kept states would not fit: the checkpointed loop's VJP
-        primal, pullback = eqx.filter_vjp(directions.checkpointed(status), directions.values)
-        return directions.gradient(pullback(_dense_cotangent(primal, cotangent))[0])
     return directions.gradient(directions.split(flat))
 
 
@@ -123,23 +121,10 @@ class _Directions:
         run, inputs = self._with(values)
         return run(inputs)
 
-    def checkpointed(self, status):
-        """The loop traced again as the checkpointed loop (only when no closed-over value
-        is differentiated), a function of the differentiated leaves."""
-        def run(values):
-            _, (loop, t0, x0, h0) = self._with(values)
-            return loop.run_loop(t0, x0, h0, status, kind="checkpointed")
-        return run
-
     def adjoint(self, status):
-        """For many differentiated scalars, none of them closed over, whose kept states fit in
-        `KEPT_BYTES`: the loop run by `run_adjoint`, a function of the differentiated leaves
-        (else None)."""
+        """For many differentiated scalars, none of them closed over: the loop run by
+        `run_adjoint`, a function of the differentiated leaves (else None)."""
         if self.forward or self.in_closure or not self.count:
-            return None
-        _, (loop, t0, x0, h0) = jax.tree.unflatten(self.treedef, self.leaves)
-        kept = jax.eval_shape(lambda: _without_buffers(loop.initial_state(t0, x0, h0, status)))
-        if loop.max_steps * sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(kept)) > KEPT_BYTES:
             return None
 
         def run(values):
@@ -195,8 +180,9 @@ def run_adjoint(loop, t0, x0, h0, status):
     $\bar s_i = (\partial\Phi/\partial s_i)^T \bar s_{i+1}$,
     $\bar p \mathrel{+}= (\partial\Phi/\partial p)^T \bar s_{i+1}$ from the last iteration to
     the first, a `lax.while_loop` over `jax.vjp` of one iteration. The forward pass keeps
-    each iteration's state without its trajectory buffers (O(max_steps) small states); the
-    backward pass re-runs one iteration from it. The iteration is traced once, with its
+    each iteration's state without its trajectory buffers (`max_steps` small states; where
+    they would pass `KEPT_BYTES`, every `kept_stride`-th, and the backward pass re-runs each
+    stretch from its first); the backward pass re-runs one iteration from it. The iteration is traced once, with its
     buffers cut to the one row it writes (`Loop.windowed`); the loop places that row, and the
     backward pass reads the row's cotangent. A linearly implicit solver's kept matrix is
     formed again where it was reused (same values; its derivative then comes through the
@@ -204,7 +190,8 @@ def run_adjoint(loop, t0, x0, h0, status):
     s0 = loop.initial_state(t0, x0, h0, status)
     step = eqx.filter_closure_convert(dataclasses.replace(loop, windowed=True).iterate, _window(s0, s0.linearization))
     continues = eqx.filter_closure_convert(loop.continues, _without_buffers(s0))
-    return _adjoint_run((step, continues, s0), loop.max_steps)
+    state_bytes = sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(_without_buffers(s0)))
+    return _adjoint_run((step, continues, s0), loop.max_steps, kept_stride(loop.max_steps, state_bytes))
 
 
 def _window(s, linearization, like=None):
@@ -230,36 +217,49 @@ def _placed(s, w):
     return eqx.tree_at(lambda s: s.buffers(), w, full)
 
 
-def _iterations(step, continues, s0, max_steps, keep: bool):
-    """The forward loop; with `keep`, also every iteration's state (`_without_buffers`)."""
-    kept = tuple(jnp.zeros((max_steps,) + x.shape, x.dtype) for x in jax.tree.leaves(_without_buffers(s0)) if keep)
+def _iterations(step, continues, s0, max_steps, stride=None):
+    """The forward loop; with a `stride`, also the state (`_without_buffers`) of every
+    `stride`-th iteration."""
+    kept = () if stride is None else tuple(jnp.zeros((-(-max_steps // stride),) + x.shape, x.dtype)
+                                           for x in jax.tree.leaves(_without_buffers(s0)))
 
     def body(carry):
         s, kept = carry
-        if keep:   # a flat tuple: its entries are the loop's in-place buffers
-            kept = tuple(b.at[s.iterations].set(x) for b, x in zip(kept, jax.tree.leaves(_without_buffers(s))))
+        if stride is not None:   # a flat tuple: its entries are the loop's in-place buffers
+            kept = tuple(b.at[s.iterations // stride].set(x, pred=s.iterations % stride == 0)
+                         for b, x in zip(kept, jax.tree.leaves(_without_buffers(s))))
         return _placed(s, step(_window(s, s.linearization))), kept
 
     return eqxi.while_loop(lambda carry: continues(_without_buffers(carry[0])), body, (s0, kept),
                            max_steps=max_steps, kind="lax",
-                           buffers=lambda carry: carry[0].buffers() + (tuple(carry[1]) if keep else ()))
+                           buffers=lambda carry: carry[0].buffers() + (() if stride is None else tuple(carry[1])))
+
+
+def kept_stride(max_steps, state_bytes):
+    """Iterations per state the adjoint keeps: 1 where `max_steps` states fit in `KEPT_BYTES`;
+    else about sqrt(max_steps), and the backward pass re-runs each stretch of `stride`
+    iterations from its first state (one more forward iteration per iteration whatever the
+    stride, and the fewest states kept: max_steps / stride + stride)."""
+    if max_steps * state_bytes <= KEPT_BYTES:
+        return 1
+    return math.isqrt(max_steps - 1) + 1
 
 
 @eqx.filter_custom_vjp
-def _adjoint_run(vjp_arg, max_steps):
+def _adjoint_run(vjp_arg, max_steps, stride):
     step, continues, s0 = vjp_arg
-    return _iterations(step, continues, s0, max_steps, keep=False)[0]
+    return _iterations(step, continues, s0, max_steps)[0]
 
 
 @_adjoint_run.def_fwd
-def _adjoint_forward(perturbed, vjp_arg, max_steps):
+def _adjoint_forward(perturbed, vjp_arg, max_steps, stride):
     step, continues, s0 = vjp_arg
-    final, kept = _iterations(step, continues, s0, max_steps, keep=True)
+    final, kept = _iterations(step, continues, s0, max_steps, stride)
     return final, (final, kept)
 
 
 @_adjoint_run.def_bwd
-def _adjoint_backward(residuals, cotangent, perturbed, vjp_arg, max_steps):
+def _adjoint_backward(residuals, cotangent, perturbed, vjp_arg, max_steps, stride):
     final, kept = residuals
     step, _, s0 = vjp_arg
     cotangent = _dense_cotangent(final, cotangent)
@@ -270,10 +270,31 @@ def _adjoint_backward(residuals, cotangent, perturbed, vjp_arg, max_steps):
     stale = None if s0.linearization is None else dataclasses.replace(   # a kept matrix not current: formed again
         jax.tree.map(jnp.zeros_like, s0.linearization), current=jnp.asarray(False))
 
+    def state(rows, k):
+        return jax.tree.unflatten(kept_structure, [b[k] for b in rows])
+
+    def rerun(i):
+        """The states of the stretch of `stride` iterations that holds iteration i, from its
+        kept first state to i."""
+        def body(k, carry):
+            s, stretch = carry
+            s = _without_buffers(step(_window(s, stale, like=s0)))
+            return s, tuple(b.at[k + 1].set(x) for b, x in zip(stretch, jax.tree.leaves(s)))
+        first = state(kept, i // stride)
+        stretch = tuple(jnp.zeros((stride,) + b.shape[1:], b.dtype).at[0].set(x)
+                        for b, x in zip(kept, jax.tree.leaves(first)))
+        return jax.lax.fori_loop(0, i % stride, body, (first, stretch))[1]
+
     def backward(carry):
-        i, s_bar, p_bar = carry
+        i, s_bar, p_bar, stretch = carry
         i = i - 1
-        start = _window(jax.tree.unflatten(kept_structure, [b[i] for b in kept]), stale, like=s0)
+        if stride == 1:
+            start = state(kept, i)
+        else:   # entering a stretch (from its end): its states again
+            stretch = jax.lax.cond((i % stride == stride - 1) | (i == final.iterations - 1),
+                                   rerun, lambda i: stretch, i)
+            start = state(stretch, i % stride)
+        start = _window(start, stale, like=s0)
         start_diff, start_static = eqx.partition(start, eqx.is_inexact_array)
 
         def one_iteration(step_diff, start_diff):
@@ -286,11 +307,13 @@ def _adjoint_backward(residuals, cotangent, perturbed, vjp_arg, max_steps):
         rows = tuple(None if c is None else jax.lax.dynamic_index_in_dim(c, n, keepdims=True)
                      for c, n in zip(cotangent.buffers(), start.buffer_counts()))
         step_bar, start_bar = pullback(eqx.tree_at(lambda s: s.buffers(), s_bar, rows, is_leaf=lambda x: x is None))
-        return i, start_bar, jax.tree.map(jnp.add, p_bar, step_bar)
+        return i, start_bar, jax.tree.map(jnp.add, p_bar, step_bar), stretch
 
     s_bar = eqx.filter(_window(cotangent, cotangent.linearization), eqx.is_inexact_array)
     p_bar = jax.tree.map(jnp.zeros_like, step_diff)
-    _, s_bar, p_bar = jax.lax.while_loop(lambda carry: carry[0] > 0, backward, (final.iterations, s_bar, p_bar))
+    stretch = () if stride == 1 else tuple(jnp.zeros((stride,) + b.shape[1:], b.dtype) for b in kept)
+    _, s_bar, p_bar, _ = jax.lax.while_loop(lambda carry: carry[0] > 0, backward,
+                                            (final.iterations, s_bar, p_bar, stretch))
     # s0's buffers reach the end unchanged except in the rows the iterations wrote
     unwritten = tuple(None if c is None else c * _rows_outside(c, n0, n1)
                       for c, n0, n1 in zip(cotangent.buffers(), s0.buffer_counts(), final.buffer_counts()))

@@ -4,9 +4,7 @@ The loop is `equinox.internal.while_loop` with the trajectory as in-place buffer
 derivatives (`autodiff`): `"forward"` runs it as it is (`jax.jvp` / `jax.jacfwd`);
 `"reverse"` (the default) makes it a custom VJP (`_reverse.py`: forward sensitivities for up
 to 32 differentiated scalars, else the discrete adjoint), which forward mode cannot enter;
-`"adjoint"` always takes the discrete adjoint, `"checkpointed"` JAX's transpose of the
-checkpointed loop. Step sizes are
-not differentiated (the gradient is that of the discrete scheme on its grid); event times are,
+`"adjoint"` always takes the discrete adjoint. Step sizes are not differentiated (the gradient is that of the discrete scheme on its grid); event times are,
 by the implicit function theorem, so gradients see the shift of a switching instant and the
 saltation jump at an impact.
 """
@@ -83,9 +81,8 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     - `autodiff`: `"reverse"` (default; `jax.grad` / `jax.vjp` work: up to 32 differentiated
       scalars by forward sensitivities, which compile fast, more by the discrete adjoint),
       `"adjoint"` (`jax.grad` always by the discrete adjoint: the VJP of one loop iteration,
-      looped backwards over the kept iteration states), `"checkpointed"` (`jax.grad` through
-      JAX's transpose of the checkpointed loop) or `"forward"` (`jax.jvp` / `jax.jacfwd`
-      work, `jax.grad` does not). Second derivatives: `jax.hessian` (forward over reverse)
+      looped backwards over the kept iteration states) or `"forward"` (`jax.jvp` /
+      `jax.jacfwd` work, `jax.grad` does not). Second derivatives: `jax.hessian` (forward over reverse)
       in the reverse modes, `jax.jacfwd(jax.jacfwd(...))` with `"forward"`; reverse over
       reverse (`jax.grad` of a `jax.grad`) is not supported (JAX cannot transpose the loop).
       Nothing controls the derivative's own error: through a stiff impact it needs a tighter
@@ -143,8 +140,10 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
             raise ValueError(f"{name} must be positive, got {v}")
     if atol is None:
         atol = DEFAULT_ATOL[np.dtype(dtype).name]
-    if autodiff not in ("reverse", "forward", "checkpointed", "adjoint"):
-        raise ValueError(f"autodiff must be 'reverse', 'forward', 'checkpointed' or 'adjoint', got {autodiff!r}")
+    if autodiff not in ("reverse", "forward", "adjoint"):
+        raise ValueError(f"autodiff must be 'reverse', 'forward' or 'adjoint', got {autodiff!r}"
+                         + (" (the checkpointed loop's VJP was replaced by the discrete adjoint, 'adjoint': the "
+                            "same derivative)" if autodiff == "checkpointed" else ""))
     if not (isinstance(max_steps, int) and max_steps > 0):
         raise ValueError(f"max_steps must be a positive int, got {max_steps!r}")
 
