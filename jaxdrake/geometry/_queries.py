@@ -5,27 +5,32 @@ frame G, `point_distance(kind, Q, ...)` gives $\varphi(Q)$ (negative inside), a 
 boundary point N and the unit gradient $\nabla\varphi$, with Drake's formulas: a sphere's
 $|Q| - r$ (gradient $\hat x$ at the centre), a half-space's $Q_z$, a capsule's distance to
 its segment minus r, a box's clamp (outside) or nearest face (inside, ties to the lowest
-axis), a cylinder's box formula in (radial, axial) coordinates. A convex hull's is
-$\max_f (n_f \cdot Q - d_f)$, exact inside the hull (where it is used: the depth of a
-vertex), a lower bound outside it.
+axis), a cylinder's box formula in (radial, axial) coordinates, a convex hull's
+$\max_f (n_f \cdot Q - d_f)$ over its face planes inside it and the distance to its nearest
+triangle outside (the planes alone underestimate it near edges and corners).
 
-**Penetration** (Drake's `PenetrationAsPointPair`): a pair of shapes A, B gives candidate
-contacts, each a depth x (> 0 when they overlap), witness points $C_a \in \partial A$,
-$C_b \in \partial B$ and the unit normal $\hat n_{BA}$ (from B into A), all in the world:
+**Penetration** (Drake's `PenetrationAsPointPair`): any two shapes but two half-spaces give
+candidate contacts, each a depth x (> 0 when they overlap), witness points
+$C_a \in \partial A$, $C_b \in \partial B$ and the unit normal $\hat n_{BA}$ (from B into A),
+all in the world:
 
-- a sphere against any of sphere, half-space, box, capsule, cylinder: one candidate, exactly
-  Drake's (x = r - \varphi_B(A_o), $C_b$ = N, $C_a = A_o - r\,\nabla\varphi_B$);
-- a capsule: its two end spheres against a half-space or a box, the closest points of the
-  two segments against another capsule;
-- a box or a convex hull: each vertex inside the other shape (x = $-\varphi_B(v)$), and,
-  against another box or hull, the other's vertices inside it too;
-- a cylinder against a half-space: four points of each rim, starting from the deepest one.
+- a sphere against any shape: one candidate, exactly Drake's
+  (x = r - \varphi_B(A_o), $C_b$ = N, $C_a = A_o - r\,\nabla\varphi_B$);
+- a capsule: its two end spheres against any shape but a capsule (against a box or hull
+  also their vertices inside it); the closest points of the two segments against a capsule;
+- a box or a convex hull: each vertex inside the other shape (x = $-\varphi_B(v)$), both
+  ways between two of them;
+- a cylinder: four points of each rim, starting from the one deepest along the other
+  shape's outward normal at the cylinder's centre (so that it stands on 4 points and lies on
+  2); against a box or hull also their vertices inside it;
+- a capsule or cylinder against a cylinder: also the sphere of its radius about the point of
+  its axis nearest the other's axis, where the round sides cross (exact there).
 
 Where Drake has exact closed forms (anything with a sphere) the results equal Drake's; the
-vertex sets are the multi-point contact of MuJoCo and most engines, where Drake's point
-contact keeps a single FCL point (which makes a box resting on a face ill-posed); an edge
-crossing an edge (box on box, capsule across a box's edge) is not detected. Every function
-is NaN-free and differentiable at a touch and at degenerate points ("double where").
+vertex and rim sets are the multi-point contact of MuJoCo and most engines, where Drake's
+point contact keeps a single FCL point (which makes a box resting on a face ill-posed); an
+edge crossing an edge (box on box, capsule across a box's edge) is not detected. Every
+function is NaN-free and differentiable at a touch and at degenerate points ("double where").
 """
 
 from __future__ import annotations
@@ -95,12 +100,32 @@ def cylinder_distance(radius, half_length, Q):
     return d, to_xyz(N2), to_xyz(g2)
 
 
-def convex_distance(planes, Q):
-    """max over the face planes (exact inside the hull)."""
+def convex_distance(planes, triangles, Q):
+    """Inside the hull, max over its face planes; outside, the distance to the nearest point of
+    its `triangles` (t, 3, 3): a projection onto a triangle's plane that falls inside the
+    triangle, or the nearest point of an edge. `triangles=None`: the planes' value outside
+    too (a lower bound, where only the inside matters: a vertex's depth)."""
     values = planes[:, :3] @ Q - planes[:, 3]
     f = jnp.argmax(values)
     n = planes[f, :3]
-    return values[f], Q - values[f] * n, n
+    depth, N_in = values[f], Q - values[f] * n
+    if triangles is None:
+        return depth, N_in, n
+    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
+    normal = norm_and_direction(jnp.cross(b - a, c - a), n)[1]
+    projected = Q - jnp.sum((Q - a) * normal, -1)[:, None] * normal
+    within = jnp.all(jnp.stack([jnp.sum(jnp.cross(e1 - e0, projected - e0) * normal, -1) >= 0
+                                for e0, e1 in ((a, b), (b, c), (c, a))]), 0)
+    starts, ends = jnp.concatenate([a, b, c]), jnp.concatenate([b, c, a])
+    along = ends - starts
+    s = jnp.clip(jnp.sum((Q - starts) * along, -1) / jnp.maximum(jnp.sum(along * along, -1), _TINY), 0.0, 1.0)
+    candidates = jnp.concatenate([projected, starts + s[:, None] * along])
+    squared = jnp.where(jnp.concatenate([within, jnp.ones(len(starts), bool)]),
+                        jnp.sum((Q - candidates) ** 2, -1), jnp.inf)
+    N_out = candidates[jnp.argmin(squared)]
+    d_out, g_out = norm_and_direction(Q - N_out, n)
+    outside = depth > 0
+    return jnp.where(outside, d_out, depth), jnp.where(outside, N_out, N_in), jnp.where(outside, g_out, n)
 
 
 def point_distance(kind: str, params, Q):
@@ -118,7 +143,7 @@ def point_distance(kind: str, params, Q):
     if kind == "cylinder":
         return cylinder_distance(size[0], size[1], Q)
     if kind == "convex":
-        return convex_distance(params["planes"], Q)
+        return convex_distance(params["planes"], params.get("triangles"), Q)
     raise ValueError(f"no distance function for shape kind {kind!r}")
 
 
@@ -169,44 +194,79 @@ def _contact_points(kind, params, X):
     raise ValueError(kind)
 
 
-def _cylinder_rim_against_halfspace(params, X_A, X_B):
-    """A cylinder's rim points: on each cap, the deepest point into the half-space (normal
-    n) and three more at quarter turns, so that a cylinder standing on a cap rests on 4 points."""
+def _vertices_against(kind_b, params_b, X_B, vertices, radii, valid):
+    """Points of radius 0 against shape B: only a point inside B touches, so a hull's planes
+    are enough (no nearest triangle)."""
+    planes_only = {k: v for k, v in params_b.items() if k != "triangles"}
+    return _points_against(kind_b, planes_only, X_B, vertices, radii, valid)
+
+
+def _cylinder_rim(params, X_A, n):
+    """A cylinder's rim points facing a shape whose outward normal there is n: on each cap, the
+    point farthest along -n and three more at quarter turns, so that a cylinder standing on a
+    cap rests on 4 points and one lying on its side on 2."""
     R_A, p_A = X_A
     radius, half = params["size"][0], params["size"][1]
-    axis, n = R_A[:, 2], X_B[0][:, 2]
+    axis = R_A[:, 2]
     down = -(n - jnp.dot(n, axis) * axis)
     _, u = norm_and_direction(down, R_A[:, 0])
     w = jnp.cross(axis, u)
     directions = jnp.stack([u, w, -u, -w])
     caps = jnp.stack([p_A + half * axis, p_A - half * axis])
-    points = (caps[:, None, :] + radius * directions[None]).reshape(8, 3)
-    return points
+    return (caps[:, None, :] + radius * directions[None]).reshape(8, 3)
+
+
+def _rim_against(params_a, X_A, kind_b, params_b, X_B):
+    """Cylinder A's rim points (facing B's outward normal at A's centre) against B."""
+    R_B, p_B = X_B
+    n = R_B @ point_distance(kind_b, params_b, R_B.T @ (X_A[1] - p_B))[2]
+    rim = _cylinder_rim(params_a, X_A, n)
+    return _vertices_against(kind_b, params_b, X_B, rim, jnp.zeros(8, rim.dtype), jnp.ones(8, bool))
+
+
+def _axis_sphere_against(kind_a, params_a, X_A, params_b, X_B):
+    """The sphere of A's radius about the point of A's axis nearest to cylinder B's axis,
+    against B: where the round sides cross. Only where that point lies inside A's segment (a
+    capsule's ends are its own candidates) and, for a cylinder, at least a radius from its flat
+    ends (else the sphere would stick out of them)."""
+    centre = _closest_point_on_segment_a(params_a, X_A, params_b, X_B)
+    radius, half = params_a["size"][0], params_a["size"][1]
+    margin = radius if kind_a == "cylinder" else 1e-9 * half
+    inside = jnp.abs(jnp.dot(centre - X_A[1], X_A[0][:, 2])) < half - margin
+    return _points_against("cylinder", params_b, X_B, centre[None], radius[None], inside[None])
 
 
 def penetration(kind_a: str, params_a, X_A, kind_b: str, params_b, X_B):
     """Candidate contacts (depth (k,), C_a (k, 3), C_b (k, 3), n_BA (k, 3)) between shape A at
     world pose X_A = (R, p) and shape B at X_B; a candidate touches where depth > 0. The pair
-    must be `supported(kind_a, kind_b)` in this order (`canonical_order` gives it)."""
-    if kind_a == "sphere" or (kind_a == "capsule" and kind_b in ("halfspace", "box")):
-        points, radii, valid = _contact_points(kind_a, params_a, X_A)
-        own = _points_against(kind_b, params_b, X_B, points, radii, valid)
-        if kind_a == "capsule" and kind_b == "box":
-            corners = _contact_points("box", params_b, X_B)
-            return _concat(own, _swap(_points_against("capsule", params_a, X_A, *corners)))
+    must be in the order `canonical_order` gives (any two shapes but two half-spaces)."""
+    if kind_a == "sphere" or (kind_a == "capsule" and kind_b != "capsule"):
+        own = _points_against(kind_b, params_b, X_B, *_contact_points(kind_a, params_a, X_A))
+        if kind_a == "capsule" and kind_b in ("box", "convex"):
+            return _concat(own, _swap(_vertices_against("capsule", params_a, X_A,
+                                                        *_contact_points(kind_b, params_b, X_B))))
+        if kind_a == "capsule" and kind_b == "cylinder":
+            return _concat(own, _axis_sphere_against(kind_a, params_a, X_A, params_b, X_B),
+                           _swap(_rim_against(params_b, X_B, "capsule", params_a, X_A)))
         return own
     if kind_a == "capsule" and kind_b == "capsule":
         c_a = _closest_point_on_segment_a(params_a, X_A, params_b, X_B)
         return _points_against("capsule", params_b, X_B, c_a[None], params_a["size"][:1], jnp.ones(1, bool))
-    if kind_a in ("box", "convex"):
-        own = _points_against(kind_b, params_b, X_B, *_contact_points(kind_a, params_a, X_A))
+    if kind_a == "cylinder":
+        own = _rim_against(params_a, X_A, kind_b, params_b, X_B)
         if kind_b in ("box", "convex"):
-            theirs = _points_against(kind_a, params_a, X_A, *_contact_points(kind_b, params_b, X_B))
+            return _concat(own, _swap(_vertices_against("cylinder", params_a, X_A,
+                                                        *_contact_points(kind_b, params_b, X_B))))
+        if kind_b == "cylinder":
+            return _concat(own, _axis_sphere_against(kind_a, params_a, X_A, params_b, X_B),
+                           _swap(_rim_against(params_b, X_B, "cylinder", params_a, X_A)))
+        return own
+    if kind_a in ("box", "convex"):
+        own = _vertices_against(kind_b, params_b, X_B, *_contact_points(kind_a, params_a, X_A))
+        if kind_b in ("box", "convex"):
+            theirs = _vertices_against(kind_a, params_a, X_A, *_contact_points(kind_b, params_b, X_B))
             return _concat(own, _swap(theirs))
         return own
-    if kind_a == "cylinder" and kind_b == "halfspace":
-        points = _cylinder_rim_against_halfspace(params_a, X_A, X_B)
-        return _points_against("halfspace", params_b, X_B, points, jnp.zeros(8, points.dtype), jnp.ones(8, bool))
     raise ValueError(f"unsupported shape pair ({kind_a}, {kind_b})")
 
 
@@ -236,19 +296,8 @@ def _closest_point_on_segment_a(params_a, X_A, params_b, X_B):
 # ----- which pairs, in which order --------------------------------------------------------------
 
 _RANK = {"sphere": 0, "capsule": 1, "cylinder": 2, "box": 3, "convex": 4, "halfspace": 5}
-_SUPPORTED = {("sphere", k) for k in ("sphere", "capsule", "cylinder", "box", "halfspace")} | {
-    ("capsule", "capsule"), ("capsule", "box"), ("capsule", "halfspace"), ("cylinder", "halfspace"),
-    ("box", "box"), ("box", "convex"), ("box", "halfspace"), ("convex", "convex"), ("convex", "halfspace")}
 
 
 def canonical_order(kind_a: str, kind_b: str) -> bool:
     """Whether (a, b) is already in the order `penetration` takes (else swap them)."""
     return _RANK[kind_a] <= _RANK[kind_b]
-
-
-def supported(kind_a: str, kind_b: str) -> bool:
-    a, b = (kind_a, kind_b) if canonical_order(kind_a, kind_b) else (kind_b, kind_a)
-    return (a, b) in _SUPPORTED
-
-
-SUPPORTED_PAIRS = tuple(sorted(_SUPPORTED, key=lambda p: (_RANK[p[0]], _RANK[p[1]])))

@@ -84,12 +84,14 @@ class HalfSpace:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Convex:
-    r"""The convex hull of `points` (m, 3): `vertices` (the hull's, (v, 3)) and `planes`
-    (f, 4) rows $[n_f, d_f]$ with unit outward $n_f$, the hull being $n_f \cdot p \le d_f$.
-    `name` says where it came from (for messages)."""
+    r"""The convex hull of `points` (m, 3): `vertices` (the hull's, (v, 3)), `planes`
+    (f, 4) rows $[n_f, d_f]$ with unit outward $n_f$, the hull being $n_f \cdot p \le d_f$,
+    and `triangles` (t, 3, 3), its boundary (for distances outside it). `name` says where it
+    came from (for messages)."""
 
     vertices: np.ndarray
     planes: np.ndarray
+    triangles: np.ndarray
     name: str = "convex"
 
     @classmethod
@@ -106,7 +108,7 @@ class Convex:
             raise GeometryError(f"{name}: the points are flat (they span no volume), so they have no "
                                 "convex hull to collide with; use a Box of small thickness instead") from None
         planes = _merge_coplanar(np.column_stack([hull.equations[:, :3], -hull.equations[:, 3]]))
-        return cls(points[hull.vertices], planes, name)
+        return cls(points[hull.vertices], planes, points[hull.simplices], name)
 
     @classmethod
     def from_mesh_file(cls, path, scale=(1.0, 1.0, 1.0), *, require_convex: bool = True) -> "Convex":

@@ -18,7 +18,6 @@ SIGINT / SIGTERM stop the node cleanly; it then prints its counters and latencie
 
 import argparse
 import logging
-import sys
 
 import numpy as np
 

@@ -33,8 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._numbers import device_array
-from ..geometry import (SUPPORTED_PAIRS, Box, Capsule, Convex, Cylinder, GeometryError, HalfSpace, Sphere,
-                        canonical_order, norm_and_direction, penetration, supported)
+from ..geometry import (Box, Capsule, Convex, Cylinder, GeometryError, HalfSpace, Sphere, canonical_order,
+                        norm_and_direction, penetration)
 from . import _algorithms as alg
 from ._joints import JointType
 
@@ -176,7 +176,7 @@ class ContactModel(eqx.Module):
     Static: geometry `names`, `links`, `kinds`, `bodies` (the tree body each is fixed to, -1
     the world) and `groups`: (kind_a, kind_b, geometry indices a, b) of the candidate pairs,
     grouped by shape kinds. Leaves: each geometry's pose in its body's frame (`rotation`,
-    `translation`), `size`, convex `vertices` / `planes` (padded), and `stiffness`,
+    `translation`), `size`, convex `vertices` / `planes` / `triangles` (padded), and `stiffness`,
     `dissipation`, `mu_static`, `mu_dynamic`; the plant's `stiction_tolerance`.
     """
 
@@ -191,6 +191,7 @@ class ContactModel(eqx.Module):
     vertices: jax.Array
     vertex_valid: jax.Array
     planes: jax.Array
+    triangles: jax.Array
     stiffness: jax.Array
     dissipation: jax.Array
     mu_static: jax.Array
@@ -257,7 +258,7 @@ class ContactModel(eqx.Module):
         the static geometry indices a, b of each."""
         R, p = self.geometry_poses(motion)
         params = {"size": self.size, "vertices": self.vertices, "vertex_valid": self.vertex_valid,
-                  "planes": self.planes}
+                  "planes": self.planes, "triangles": self.triangles}
         parts, ia, ib = [], [], []
         for kind_a, kind_b, a, b in self.groups:
             a_idx, b_idx = np.asarray(a), np.asarray(b)
@@ -494,12 +495,6 @@ def build_contact_model(tree, geometries, *, excluded_pairs=(), stiction_toleran
             gi, gj = geometries[i], geometries[j]
             if bodies[i] == bodies[j] or frozenset((gi.link, gj.link)) in excluded:
                 continue
-            if not supported(kinds[i], kinds[j]):
-                raise GeometryError(
-                    f"{source}: no contact between {kinds[i]} {gi.name!r} (link {gi.link!r}) and {kinds[j]} "
-                    f"{gj.name!r} (link {gj.link!r}): that shape pair is not supported. Supported pairs: "
-                    f"{', '.join(f'{a}-{b}' for a, b in SUPPORTED_PAIRS)}; approximate one of the shapes (by "
-                    "spheres, a capsule or a box), or exclude the pair with a <drake:collision_filter_group>")
             a, b = (i, j) if canonical_order(kinds[i], kinds[j]) else (j, i)
             key = (kinds[a], kinds[b])
             groups.setdefault(key, ([], []))
@@ -509,15 +504,18 @@ def build_contact_model(tree, geometries, *, excluded_pairs=(), stiction_toleran
     convex = [g.shape for g in geometries if isinstance(g.shape, Convex)]
     nv = max((len(c.vertices) for c in convex), default=0)
     nf = max((len(c.planes) for c in convex), default=1)
+    nt = max((len(c.triangles) for c in convex), default=1)
     vertices = np.zeros((len(geometries), nv, 3))
     valid = np.zeros((len(geometries), nv), bool)
     planes = np.tile(np.array([0.0, 0.0, 1.0, 0.0]), (len(geometries), nf, 1))
+    triangles = np.tile(np.eye(3), (len(geometries), nt, 1, 1))
     for i, g in enumerate(geometries):
-        if isinstance(g.shape, Convex):
-            m, f = len(g.shape.vertices), len(g.shape.planes)
+        if isinstance(g.shape, Convex):   # padded by repeating a first entry (no mask needed)
+            m, f, t = len(g.shape.vertices), len(g.shape.planes), len(g.shape.triangles)
             vertices[i, :m], valid[i, :m] = g.shape.vertices, True
             vertices[i, m:] = g.shape.vertices[0]
             planes[i, :f], planes[i, f:] = g.shape.planes, g.shape.planes[0]
+            triangles[i, :t], triangles[i, t:] = g.shape.triangles, g.shape.triangles[0]
     value = lambda x, default: default if x is None else x  # noqa: E731
     rotation, translation = _poses_in_bodies(tree, geometries)
     return ContactModel(
@@ -526,6 +524,7 @@ def build_contact_model(tree, geometries, *, excluded_pairs=(), stiction_toleran
         rotation=rotation, translation=translation,
         size=floats([_size(g.shape) for g in geometries]).reshape(-1, 3),
         vertices=floats(vertices), vertex_valid=jax.device_put(valid), planes=floats(planes),
+        triangles=floats(triangles),
         stiffness=floats([value(g.material.point_contact_stiffness, DEFAULT_STIFFNESS) for g in geometries]),
         dissipation=floats([value(g.material.hunt_crossley_dissipation, DEFAULT_DISSIPATION) for g in geometries]),
         mu_static=floats([g.material.friction()[0] for g in geometries]),

@@ -44,9 +44,8 @@ angles in degrees, meshes); the compiled arrays are read here:
 Refused, each with a named error and its remedy: ball joints (MuJoCo's compiler itself
 refuses a free joint below the worldbody), armature (unless `ignore_armature=True`), joint springs,
 polynomial damping, gravity compensation, fluid forces (`density`, `viscosity`), equality
-constraints, tendons, flexes, explicit contact `<pair>`s (with `contact=True`), geoms of
-other shapes that can collide (ellipsoid, height field, SDF), and two geoms that MuJoCo's
-filters let touch but whose shapes the plant cannot collide (`jaxdrake.geometry.SUPPORTED_PAIRS`).
+constraints, tendons, flexes, explicit contact `<pair>`s (with `contact=True`), and geoms of
+other shapes that can collide (ellipsoid, height field, SDF).
 """
 
 from __future__ import annotations
@@ -56,8 +55,8 @@ import pathlib
 import numpy as np
 
 from .._extras import require
-from ..geometry import SUPPORTED_PAIRS, Box, Capsule, Convex, Cylinder, GeometryError, HalfSpace, Sphere, supported
-from ._contact import CollisionGeometry, ContactMaterial, shape_kind
+from ..geometry import Box, Capsule, Convex, Cylinder, GeometryError, HalfSpace, Sphere
+from ._contact import CollisionGeometry, ContactMaterial
 from ._files import parse_xml, read_xml, resolve_model_file
 from ._joints import JointType
 from ._tree import KinematicTree, _combine, assemble_tree
@@ -414,15 +413,13 @@ class _Reader:
                 name=name, link=link, shape=shape, rotation=_quaternion_matrix(m.geom_quat[g]),
                 translation=np.array(m.geom_pos[g], float), material=ContactMaterial(mu_static=mu, mu_dynamic=mu)))
             owners.append(g)
-        return URDFCollisions(tuple(geometries), self._excluded_body_pairs(owners, [g.shape for g in geometries]))
+        return URDFCollisions(tuple(geometries), self._excluded_body_pairs(owners))
 
-    def _excluded_body_pairs(self, geoms, shapes) -> tuple:
+    def _excluded_body_pairs(self, geoms) -> tuple:
         """The pairs of bodies (frame names) between which MuJoCo's filters pass no geom pair (a
-        named error where they pass some and not others, or pass a pair of shapes the plant
-        cannot collide)."""
+        named error where they pass some and not others)."""
         m = self.m
         name = lambda g: self._name(self.mj.mjtObj.mjOBJ_GEOM, g, f"{self.body_name[m.geom_bodyid[g]]}_geom{g}")  # noqa: E731
-        kind = dict(zip(geoms, (shape_kind(s) for s in shapes)))
         excluded_bodies = {(s >> 16, s & 0xFFFF) for s in m.exclude_signature}
         weld = m.body_weldid
         filter_parent = not self.disabled("mjDSBL_FILTERPARENT")
@@ -445,13 +442,6 @@ class _Reader:
                     continue  # one rigid body: never in contact, here as in MuJoCo
                 key = (min(b1, b2), max(b1, b2))
                 touch = passes(g1, g2)
-                if touch and not supported(kind[g1], kind[g2]):
-                    raise MJCFError(
-                        f"{self.where}: geoms {name(g1)!r} ({kind[g1]}, body {self.body_name[b1]!r}) and {name(g2)!r} "
-                        f"({kind[g2]}, body {self.body_name[b2]!r}) may touch in MuJoCo, but the plant has no "
-                        f"{kind[g1]}-{kind[g2]} contact (supported: {', '.join(f'{a}-{b}' for a, b in SUPPORTED_PAIRS)}). "
-                        f"Exclude the bodies (<contact><exclude body1=... body2=.../></contact>), make the geom "
-                        "visual only (contype=\"0\" conaffinity=\"0\"), or use a supported shape")
                 verdicts.setdefault(key, set()).add((touch, g1, g2))
         excluded = []
         for (b1, b2), results in verdicts.items():
