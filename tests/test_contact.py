@@ -678,6 +678,19 @@ def test_a_ball_dropped_on_a_small_sphere_rests_on_it_instead_of_passing_through
     np.testing.assert_allclose(s * h + 0.5 * g * h ** 2, 0.05, rtol=1e-12)
 
 
+def test_a_fixed_step_longer_than_the_step_bound_is_shortened_to_it():
+    """RK4 at dt = 25 ms carried a ball thrown at 10 m/s through a 1-cm wall in one step (and
+    reported success, 3 m beyond it); its steps are now cut to the contact's bound, and the
+    ball stays in front of the wall."""
+    ball = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True, contact=True,
+                                       stiction_tolerance=1e-2)
+    ball = ball.with_collision_geometry("world", Box(0.01, 2.0, 4.0), translation=(0.5, 0.0, 0.0), name="wall")
+    traj = jd.simulate(ball, (0.0, 0.3), jnp.array([0.0, 0.0, 0.0, 0, 0, 0, 1, 10.0, 0, 0, 0, 0, 0]), solver="rk4",
+                       dt=0.025)
+    assert float(jnp.max(traj.eval(jnp.linspace(0.0, 0.3, 61))[:, 0])) < 0.5 - 0.005 - 0.1 + 0.02   # < 2 cm deep
+    assert int(traj.num_steps) > 0.3 / 0.025 * 10
+
+
 def test_the_step_bound_counts_a_prismatic_extension_and_holds_in_diagrams_and_hybrid_modes(tmp_path):
     """A ball on a slider extended 2 m from a yaw joint turning at 5 rad/s, a 1-cm wall across
     its path: the bound counts the extension (at q = 0 it saw 5 cm of lever, and the ball passed

@@ -284,8 +284,10 @@ class Loop(eqx.Module):
             # only by rejections, which end the simulation at `smallest_step`, 16 units
             first = jnp.minimum(self.controller.initial_step(s.t, s.x[self.num_discrete:], k0), self.dt_max)
             h = jnp.where(jnp.isnan(h), jnp.maximum(first, least_step(s.t)), h)
-            if self.system.bounds_steps:   # every attempt, a given first step and a held one too
-                h = jnp.minimum(h, self.step_limit(s.t, s.x))
+        if self.system.bounds_steps and self.num_continuous:
+            # every attempt, a given first step and a held one too; a fixed step is shortened
+            # where the bound is shorter (and takes dt again after it)
+            h = jnp.minimum(h, self.step_limit(s.t, s.x))
         eps = jnp.finfo(s.x.dtype).eps
         t_next = s.t + h
         t_next = jnp.where(t_next >= target - (1e-6 * h + 64 * eps * jnp.abs(target)), target, t_next)

@@ -70,7 +70,8 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     - `rtol`, `atol`: tolerances of the adaptive solvers (atol: 1e-9 for a float64 state,
       1e-5 for a float32 one, whose rounding near 1 is 6e-8: at 1e-9 a box sliding on the
       floor ran out of steps within 0.06 s, and at 1e-6 Rosenbrock23 rejected 62% of its
-      steps there); `dt`: the fixed step (or the first step of an adaptive one);
+      steps there); `dt`: the fixed step (or the first step of an adaptive one; shortened
+      where the system bounds its steps, as a contact plant does: `System.step_size_bound`);
       `max_step_size`: an upper bound on steps.
     - `max_steps`: the bound on loop iterations (accepted + rejected steps) and the size of
       the trajectory buffers; `max_events`: the bound on events (Zeno protection).

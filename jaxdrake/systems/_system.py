@@ -283,12 +283,13 @@ class System(eqx.Module):
     def apply_transition(self, mode, k, t, x, u):
         raise NotImplementedError(f"{self.name} has no transitions")
 
-    # ----- a state-dependent bound on adaptive steps (a contact plant's: no tunnelling) -------
+    # ----- a state-dependent bound on steps (a contact plant's: no tunnelling) -----------------
 
     bounds_steps = False
 
     def step_size_bound(self, t, x):
-        """The longest adaptive step the system allows from (t, x) (`bounds_steps`; inf here)."""
+        """The longest step the system allows from (t, x) (`bounds_steps`; inf here): adaptive
+        steps never exceed it, fixed ones are shortened to it."""
         return jnp.asarray(jnp.inf, jnp.asarray(x).dtype)
 
     # ----- derived facts --------------------------------------------------------------------
