@@ -303,7 +303,7 @@ class ContactModel(eqx.Module):
                 _harmonic(self.mu_dynamic[ia_], self.mu_dynamic[ib_]), self.stiction_tolerance)
 
     def force_derivatives(self, tree, q, v):
-        r"""The contact force's derivative at the normals held fixed: (K, D), nv x nv, with
+        r"""The contact force's derivative: (K, D), nv x nv, with
         $d\tau_c \approx K\,\delta\nu + D\,dv$ for a change $\delta\nu$ of the
         configuration in velocity coordinates (`alg.velocity_of_configuration_change`) and dv of
         the velocity.
@@ -311,13 +311,18 @@ class ContactModel(eqx.Module):
         With $G_c(q) = J_{B}(C_c) - J_{A}(C_c)$ (3 x nv) the Jacobian of candidate c's relative
         velocity $v_{A_cB_c} = G_c v$ at its contact point C, $\tau_c = -\sum_c G_c^T
         f_{A,c}(x_c, G_c v)$: $D = -\sum_c G_c^T F_v G_c$ and $K = -\sum_c [G_c^T (F_x \hat
-        n^T G_c + F_v\, \partial_\nu(G_c) v) + \partial_\nu(G_c)^T f_{A,c}]$, with $F_x, F_v$
-        the force law's derivatives in the depth (which grows at $\hat n \cdot v_{A_cB_c}$)
-        and the relative velocity. $\partial_\nu G$: the bodies' motion subspaces turn,
-        $\partial S_k / \partial \nu_j = S_j \times S_k$ for a coordinate j that carries k's
-        axis, and C moves with the centres of curvature of the two surfaces, weighted as
-        rolling contact has it (a sphere's centre on a flat face or half-space, a box's corner
-        itself). Left out: the normal's turning and the depth's share in C's motion.
+        n^T G_c + F_v\, \partial_\nu(G_c) v + F_n \partial_\nu \hat n) + \partial_\nu(G_c)^T
+        f_{A,c}]$, with $F_x, F_v, F_n$ the force law's derivatives in the depth (which grows
+        at $\hat n \cdot v_{A_cB_c}$), the relative velocity and the normal. $\partial_\nu G$:
+        the bodies' motion subspaces turn, $\partial S_k / \partial \nu_j = S_j \times S_k$ for
+        a coordinate j that carries k's axis, and C moves across $\hat n$ with the centres of
+        curvature $O_A, O_B$ of the two surfaces, weighted as rolling contact has it (a
+        sphere's centre on a flat face or half-space, a box's corner or edge itself under a
+        rolling ball), along $\hat n$ by half their approach (C is the witnesses' midpoint).
+        Where both surfaces are curved (two round shapes, a ball on a corner or edge) the
+        normal turns, $\partial \hat n = (I - \hat n \hat n^T)(\partial O_A - \partial
+        O_B) / (\rho_A + \rho_B)$ (a ball rolling off a box's edge: 5x fewer steps). Left
+        out: a corner's edge direction (C slides along an edge with the ball).
 
         Only the deepest candidates are summed, as many as there are against the world's
         geometries (the ground) and at least `MIN_STIFF_CANDIDATES`: one that does not touch
@@ -330,32 +335,41 @@ class ContactModel(eqx.Module):
         moves[1 + np.arange(tree.num_bodies)] = L.subtree[L.dof_body][:, L.position].T
         body_a, body_b = self._pair_bodies(ia, ib)
         # C's motion: the centres of curvature (radius rho: a sphere's or capsule's; 0 at a
-        # polyhedron's corner; B's face or half-space flat), weighted rho_B : rho_A
+        # polyhedron's corner or edge; B's face or half-space flat), weighted rho_B : rho_A
         rounded_a, rounded_b = (np.isin(np.asarray(self.kinds)[np.asarray(i, int)], ("sphere", "capsule")) for i in (ia, ib))
         rho_a = jnp.where(rounded_a, self.size[np.asarray(ia, int), 0], 0.0)
-        rho_b = self.size[np.asarray(ib, int), 0]
+        rho_b = jnp.where(rounded_b, self.size[np.asarray(ib, int), 0], 0.0)
         weight_b = jnp.where(rounded_b, rho_a / jnp.where(rounded_b, rho_a + rho_b, 1.0), 0.0)
+        on_corner = self._on_corner_or_edge(motion, ib, n) & rounded_a
+        weight_b = jnp.where(on_corner, 1.0, weight_b)   # a ball rolling over a corner turns about it
+        # the normal turns where both surfaces are curved (B rounded, or A rounded on B's corner)
+        turning = jnp.asarray((rounded_a & rounded_b) | on_corner)
+        may_turn = bool(np.any(rounded_a & (rounded_b | np.isin(np.asarray(self.kinds)[np.asarray(ib, int)],
+                                                                 ("box", "convex")))))
         *per_pair, stiction_tolerance = self._pair_parameters(ia, ib)   # k, d, mu_s, mu_d per candidate; v_s
         per_candidate = (depth, pa, pb, n, jnp.asarray(moves[body_a], pa.dtype), jnp.asarray(moves[body_b], pa.dtype),
-                         rho_a, rho_b, weight_b, tuple(per_pair))
+                         rho_a, rho_b, weight_b, turning, tuple(per_pair))
         kept = max(MIN_STIFF_CANDIDATES, int(np.sum((body_a == 0) | (body_b == 0))))   # row 0: the world
         if kept < depth.shape[0]:
             deepest = jax.lax.top_k(jax.lax.stop_gradient(depth), kept)[1]
             per_candidate = jax.tree.map(lambda x: x[deepest], per_candidate)
-        depth, pa, pb, n, mask_a, mask_b, rho_a, rho_b, weight_b, per_pair = per_candidate
+        depth, pa, pb, n, mask_a, mask_b, rho_a, rho_b, weight_b, turning, per_pair = per_candidate
         params = per_pair + (stiction_tolerance,)
         C = 0.5 * (pa + pb)
         w, u = motion.columns[:, :3], motion.columns[:, 3:]                             # (nv, 3) each
         origin = alg.column_origins(tree, motion)                                        # (nv, 3)
         at = lambda point: u[None] + jnp.cross(w[None], point[:, None, :] - origin[None])  # noqa: E731
         G = at(C) * (mask_b - mask_a)[:, :, None]                                       # (P, nv, 3)
-        dC = ((1.0 - weight_b)[:, None, None] * at(pa + rho_a[:, None] * n) * mask_a[:, :, None]
-              + weight_b[:, None, None] * at(pb - rho_b[:, None] * n) * mask_b[:, :, None])   # (P, nv_j, 3)
+        centre_a = at(pa + rho_a[:, None] * n) * mask_a[:, :, None]                       # (P, nv_j, 3)
+        centre_b = at(pb - rho_b[:, None] * n) * mask_b[:, :, None]
+        dC = (1.0 - weight_b)[:, None, None] * centre_a + weight_b[:, None, None] * centre_b
+        along = n[:, :, None] * n[:, None, :]   # and along n by half the centres' approach
+        dC = dC - dC @ along + 0.5 * (centre_a + centre_b) @ along
         v_AcBc = jnp.sum(G * v[None, :, None], 1)
         force = lambda x, w, nn, *p: _force_on_a(x, w, nn, *p)[0]  # noqa: E731
         in_axes = (0, 0, 0) + tuple(0 if jnp.ndim(p) else None for p in params)
         f_A = force(depth, v_AcBc, n, *params)                                         # (P, 3)
-        F_x, F_v = jax.vmap(jax.jacfwd(force, (0, 1)), in_axes)(depth, v_AcBc, n, *params)   # (P, 3), (P, 3, 3)
+        F_x, F_v, F_n = jax.vmap(jax.jacfwd(force, (0, 1, 2)), in_axes)(depth, v_AcBc, n, *params)   # (P, 3), (P, 3, 3) x2
         # sums over the candidates as single matrix products of (P x 3, nv) blocks (a batch of
         # P small products is far slower on a CPU); the 3-vectors' products elementwise.
         # the turning subspaces, summed before they are crossed (no (P, nv, nv, 3) tensor):
@@ -384,8 +398,30 @@ class ContactModel(eqx.Module):
         FG = jnp.sum(G[:, :, :, None] * F_v[:, None, :, :], 2)                         # (P, nv_k, 3): G_p^T F_v,p
         spring = jnp.sum(G * F_x[:, None, :], -1).T @ jnp.sum(G * n[:, None, :], -1)    # sum_p G^T F_x n^T G
         K = -(spring + blocks(FG).T @ blocks(dv_AcBc) + turned.T + moved)
+        if may_turn:   # n = (O_a - O_b) / |O_a - O_b| between the centres of curvature
+            apart = jnp.where(turning, rho_a + rho_b, 1.0)
+            across = jnp.eye(3, dtype=n.dtype) - n[:, :, None] * n[:, None, :]
+            dn = jnp.where(turning[:, None, None], (centre_a - centre_b) @ across / apart[:, None, None], 0.0)
+            K = K - blocks(jnp.sum(G[:, :, :, None] * F_n[:, None, :, :], 2)).T @ blocks(dn)
         D = -(blocks(FG).T @ blocks(G))
         return K, D
+
+    def _on_corner_or_edge(self, motion, ib, n):
+        """Whether each candidate's normal n meets its geometry B (a box or hull) off its
+        faces' normals: at a corner or an edge, which stays put on B as A rolls over it."""
+        kinds_b = np.asarray(self.kinds)[np.asarray(ib, int)]
+        faceted = np.isin(kinds_b, ("box", "convex"))
+        if not faceted.any():
+            return np.zeros(len(ib), bool)
+        R, _ = self.geometry_poses(motion)
+        b = np.asarray(ib, int)
+        faces = self.planes.shape[1]
+        count = max(3, faces)   # a box's 3 face normals (up to sign) or a hull's, in B's frame, padded by repeats
+        box = jnp.asarray(np.eye(3)[np.minimum(np.arange(count), 2)], n.dtype)
+        hull = self.planes[b][:, np.minimum(np.arange(count), faces - 1), :3].astype(n.dtype)
+        normals = jnp.where(np.asarray(kinds_b == "box")[:, None, None], box[None], hull)
+        alignment = jnp.max(jnp.abs(jnp.einsum("pfk,pk->pf", normals, jnp.einsum("pji,pj->pi", R[b], n))), axis=1)
+        return faceted & (alignment < 1.0 - 1e-6)
 
     def generalized_forces(self, tree, q, v):
         r"""$\tau_c = \sum J^T f$ of all contact forces at (q, v), and the `ContactResults` (one
