@@ -558,6 +558,26 @@ def _the_damping_matrix_is_exact(plant, x):
     np.testing.assert_allclose(np.asarray(D), np.asarray(D_exact), rtol=1e-10, atol=1e-10 * float(jnp.max(jnp.abs(D))))
 
 
+def test_the_stiff_linearization_of_a_ball_rolling_over_a_box_edge_is_the_exact_jacobian():
+    """A ball rolling over a box's edge, slipping at half the stiction tolerance (where the
+    friction law is steepest): the contact point stays on the edge, the normal turns with the
+    ball and C moves along it by half the approach. Before, the matrix's position columns were
+    off by their own size (C moved with the ball's centre), and Rosenbrock took 10x the exact
+    Jacobian's steps over the edge."""
+    ball = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True, contact=True)
+    plant = ball.with_collision_geometry("world", Box(0.4, 0.4, 0.2), translation=(0.0, 0.0, 0.1), name="block")
+    n, r, w = np.array([0.6, 0.0, 0.8]), 0.1, 3.0
+    centre = np.array([0.2, 0.0, 0.2]) + (r - 5e-4) * n
+    omega = np.array([0.0, w, 0.0])
+    velocity = np.cross(omega, (r - 2.5e-4) * n) + 5e-5 * np.array([0.8, 0.0, -0.6])   # C rolls, slips v_s / 2
+    x = jnp.asarray(np.concatenate([centre, [0, 0, 0, 1], velocity, omega]))
+    u = jnp.zeros(0)
+    exact, stiff = (jax.jacfwd(lambda y, p=p: p.dynamics(0.0, y, u))(x)[7:, :3]
+                    for p in (plant, plant.stiff_linearization()))
+    assert float(jnp.max(jnp.abs(exact))) > 1e6   # the friction law's slope: stiff
+    np.testing.assert_allclose(np.asarray(stiff), np.asarray(exact), atol=1e-3 * float(jnp.max(jnp.abs(exact))))
+
+
 @pytest.mark.slow  # ~8 s; the hopper's case above runs by default
 def test_the_stiff_linearization_of_free_bodies_beside_an_arm():
     pusher = _ours("arm_pushing_free_bodies")
