@@ -333,9 +333,38 @@ def test_round_sides_that_cross_touch_at_the_closed_form_depth():
             i = jnp.argmax(depth)
             return depth[i], pb[i], n[i]
         depth, pb, n = jax.jit(jax.vmap(deepest))(R_A, 0.05 * a_axis + gap * normal, R_B, -0.03 * b_axis)
+        # a capsule's point found by a search to ~sqrt(eps): the depth is stationary there
+        close = 1e-12 if kind_a == "cylinder" else 1e-7
         np.testing.assert_allclose(np.asarray(depth), 0.1 + 0.15 - gap, atol=1e-12)
-        np.testing.assert_allclose(np.asarray(n), np.asarray(normal), atol=1e-12)
-        np.testing.assert_allclose(np.asarray(pb), np.asarray(0.15 * normal), atol=1e-12)
+        np.testing.assert_allclose(np.asarray(n), np.asarray(normal), atol=close)
+        np.testing.assert_allclose(np.asarray(pb), np.asarray(0.15 * normal), atol=close)
+
+
+def test_a_capsule_across_a_box_edge_touches_at_the_closed_form_depth():
+    """A tilted capsule lying across a box's (or the same hull's) top edge, its segment r - x
+    from the edge: one candidate between its end spheres at depth x along the common normal;
+    lying flat on the face, only its two end spheres touch (no third point between them)."""
+    box = Box(0.4, 0.4, 0.2)
+    shapes = (("box", {"size": jnp.asarray(box.half_sizes)}),
+              ("convex", _hull_params(Convex.from_points(box.vertices()))))
+    capsule, r, x, tilt = {"size": jnp.array([0.05, 0.3, 0.0])}, 0.05, 2e-3, 0.3
+    axis = np.array([np.cos(tilt), 0.0, -np.sin(tilt)])   # down toward +x, past the edge
+    up = np.array([np.sin(tilt), 0.0, np.cos(tilt)])
+    R_A = jnp.asarray(np.column_stack([up, np.cross(axis, up), axis]))
+    X_A = (R_A, jnp.asarray(np.array([0.2, 0.05, 0.1]) + (r - x) * up))
+    for kind, params in shapes:
+        depth, _, pb, n = jax.jit(lambda X: penetration("capsule", capsule, X, kind, params,
+                                                        (jnp.eye(3), jnp.zeros(3))))(X_A)
+        i = int(jnp.argmax(depth))
+        assert int(jnp.sum(depth > 0)) == 1
+        np.testing.assert_allclose(float(depth[i]), x, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(n[i]), up, atol=1e-9)
+        np.testing.assert_allclose(np.asarray(pb[i]), [0.2, 0.05, 0.1], atol=1e-9)
+        flat = (jnp.asarray(np.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])), jnp.array([0.0, 0.0, 0.1 + r - x]))
+        short = {"size": jnp.array([r, 0.15, 0.0])}
+        depth = jax.jit(penetration, static_argnums=(0, 3))("capsule", short, flat, kind, params,
+                                                            (jnp.eye(3), jnp.zeros(3)))[0]
+        np.testing.assert_allclose(np.sort(np.asarray(depth[depth > 0])), [x, x], atol=1e-12)
 
 
 def test_a_cylinder_rests_on_a_box_on_two_rim_points_lying_and_four_standing(tmp_path):

@@ -16,20 +16,22 @@ all in the world:
 
 - a sphere against any shape: one candidate, exactly Drake's
   (x = r - \varphi_B(A_o), $C_b$ = N, $C_a = A_o - r\,\nabla\varphi_B$);
-- a capsule: its two end spheres against any shape but a capsule (against a box or hull
-  also their vertices inside it); the closest points of the two segments against a capsule;
+- a capsule: its two end spheres against any shape but a capsule, and, against a box, hull
+  or cylinder, the sphere about the point of its segment deepest into the other where that
+  is deeper than both ends (lying across an edge; against a box or hull also their vertices
+  inside it); the closest points of the two segments against a capsule;
 - a box or a convex hull: each vertex inside the other shape (x = $-\varphi_B(v)$), both
   ways between two of them;
 - a cylinder: four points of each rim, starting from the one deepest along the other
   shape's outward normal at the cylinder's centre (so that it stands on 4 points and lies on
-  2); against a box or hull also their vertices inside it;
-- a capsule or cylinder against a cylinder: also the sphere of its radius about the point of
-  its axis nearest the other's axis, where the round sides cross (exact there).
+  2); against a box or hull also their vertices inside it; against a cylinder also the
+  sphere of its radius about the point of its axis nearest the other's axis, where the
+  round sides cross (exact there).
 
 Where Drake has exact closed forms (anything with a sphere) the results equal Drake's; the
 vertex and rim sets are the multi-point contact of MuJoCo and most engines, where Drake's
 point contact keeps a single FCL point (which makes a box resting on a face ill-posed); an
-edge crossing an edge (box on box, capsule across a box's edge) is not detected. Every
+edge crossing an edge (box on box, a cylinder's side across a box's edge) is not detected. Every
 function is NaN-free and differentiable at a touch and at degenerate points ("double where").
 """
 
@@ -224,16 +226,52 @@ def _rim_against(params_a, X_A, kind_b, params_b, X_B):
     return _vertices_against(kind_b, params_b, X_B, rim, jnp.zeros(8, rim.dtype), jnp.ones(8, bool))
 
 
-def _axis_sphere_against(kind_a, params_a, X_A, params_b, X_B):
-    """The sphere of A's radius about the point of A's axis nearest to cylinder B's axis,
-    against B: where the round sides cross. Only where that point lies inside A's segment (a
-    capsule's ends are its own candidates) and, for a cylinder, at least a radius from its flat
-    ends (else the sphere would stick out of them)."""
+def _axis_sphere_against(params_a, X_A, params_b, X_B):
+    """The sphere of cylinder A's radius about the point of its axis nearest to cylinder B's
+    axis, against B: where the round sides cross. Only where that point lies at least a radius
+    from A's flat ends (else the sphere would stick out of them)."""
     centre = _closest_point_on_segment_a(params_a, X_A, params_b, X_B)
     radius, half = params_a["size"][0], params_a["size"][1]
-    margin = radius if kind_a == "cylinder" else 1e-9 * half
-    inside = jnp.abs(jnp.dot(centre - X_A[1], X_A[0][:, 2])) < half - margin
+    inside = jnp.abs(jnp.dot(centre - X_A[1], X_A[0][:, 2])) < half - radius
     return _points_against("cylinder", params_b, X_B, centre[None], radius[None], inside[None])
+
+
+_GOLDEN = float((np.sqrt(5.0) - 1.0) / 2.0)
+_SEARCH_STEPS = 60   # the bracket shrinks to 0.618^60 ~ 3e-13 of the segment
+
+
+def _capsule_middle_against(params_a, X_A, kind_b, params_b, X_B):
+    """The sphere of capsule A's radius about the point of its segment deepest into B, where
+    that point is deeper than both ends and more than a radius from them (their spheres are
+    their own candidates): a capsule lying across a box's, hull's or cylinder's edge. B's signed distance is convex along a
+    line, so a golden-section search finds the point (not differentiated: the depth is
+    stationary there)."""
+    radius, half = params_a["size"][0], params_a["size"][1]
+
+    def distance(s, X_A, X_B, params_b):
+        (R_A, p_A), (R_B, p_B) = X_A, X_B
+        return point_distance(kind_b, params_b, R_B.T @ (p_A + s * R_A[:, 2] - p_B))[0]
+
+    held = jax.lax.stop_gradient((X_A, X_B, params_b))
+    phi = lambda s: distance(s, *held)  # noqa: E731
+
+    def shrink(_, bracket):   # [lo, hi] with probes a < b inside it; one new distance a step
+        lo, hi, a, b, phi_a, phi_b = bracket
+        left = phi_a < phi_b   # the minimum is in [lo, b]: b becomes the upper probe
+        lo, hi = jnp.where(left, lo, a), jnp.where(left, b, hi)
+        probe = jnp.where(left, hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo))
+        phi_probe = phi(probe)
+        return (lo, hi, jnp.where(left, probe, b), jnp.where(left, a, probe),
+                jnp.where(left, phi_probe, phi_b), jnp.where(left, phi_a, phi_probe))
+
+    lo, hi = jax.lax.stop_gradient((-half, half))
+    a, b = hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo)
+    lo, hi, *_ = jax.lax.fori_loop(0, _SEARCH_STEPS, shrink, (lo, hi, a, b, phi(a), phi(b)))
+    s = 0.5 * (lo + hi)
+    # more than a radius from the ends, whose spheres cover what is nearer (no double force)
+    deeper = (phi(s) < jnp.minimum(phi(-half), phi(half)) - 1e-9 * (radius + half)) & (jnp.abs(s) < half - radius)
+    centre = X_A[1] + s * X_A[0][:, 2]
+    return _points_against(kind_b, params_b, X_B, centre[None], radius[None], deeper[None])
 
 
 def penetration(kind_a: str, params_a, X_A, kind_b: str, params_b, X_B):
@@ -243,10 +281,10 @@ def penetration(kind_a: str, params_a, X_A, kind_b: str, params_b, X_B):
     if kind_a == "sphere" or (kind_a == "capsule" and kind_b != "capsule"):
         own = _points_against(kind_b, params_b, X_B, *_contact_points(kind_a, params_a, X_A))
         if kind_a == "capsule" and kind_b in ("box", "convex"):
-            return _concat(own, _swap(_vertices_against("capsule", params_a, X_A,
-                                                        *_contact_points(kind_b, params_b, X_B))))
+            return _concat(own, _capsule_middle_against(params_a, X_A, kind_b, params_b, X_B),
+                           _swap(_vertices_against("capsule", params_a, X_A, *_contact_points(kind_b, params_b, X_B))))
         if kind_a == "capsule" and kind_b == "cylinder":
-            return _concat(own, _axis_sphere_against(kind_a, params_a, X_A, params_b, X_B),
+            return _concat(own, _capsule_middle_against(params_a, X_A, kind_b, params_b, X_B),
                            _swap(_rim_against(params_b, X_B, "capsule", params_a, X_A)))
         return own
     if kind_a == "capsule" and kind_b == "capsule":
@@ -258,7 +296,7 @@ def penetration(kind_a: str, params_a, X_A, kind_b: str, params_b, X_B):
             return _concat(own, _swap(_vertices_against("cylinder", params_a, X_A,
                                                         *_contact_points(kind_b, params_b, X_B))))
         if kind_b == "cylinder":
-            return _concat(own, _axis_sphere_against(kind_a, params_a, X_A, params_b, X_B),
+            return _concat(own, _axis_sphere_against(params_a, X_A, params_b, X_B),
                            _swap(_rim_against(params_b, X_B, "cylinder", params_a, X_A)))
         return own
     if kind_a in ("box", "convex"):
