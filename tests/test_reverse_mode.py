@@ -201,20 +201,26 @@ def test_a_traced_gain_inside_a_controller_is_differentiated():
 # ----- the discrete adjoint (autodiff="adjoint") ---------------------------------------------
 
 
-def stiff_van_der_pol(mode):
+def stiff_van_der_pol(mode, solver="rosenbrock23"):
     """Rosenbrock23 on a stiff Van der Pol (rejected steps whose retries reuse the matrix),
     w.r.t. x0 and mu."""
     def loss(p):
         system = jd.models.VanDerPol(p[2])
-        traj = jd.simulate(system, (0.0, 3.0), p[:2], solver="rosenbrock23", rtol=1e-6, atol=1e-8, autodiff=mode)
+        traj = jd.simulate(system, (0.0, 3.0), p[:2], solver=solver, rtol=1e-6, atol=1e-8, autodiff=mode)
         return jnp.sum(traj.final_state ** 2)
     return loss, np.array([2.0, 0.0, 30.0])
+
+
+def stiff_van_der_pol_third_order(mode):
+    """The same with ROS34PW2 (its stages and f(t0 + h, y1) in one loop)."""
+    return stiff_van_der_pol(mode, solver="ros34pw2")
 
 
 # by default the features that change the iteration most (an impact's saltation, a reused
 # matrix); the others slow
 @pytest.mark.parametrize("case", [pytest.param(c, marks=() if c in (bouncing_ball, stiff_van_der_pol) else pytest.mark.slow)
-                                  for c in CASES + [stiff_van_der_pol]], ids=lambda c: c.__name__)
+                                  for c in CASES + [stiff_van_der_pol, stiff_van_der_pol_third_order]],
+                         ids=lambda c: c.__name__)
 def test_the_adjoint_equals_forward_sensitivities(case):
     """Two independent derivations of the same derivative: the adjoint's backward loop over
     one iteration's VJP, and the loop's tangents (which the slow test above checks against

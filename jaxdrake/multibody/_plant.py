@@ -413,9 +413,9 @@ class RigidBodySystem(System):
         $d\dot v = H(q)^{-1}\,d\tau$ of the applied forces $\tau = B u - b \circ v +
         \tau_{lim}(q, v) + \tau_c(q, v)$ alone, the contact force's by
         `ContactModel.force_derivatives` (its springs, dampers and friction slopes, and how the
-        contact points' motion changes them): left out are the derivatives of H, of the
-        Coriolis and gravity terms, which are not stiff, and the normals' turning. For the
-        matrix of `Rosenbrock23(jacobian="stiff")` only;
+        contact points' motion and the normals' turning change them): left out are the
+        derivatives of H, of the Coriolis and gravity terms, which are not stiff. For the
+        matrix of the Rosenbrock W-methods' `jacobian="stiff"` (`Rosenbrock23`, `Ros34PW2`) only;
         derivatives with respect to the plant's parameters stay exact. A plant with loop or
         coupler constraints keeps its exact derivative."""
         if self.loops or self.couplers:

@@ -25,7 +25,7 @@ from ._controller import ConstantStepSize, IController
 from ._inputs import NoisyInput, leaf_to_array, make_source
 from ._loop import run_simulation
 from ._result import SimulatedTrajectory, trajectory_bytes
-from ._solvers import Rosenbrock23, make_solver
+from ._solvers import Ros34PW2, Rosenbrock23, make_solver
 from ._status import SimulationError, SimulationStatus
 
 
@@ -64,7 +64,8 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="d
     - `key`: a JAX PRNG key, for a stochastic system (required then, refused otherwise): the
       noise path is a function of the key alone; `jax.vmap` over keys gives a Monte-Carlo batch.
     - `solver`: `"dopri5"` (adaptive, default), `"rosenbrock23"` (adaptive, for stiff
-      systems), `"rk4"`, `"midpoint"` or `"euler"` (fixed step `dt`), or a solver instance
+      systems), `"ros34pw2"` (adaptive, third order, for stiff systems at tight tolerances),
+      `"rk4"`, `"midpoint"` or `"euler"` (fixed step `dt`), or a solver instance
       (`Rosenbrock23(jacobian="stiff")`: for rigid bodies in stiff contact, its matrix from
       the systems' `stiff_linearization`).
     - `rtol`, `atol`: tolerances of the adaptive solvers (atol: 1e-9 for a float64 state,
@@ -218,13 +219,13 @@ def _solver_advice(solver, status) -> str:
     try next (the status's own message says only "a stiff solver")."""
     if status not in (SimulationStatus.MAX_STEPS_REACHED, SimulationStatus.STEP_SIZE_TOO_SMALL):
         return ""
-    if isinstance(solver, Rosenbrock23) and solver.jacobian == "stiff":
-        return (". This ran Rosenbrock23(jacobian='stiff'), whose matrix leaves out some of the dynamics' "
-                "derivative (the normals' turning, the derivatives of H and the Coriolis terms): solver='rosenbrock23' "
+    if isinstance(solver, (Rosenbrock23, Ros34PW2)) and solver.jacobian == "stiff":
+        return (f". This ran {type(solver).__name__}(jacobian='stiff'), whose matrix leaves out some of the dynamics' "
+                f"derivative (the derivatives of H and the Coriolis terms): solver='{type(solver).__name__.lower()}' "
                 "(the exact Jacobian) may take fewer steps")
-    if isinstance(solver, Rosenbrock23):
-        return (". This ran rosenbrock23 already: raise max_steps, loosen rtol / atol, or for contact raise "
-                "the stiction tolerance (stiction_tolerance=) or soften the contact")
+    if isinstance(solver, (Rosenbrock23, Ros34PW2)):
+        return (f". This ran {type(solver).__name__.lower()} already: raise max_steps, loosen rtol / atol, or for "
+                "contact raise the stiction tolerance (stiction_tolerance=) or soften the contact")
     return (". Stiff solvers: solver='rosenbrock23' (the exact Jacobian); for rigid bodies in stiff contact "
             "solver=jd.simulation.Rosenbrock23(jacobian='stiff')")
 
