@@ -334,18 +334,18 @@ class ContactModel(eqx.Module):
         moves = np.zeros((tree.num_bodies + 1, tree.nv))   # row 0: the world; else the ancestor mask
         moves[1 + np.arange(tree.num_bodies)] = L.subtree[L.dof_body][:, L.position].T
         body_a, body_b = self._pair_bodies(ia, ib)
-        # C's motion: the centres of curvature (radius rho: a sphere's or capsule's; 0 at a
-        # polyhedron's corner or edge; B's face or half-space flat), weighted rho_B : rho_A
-        rounded_a, rounded_b = (np.isin(np.asarray(self.kinds)[np.asarray(i, int)], ("sphere", "capsule")) for i in (ia, ib))
-        rho_a = jnp.where(rounded_a, self.size[np.asarray(ia, int), 0], 0.0)
-        rho_b = jnp.where(rounded_b, self.size[np.asarray(ib, int), 0], 0.0)
-        weight_b = jnp.where(rounded_b, rho_a / jnp.where(rounded_b, rho_a + rho_b, 1.0), 0.0)
-        on_corner = self._on_corner_or_edge(motion, ib, n) & rounded_a
+        # C's motion: the centres of curvature (radius rho: a sphere's, a capsule's, a cylinder's
+        # side; 0 at a polyhedron's corner or edge; B's face or half-space flat), weighted
+        # rho_B : rho_A
+        (rho_a, curved_a), (rho_b, curved_b) = (self._curvature(motion, i, n) for i in (ia, ib))
+        weight_b = jnp.where(curved_b, rho_a / jnp.where(curved_b, rho_a + rho_b, 1.0), 0.0)
+        on_corner = self._on_corner_or_edge(motion, ib, n) & curved_a
         weight_b = jnp.where(on_corner, 1.0, weight_b)   # a ball rolling over a corner turns about it
         # the normal turns where both surfaces are curved (B rounded, or A rounded on B's corner)
-        turning = jnp.asarray((rounded_a & rounded_b) | on_corner)
-        may_turn = bool(np.any(rounded_a & (rounded_b | np.isin(np.asarray(self.kinds)[np.asarray(ib, int)],
-                                                                 ("box", "convex")))))
+        turning = (curved_a & curved_b) | on_corner
+        kinds = np.asarray(self.kinds)
+        may_curve_a, may_curve_b = (np.isin(kinds[np.asarray(i, int)], ("sphere", "capsule", "cylinder")) for i in (ia, ib))
+        may_turn = bool(np.any(may_curve_a & (may_curve_b | np.isin(kinds[np.asarray(ib, int)], ("box", "convex")))))
         *per_pair, stiction_tolerance = self._pair_parameters(ia, ib)   # k, d, mu_s, mu_d per candidate; v_s
         per_candidate = (depth, pa, pb, n, jnp.asarray(moves[body_a], pa.dtype), jnp.asarray(moves[body_b], pa.dtype),
                          rho_a, rho_b, weight_b, turning, tuple(per_pair))
@@ -405,6 +405,18 @@ class ContactModel(eqx.Module):
             K = K - blocks(jnp.sum(G[:, :, :, None] * F_n[:, None, :, :], 2)).T @ blocks(dn)
         D = -(blocks(FG).T @ blocks(G))
         return K, D
+
+    def _curvature(self, motion, ids, n):
+        """(rho, curved) of each candidate's geometry at its contact, across the normal n: a
+        sphere's or capsule's radius; a cylinder's where n is across its axis (its side),
+        else flat (its caps and their rims); 0 for the rest."""
+        kinds = np.asarray(self.kinds)[np.asarray(ids, int)]
+        radius = self.size[np.asarray(ids, int), 0]
+        curved = jnp.asarray(np.isin(kinds, ("sphere", "capsule")))
+        if np.any(kinds == "cylinder"):
+            axis = self.geometry_poses(motion)[0][np.asarray(ids, int)][:, :, 2]
+            curved = curved | ((kinds == "cylinder") & (jnp.abs(jnp.sum(axis * n, -1)) < 1e-6))
+        return jnp.where(curved, radius, 0.0), curved
 
     def _on_corner_or_edge(self, motion, ib, n):
         """Whether each candidate's normal n meets its geometry B (a box or hull) off its
