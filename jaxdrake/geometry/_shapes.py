@@ -31,6 +31,8 @@ class GeometryError(ValueError):
 
 @dataclasses.dataclass(frozen=True)
 class Sphere:
+    """A sphere of `radius` about its frame's origin."""
+
     radius: float
 
     def __post_init__(self):
@@ -39,6 +41,8 @@ class Sphere:
 
 @dataclasses.dataclass(frozen=True)
 class Box:
+    """A box of full side lengths x, y, z along its frame's axes, centred."""
+
     x: float
     y: float
     z: float
@@ -59,6 +63,9 @@ class Box:
 
 @dataclasses.dataclass(frozen=True)
 class Capsule:
+    """A segment of `length` along its frame's z axis, centred, swept by a sphere of `radius`
+    (its total length is length + 2 radius)."""
+
     radius: float
     length: float
 
@@ -69,6 +76,8 @@ class Capsule:
 
 @dataclasses.dataclass(frozen=True)
 class Cylinder:
+    """A cylinder of `radius` and `length` along its frame's z axis, centred."""
+
     radius: float
     length: float
 
