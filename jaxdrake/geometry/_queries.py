@@ -243,17 +243,12 @@ _SEARCH_STEPS = 60   # the bracket shrinks to 0.618^60 ~ 3e-13 of the segment
 def _capsule_middle_against(params_a, X_A, kind_b, params_b, X_B):
     """The sphere of capsule A's radius about the point of its segment deepest into B, where
     that point is deeper than both ends and more than a radius from them (their spheres are
-    their own candidates): a capsule lying across a box's, hull's or cylinder's edge. B's signed distance is convex along a
-    line, so a golden-section search finds the point (not differentiated: the depth is
-    stationary there)."""
+    their own candidates): a capsule lying across a box's, hull's or cylinder's edge. B's
+    signed distance is convex along a line, so a golden-section search finds the point (not
+    differentiated: the depth is stationary there)."""
     radius, half = params_a["size"][0], params_a["size"][1]
-
-    def distance(s, X_A, X_B, params_b):
-        (R_A, p_A), (R_B, p_B) = X_A, X_B
-        return point_distance(kind_b, params_b, R_B.T @ (p_A + s * R_A[:, 2] - p_B))[0]
-
-    held = jax.lax.stop_gradient((X_A, X_B, params_b))
-    phi = lambda s: distance(s, *held)  # noqa: E731
+    (R_A, p_A), (R_B, p_B), held = jax.lax.stop_gradient((X_A, X_B, params_b))
+    phi = lambda s: point_distance(kind_b, held, R_B.T @ (p_A + s * R_A[:, 2] - p_B))[0]  # noqa: E731
 
     def shrink(_, bracket):   # [lo, hi] with probes a < b inside it; one new distance a step
         lo, hi, a, b, phi_a, phi_b = bracket

@@ -11,6 +11,6 @@ from ._step import FIXED_STEP_RULES, discrete_step
 from ._status import SimulationError, SimulationStatus
 
 __all__ = ["FIXED_STEP_RULES", "RK4", "AbstractExplicitRungeKutta", "AbstractSolver", "AbstractStepSizeController",
-           "ConstantStepSize", "Dopri5", "EnsembleResult", "Euler", "IController", "Midpoint", "Ros34PW2", "Rosenbrock23", "SimulatedTrajectory",
-           "SimulationError", "SimulationStatus", "discrete_step", "leaves_to_arrays", "project_to_constraints", "simulate",
+           "ConstantStepSize", "Dopri5", "EnsembleResult", "Euler", "IController", "Midpoint", "Ros34PW2", "Rosenbrock23",
+           "SimulatedTrajectory", "SimulationError", "SimulationStatus", "discrete_step", "leaves_to_arrays", "project_to_constraints", "simulate",
            "simulate_ensemble"]

@@ -182,11 +182,11 @@ def run_adjoint(loop, t0, x0, h0, status):
     the first, a `lax.while_loop` over `jax.vjp` of one iteration. The forward pass keeps
     each iteration's state without its trajectory buffers (`max_steps` small states; where
     they would pass `KEPT_BYTES`, every `kept_stride`-th, and the backward pass re-runs each
-    stretch from its first); the backward pass re-runs one iteration from it. The iteration is traced once, with its
-    buffers cut to the one row it writes (`Loop.windowed`); the loop places that row, and the
-    backward pass reads the row's cotangent. A linearly implicit solver's kept matrix is
-    formed again where it was reused (same values; its derivative then comes through the
-    state). The same derivative as the other modes: that of the computed solution."""
+    stretch from its first); the backward pass re-runs one iteration from it. The iteration
+    is traced once, with its buffers cut to the one row it writes (`Loop.windowed`); the loop
+    places that row, and the backward pass reads the row's cotangent. A linearly implicit
+    solver's kept matrix is formed again where it was reused (same values; its derivative
+    then comes through the state). The same derivative as the other modes: that of the computed solution."""
     s0 = loop.initial_state(t0, x0, h0, status)
     step = eqx.filter_closure_convert(dataclasses.replace(loop, windowed=True).iterate, _window(s0, s0.linearization))
     continues = eqx.filter_closure_convert(loop.continues, _without_buffers(s0))

@@ -310,7 +310,8 @@ class _LinearlyImplicit(AbstractSolver):
 
         if linearization is None or k0 is None:
             f_linearized, linearization = form()
-            return (f_linearized if k0 is None else k0), linearization   # given k0, the linearization's value is dead code
+            # given k0, the linearization's own value is dead code
+            return (f_linearized if k0 is None else k0), linearization
         # after a rejected attempt, the same point's matrix again
         return k0, jax.lax.cond(linearization.current, lambda: linearization, lambda: form()[1])
 
