@@ -338,9 +338,10 @@ class ContactModel(eqx.Module):
         # C's motion: the centres of curvature (radius rho: a sphere's, a capsule's, a cylinder's
         # side; 0 at a polyhedron's corner or edge; B's face or half-space flat), weighted
         # rho_B : rho_A
-        (rho_a, curved_a), (rho_b, curved_b) = (self._curvature(motion, i, n) for i in (ia, ib))
+        R = self.geometry_poses(motion)[0]
+        (rho_a, curved_a), (rho_b, curved_b) = (self._curvature(R, i, n) for i in (ia, ib))
         weight_b = jnp.where(curved_b, rho_a / jnp.where(curved_b, rho_a + rho_b, 1.0), 0.0)
-        on_corner = self._on_corner_or_edge(motion, ib, n) & curved_a
+        on_corner = self._on_corner_or_edge(R, ib, n) & curved_a
         weight_b = jnp.where(on_corner, 1.0, weight_b)   # a ball rolling over a corner turns about it
         # the normal turns where both surfaces are curved (B rounded, or A rounded on B's corner)
         turning = (curved_a & curved_b) | on_corner
@@ -407,26 +408,26 @@ class ContactModel(eqx.Module):
         D = -(blocks(FG).T @ blocks(G))
         return K, D
 
-    def _curvature(self, motion, ids, n):
-        """(rho, curved) of each candidate's geometry at its contact, across the normal n: a
-        sphere's or capsule's radius; a cylinder's where n is across its axis (its side),
-        else flat (its caps and their rims); 0 for the rest."""
+    def _curvature(self, R, ids, n):
+        """(rho, curved) of each candidate's geometry (world rotations R) at its contact,
+        across the normal n: a sphere's or capsule's radius; a cylinder's where n is across its
+        axis (its side), else flat (its caps and their rims); 0 for the rest."""
         kinds = np.asarray(self.kinds)[np.asarray(ids, int)]
         radius = self.size[np.asarray(ids, int), 0]
         curved = jnp.asarray(np.isin(kinds, ("sphere", "capsule")))
         if np.any(kinds == "cylinder"):
-            axis = self.geometry_poses(motion)[0][np.asarray(ids, int)][:, :, 2]
+            axis = R[np.asarray(ids, int)][:, :, 2]
             curved = curved | ((kinds == "cylinder") & (jnp.abs(jnp.sum(axis * n, -1)) < 1e-6))
         return jnp.where(curved, radius, 0.0), curved
 
-    def _on_corner_or_edge(self, motion, ib, n):
-        """Whether each candidate's normal n meets its geometry B (a box or hull) off its
-        faces' normals: at a corner or an edge, which stays put on B as A rolls over it."""
+    def _on_corner_or_edge(self, R, ib, n):
+        """Whether each candidate's normal n meets its geometry B (a box or hull, world
+        rotations R) off its faces' normals: at a corner or an edge, which stays put on B as A
+        rolls over it."""
         kinds_b = np.asarray(self.kinds)[np.asarray(ib, int)]
         faceted = np.isin(kinds_b, ("box", "convex"))
         if not faceted.any():
             return np.zeros(len(ib), bool)
-        R, _ = self.geometry_poses(motion)
         b = np.asarray(ib, int)
         faces = self.planes.shape[1]
         count = max(3, faces)   # a box's 3 face normals (up to sign) or a hull's, in B's frame, padded by repeats
