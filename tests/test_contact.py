@@ -369,7 +369,7 @@ def test_a_capsule_across_a_box_edge_touches_at_the_closed_form_depth():
 
 def test_a_cylinder_rests_on_a_box_on_two_rim_points_lying_and_four_standing(tmp_path):
     """A cylinder dropped onto a box fixed to the world comes to rest sunk m g / (n k), n = 2
-    rim points lying on its side, 4 standing on a cap; a ball on a convex hull's face, m g / k."""
+    rim points lying on its side, 4 standing on a cap."""
     (tmp_path / "can.urdf").write_text("""<robot name="can">
       <link name="can"><inertial><mass value="0.8"/><inertia ixx="0.004" iyy="0.004" izz="0.002" ixy="0" ixz="0" iyz="0"/>
         </inertial><collision><geometry><cylinder radius="0.05" length="0.2"/></geometry></collision></link></robot>""")
@@ -383,6 +383,11 @@ def test_a_cylinder_rests_on_a_box_on_two_rim_points_lying_and_four_standing(tmp
         x = jd.simulate(can, (0.0, 1.0), jnp.asarray(x0), solver=stiff, dense=False).final_state
         np.testing.assert_allclose(float(x[2]), half_height - mg / (points * k), atol=1e-9)
         assert int(jnp.sum(can.contact_results(x).active)) == points
+
+
+@pytest.mark.slow   # ~6 s; the sphere-hull query is checked against the box's closed form by default
+def test_a_ball_rests_on_a_hulls_face_sunk_m_g_over_k():
+    stiff = jd.simulation.Rosenbrock23(jacobian="stiff")
     ball = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True, contact=True)
     frustum = [[sx * w, sy * w, z] for w, z in ((0.3, 0.0), (0.1, 0.2)) for sx in (-1, 1) for sy in (-1, 1)]
     ball = ball.with_collision_geometry("world", Convex.from_points(np.array(frustum)), name="rock")
