@@ -612,6 +612,22 @@ def test_the_stiff_linearization_of_a_ball_rolling_over_a_box_edge_is_the_exact_
     np.testing.assert_allclose(np.asarray(stiff), np.asarray(exact), atol=1e-3 * float(jnp.max(jnp.abs(exact))))
 
 
+def test_the_stiff_linearization_of_a_ball_rolling_along_a_box_edge_is_the_exact_jacobian():
+    """Rolling along the edge, C moves with the ball and the normal does not turn (it turns
+    only across the edge): the column along the edge was off by 3e-4 of the largest entry, now 1e-6."""
+    ball = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True, contact=True)
+    plant = ball.with_collision_geometry("world", Box(0.4, 0.4, 0.2), translation=(0.0, 0.0, 0.1), name="block")
+    n, r, depth, speed = np.array([0.6, 0.0, 0.8]), 0.1, 5e-4, 0.5
+    omega = -(speed / (r - depth / 2)) * np.cross([0.0, 1.0, 0.0], n)   # C rolls along the edge (y) ...
+    velocity = np.array([0.0, speed + 5e-5, 0.0])                        # ... slipping v_s / 2
+    x = jnp.asarray(np.concatenate([np.array([0.2, 0.0, 0.2]) + (r - depth) * n, [0, 0, 0, 1], velocity, omega]))
+    u = jnp.zeros(0)
+    exact, stiff = (np.asarray(jax.jacfwd(lambda y, p=p: p.dynamics(0.0, y, u))(x))[7:, :3]
+                    for p in (plant, plant.stiff_linearization()))
+    assert np.max(np.abs(exact)) > 1e6
+    np.testing.assert_allclose(stiff, exact, atol=1e-5 * np.max(np.abs(exact)))   # 3e-4 before
+
+
 def test_the_stiff_linearization_of_a_cylinder_rolling_on_its_side_is_the_exact_jacobian(tmp_path):
     """A cylinder lying on the ground, rolling and slipping at half the stiction tolerance:
     its side is curved across the axis, so C stays under the axis (as under a ball); as a

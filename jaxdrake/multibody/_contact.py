@@ -319,11 +319,11 @@ class ContactModel(eqx.Module):
         a coordinate j that carries k's axis, and C moves across $\hat n$ with the centres of
         curvature $O_A, O_B$ of the two surfaces, weighted as rolling contact has it (a
         sphere's centre on a flat face or half-space, a box's corner or edge itself under a
-        rolling ball), along $\hat n$ by half their approach (C is the witnesses' midpoint).
-        Where both surfaces are curved (two round shapes, a ball on a corner or edge) the
-        normal turns, $\partial \hat n = (I - \hat n \hat n^T)(\partial O_A - \partial
-        O_B) / (\rho_A + \rho_B)$ (a ball rolling off a box's edge: 5x fewer steps). Left
-        out: a corner's edge direction (C slides along an edge with the ball).
+        rolling ball, but along an edge with the ball), along $\hat n$ by half their
+        approach (C is the witnesses' midpoint). Where both surfaces are curved (two round
+        shapes, a ball on a corner or edge) the normal turns, $\partial \hat n = P(\partial
+        O_A - \partial O_B) / (\rho_A + \rho_B)$, P the projection across $\hat n$ (and
+        across an edge's direction) (a ball rolling off a box's edge: 5x fewer steps).
 
         Only the deepest candidates are summed, as many as there are against the world's
         geometries (the ground) and at least `MIN_STIFF_CANDIDATES`: one that does not touch
@@ -338,10 +338,12 @@ class ContactModel(eqx.Module):
         # C's motion: the centres of curvature (radius rho: a sphere's, a capsule's, a cylinder's
         # side; 0 at a polyhedron's corner or edge; B's face or half-space flat), weighted
         # rho_B : rho_A
-        R = self.geometry_poses(motion)[0]
-        (rho_a, curved_a), (rho_b, curved_b) = (self._curvature(R, i, n) for i in (ia, ib))
+        poses = self.geometry_poses(motion)
+        (rho_a, curved_a), (rho_b, curved_b) = (self._curvature(poses[0], i, n) for i in (ia, ib))
         weight_b = jnp.where(curved_b, rho_a / jnp.where(curved_b, rho_a + rho_b, 1.0), 0.0)
-        on_corner = self._on_corner_or_edge(R, ib, n) & curved_a
+        on_corner, edge = self._on_corner_or_edge(poses, ib, n, pb)
+        on_corner = on_corner & curved_a
+        edge = jnp.where(on_corner[:, None], edge, 0.0)
         weight_b = jnp.where(on_corner, 1.0, weight_b)   # a ball rolling over a corner turns about it
         # the normal turns where both surfaces are curved (B rounded, or A rounded on B's corner)
         turning = (curved_a & curved_b) | on_corner
@@ -350,12 +352,12 @@ class ContactModel(eqx.Module):
         may_turn = bool(np.any(may_curve_a & (may_curve_b | np.isin(kinds[np.asarray(ib, int)], ("box", "convex")))))
         *per_pair, stiction_tolerance = self._pair_parameters(ia, ib)   # k, d, mu_s, mu_d per candidate; v_s
         per_candidate = (depth, pa, pb, n, jnp.asarray(moves[body_a], pa.dtype), jnp.asarray(moves[body_b], pa.dtype),
-                         rho_a, rho_b, weight_b, turning, tuple(per_pair))
+                         rho_a, rho_b, weight_b, turning, edge, tuple(per_pair))
         kept = max(MIN_STIFF_CANDIDATES, int(np.sum((body_a == 0) | (body_b == 0))))   # row 0: the world
         if kept < depth.shape[0]:
             deepest = jax.lax.top_k(jax.lax.stop_gradient(depth), kept)[1]
             per_candidate = jax.tree.map(lambda x: x[deepest], per_candidate)
-        depth, pa, pb, n, mask_a, mask_b, rho_a, rho_b, weight_b, turning, per_pair = per_candidate
+        depth, pa, pb, n, mask_a, mask_b, rho_a, rho_b, weight_b, turning, edge, per_pair = per_candidate
         params = per_pair + (stiction_tolerance,)
         C = 0.5 * (pa + pb)
         w, u = motion.columns[:, :3], motion.columns[:, 3:]                             # (nv, 3) each
@@ -365,6 +367,8 @@ class ContactModel(eqx.Module):
         centre_a = at(pa + rho_a[:, None] * n) * mask_a[:, :, None]                       # (P, nv_j, 3)
         centre_b = at(pb - rho_b[:, None] * n) * mask_b[:, :, None]
         dC = (1.0 - weight_b)[:, None, None] * centre_a + weight_b[:, None, None] * centre_b
+        along_edge = edge[:, :, None] * edge[:, None, :]
+        dC = dC + (centre_a - centre_b) @ along_edge   # along an edge, C moves with A
         along = n[:, :, None] * n[:, None, :]   # and along n by half the centres' approach
         dC = dC - dC @ along + 0.5 * (centre_a + centre_b) @ along
         v_AcBc = jnp.sum(G * v[None, :, None], 1)
@@ -402,7 +406,7 @@ class ContactModel(eqx.Module):
         K = -(spring + blocks(FG).T @ blocks(dv_AcBc) + turned.T + moved)
         if may_turn:   # n = (O_a - O_b) / |O_a - O_b| between the centres of curvature
             apart = jnp.where(turning, rho_a + rho_b, 1.0)
-            across = jnp.eye(3, dtype=n.dtype) - n[:, :, None] * n[:, None, :]
+            across = jnp.eye(3, dtype=n.dtype) - n[:, :, None] * n[:, None, :] - along_edge   # not along an edge
             dn = jnp.where(turning[:, None, None], (centre_a - centre_b) @ across / apart[:, None, None], 0.0)
             K = K - blocks(jnp.sum(G[:, :, :, None] * F_n[:, None, :, :], 2)).T @ blocks(dn)
         D = -(blocks(FG).T @ blocks(G))
@@ -420,22 +424,41 @@ class ContactModel(eqx.Module):
             curved = curved | ((kinds == "cylinder") & (jnp.abs(jnp.sum(axis * n, -1)) < 1e-6))
         return jnp.where(curved, radius, 0.0), curved
 
-    def _on_corner_or_edge(self, R, ib, n):
-        """Whether each candidate's normal n meets its geometry B (a box or hull, world
-        rotations R) off its faces' normals: at a corner or an edge, which stays put on B as A
-        rolls over it."""
+    def _on_corner_or_edge(self, poses, ib, n, pb):
+        """(on_corner, edge): whether each candidate's normal n meets its geometry B (a box or
+        hull, world `poses`) off its faces' normals, at a corner or an edge, which stays put on
+        B as A rolls over it; and along an edge, its unit direction (0 elsewhere), along which
+        the contact point moves with A and the normal does not turn. The faces through B's
+        witness point pb tell them apart: two distinct ones, an edge; three, a corner."""
         kinds_b = np.asarray(self.kinds)[np.asarray(ib, int)]
         faceted = np.isin(kinds_b, ("box", "convex"))
         if not faceted.any():
-            return np.zeros(len(ib), bool)
+            return np.zeros(len(ib), bool), jnp.zeros_like(n)
         b = np.asarray(ib, int)
+        R, p = poses[0][b], poses[1][b]
         faces = self.planes.shape[1]
-        count = max(3, faces)   # a box's 3 face normals (up to sign) or a hull's, in B's frame, padded by repeats
-        box = jnp.asarray(np.eye(3)[np.minimum(np.arange(count), 2)], n.dtype)
-        hull = self.planes[b][:, np.minimum(np.arange(count), faces - 1), :3].astype(n.dtype)
-        normals = jnp.where(np.asarray(kinds_b == "box")[:, None, None], box[None], hull)
-        alignment = jnp.max(jnp.abs(jnp.einsum("pfk,pk->pf", normals, jnp.einsum("pji,pj->pi", R[b], n))), axis=1)
-        return faceted & (alignment < 1.0 - 1e-6)
+        count = max(6, faces)   # a box's 6 faces or a hull's, in B's frame, padded by repeats
+        box_normals = np.vstack([np.eye(3), -np.eye(3)])[np.minimum(np.arange(count), 5)]
+        box_offsets = jnp.concatenate([self.size[b], self.size[b]], 1)[:, np.minimum(np.arange(count), 5)]
+        hull = self.planes[b][:, np.minimum(np.arange(count), faces - 1)].astype(n.dtype)
+        is_box = np.asarray(kinds_b == "box")
+        normals = jnp.where(is_box[:, None, None], jnp.asarray(box_normals, n.dtype)[None], hull[..., :3])
+        offsets = jnp.where(is_box[:, None], box_offsets, hull[..., 3])
+        alignment = jnp.max(jnp.abs(jnp.einsum("pfk,pk->pf", normals, jnp.einsum("pji,pj->pi", R, n))), axis=1)
+        on_corner = faceted & (alignment < 1.0 - 1e-6)
+        # the faces through the witness, by distinct normals: the most active face, the most
+        # active of the others, and whether a third distinct one passes through it too
+        values = jnp.einsum("pfk,pk->pf", normals, jnp.einsum("pji,pj->pi", R, pb - p)) - offsets
+        tolerance = 1e-9 * (1.0 + jnp.max(jnp.abs(offsets), axis=1))
+        normal_of = lambda mask: jnp.take_along_axis(  # noqa: E731
+            normals, jnp.argmax(jnp.where(mask, values, -jnp.inf), axis=1)[:, None, None], 1)[:, 0]
+        distinct = lambda m: jnp.abs(jnp.einsum("pfk,pk->pf", normals, m)) < 1.0 - 1e-9  # noqa: E731
+        first = normal_of(jnp.ones(values.shape, bool))
+        second = normal_of(distinct(first))
+        third_active = jnp.max(jnp.where(distinct(first) & distinct(second), values, -jnp.inf), axis=1) > -tolerance
+        direction = norm_and_direction(jnp.cross(first, second), jnp.zeros_like(first))[1]
+        edge = jnp.where((on_corner & ~third_active)[:, None], jnp.einsum("pij,pj->pi", R, direction), 0.0)
+        return on_corner, edge
 
     def generalized_forces(self, tree, q, v):
         r"""$\tau_c = \sum J^T f$ of all contact forces at (q, v), and the `ContactResults` (one
