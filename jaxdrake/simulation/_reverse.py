@@ -20,9 +20,9 @@ ways, picked while tracing from the number $P$ of differentiated scalars:
   iteration's VJP, looped backwards); when a closed-over value is among the differentiated
   ones, the traced loop's tangents in chunks instead.
 
-Either way it is the same derivative, that of the computed solution (step sizes held, event
-times by the implicit-function theorem). `autodiff="adjoint"` always takes the discrete
-adjoint. JAX never transposes the loop.
+Either way it is the same derivative, that of the computed solution (step sizes and a
+Rosenbrock step's matrix held, event times by the implicit-function theorem).
+`autodiff="adjoint"` always takes the discrete adjoint. JAX never transposes the loop.
 """
 from __future__ import annotations
 
@@ -185,8 +185,7 @@ def run_adjoint(loop, t0, x0, h0, status):
     stretch from its first); the backward pass re-runs one iteration from it. The iteration
     is traced once, with its buffers cut to the one row it writes (`Loop.windowed`); the loop
     places that row, and the backward pass reads the row's cotangent. A linearly implicit
-    solver's kept matrix is formed again where it was reused (same values; its derivative
-    then comes through the state). The same derivative as the other modes: that of the computed solution."""
+    solver's kept matrix is formed again where it was reused (same values, held as always). The same derivative as the other modes: that of the computed solution."""
     s0 = loop.initial_state(t0, x0, h0, status)
     step = eqx.filter_closure_convert(dataclasses.replace(loop, windowed=True).iterate, _window(s0, s0.linearization))
     continues = eqx.filter_closure_convert(loop.continues, _without_buffers(s0))

@@ -5,8 +5,8 @@ derivatives (`autodiff`): `"forward"` runs it as it is (`jax.jvp` / `jax.jacfwd`
 `"reverse"` (the default) makes it a custom VJP (`_reverse.py`: forward sensitivities for up
 to 32 differentiated scalars, else the discrete adjoint), which forward mode cannot enter;
 `"adjoint"` always takes the discrete adjoint. Step sizes are not differentiated (the
-gradient is that of the discrete scheme on its grid); event times are, by the implicit
-function theorem, so gradients see the shift of a switching instant and the saltation jump
+gradient is that of the discrete scheme on its grid), nor is a Rosenbrock step's matrix;
+event times are, by the implicit function theorem, so gradients see the shift of a switching instant and the saltation jump
 at an impact.
 """
 from __future__ import annotations
