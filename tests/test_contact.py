@@ -353,13 +353,16 @@ def test_a_capsule_across_a_box_edge_touches_at_the_closed_form_depth():
     R_A = jnp.asarray(np.column_stack([up, np.cross(axis, up), axis]))
     X_A = (R_A, jnp.asarray(np.array([0.2, 0.05, 0.1]) + (r - x) * up))
     for kind, params in shapes:
-        depth, _, pb, n = jax.jit(lambda X: penetration("capsule", capsule, X, kind, params,
-                                                        (jnp.eye(3), jnp.zeros(3))))(X_A)
+        across = jax.jit(lambda X: penetration("capsule", capsule, X, kind, params, (jnp.eye(3), jnp.zeros(3))))
+        depth, _, pb, n = across(X_A)
         i = int(jnp.argmax(depth))
         assert int(jnp.sum(depth > 0)) == 1
         np.testing.assert_allclose(float(depth[i]), x, atol=1e-12)
         np.testing.assert_allclose(np.asarray(n[i]), up, atol=1e-9)
         np.testing.assert_allclose(np.asarray(pb[i]), [0.2, 0.05, 0.1], atol=1e-9)
+        for s in (0.27, 0.29):   # crossing within a radius of the end: once, by the middle sphere
+            depth = across((R_A, X_A[1] - s * jnp.asarray(axis)))[0]
+            np.testing.assert_allclose(np.asarray(depth[depth > 0]), [x], atol=1e-12)
         flat = (jnp.asarray(np.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])), jnp.array([0.0, 0.0, 0.1 + r - x]))
         short = {"size": jnp.array([r, 0.15, 0.0])}
         depth = jax.jit(penetration, static_argnums=(0, 3))("capsule", short, flat, kind, params,

@@ -154,6 +154,31 @@ def test_rosenbrock_w_methods_keep_their_order_with_any_matrix(solver):
         assert np.log2(dense_errors[0] / dense_errors[1]) > solver.order - 0.3, dense_errors
 
 
+def test_a_stiff_matrix_leaves_the_first_stages_derivative_to_the_vector_field():
+    """With `jacobian="stiff"` and no first stage given (no first-same-as-last: events,
+    discrete states, tapes), the first stage f(t0, y0) came from the stiff surrogate's
+    linearization and carried its approximate derivative into jax.grad; it is f's."""
+    def f(t, y):
+        return jnp.stack([y[1], -jnp.sin(y[0]) - 3.0 * y[1] ** 3])
+
+    @jax.custom_jvp
+    def surrogate(y):   # f's values, a different derivative
+        return f(0.0, y)
+
+    @surrogate.defjvp
+    def _(primals, tangents):
+        (y,), (dy,) = primals, tangents
+        return surrogate(y), jnp.array([[0.0, 1.0], [-1.0, -5.0]]) @ dy
+
+    y0 = jnp.array([0.7, -0.4])
+    for solver in (jd.simulation.Rosenbrock23(jacobian="stiff"), jd.simulation.Ros34PW2(jacobian="stiff")):
+        def y1(y0, first):
+            return solver.step(f, 0.0, y0, lambda k0: 0.1, first(y0), lambda t, y: surrogate(y)).y1
+        without = jax.jacfwd(lambda y: y1(y, lambda y: None))(y0)
+        given = jax.jacfwd(lambda y: y1(y, lambda y: f(0.0, y)))(y0)
+        np.testing.assert_allclose(np.asarray(without), np.asarray(given), rtol=1e-14, atol=1e-15)
+
+
 def test_ros34pw2_on_a_stiff_van_der_pol_is_accurate_in_fewer_steps_than_rosenbrock23():
     """mu = 1000 over 3000 s against SciPy's Radau at 1e-12: the third-order method at rtol
     1e-6 is more accurate than Rosenbrock23 at 1e-7, in under half its steps."""

@@ -18,8 +18,9 @@ all in the world:
   (x = r - \varphi_B(A_o), $C_b$ = N, $C_a = A_o - r\,\nabla\varphi_B$);
 - a capsule: its two end spheres against any shape but a capsule, and, against a box, hull
   or cylinder, the sphere about the point of its segment deepest into the other where that
-  is deeper than both ends (lying across an edge; against a box or hull also their vertices
-  inside it); the closest points of the two segments against a capsule;
+  is deeper than both ends (lying across an edge; an end sphere within a radius of it is
+  then left out; against a box or hull also their vertices inside it); the closest points
+  of the two segments against a capsule;
 - a box or a convex hull: each vertex inside the other shape (x = $-\varphi_B(v)$), both
   ways between two of them;
 - a cylinder: four points of each rim, starting from the one deepest along the other
@@ -240,12 +241,16 @@ _GOLDEN = float((np.sqrt(5.0) - 1.0) / 2.0)
 _SEARCH_STEPS = 60   # the bracket shrinks to 0.618^60 ~ 3e-13 of the segment
 
 
-def _capsule_middle_against(params_a, X_A, kind_b, params_b, X_B):
-    """The sphere of capsule A's radius about the point of its segment deepest into B, where
-    that point is deeper than both ends and more than a radius from them (their spheres are
-    their own candidates): a capsule lying across a box's, hull's or cylinder's edge. B's
-    signed distance is convex along a line, so a golden-section search finds the point (not
-    differentiated: the depth is stationary there)."""
+def _capsule_against(params_a, X_A, kind_b, params_b, X_B):
+    """A capsule's two end spheres against B; against a box, hull or cylinder also the sphere
+    about the point of its segment deepest into B where that point is deeper than both ends
+    (a capsule lying across an edge), and then an end sphere within a radius of it is left
+    out (the same contact, counted once). B's signed distance is convex along a line, so a
+    golden-section search finds the point (not differentiated: the depth is stationary
+    there)."""
+    ends, radii, _ = _contact_points("capsule", params_a, X_A)   # at s = +half, -half
+    if kind_b not in ("box", "convex", "cylinder"):
+        return _points_against(kind_b, params_b, X_B, ends, radii, jnp.ones(2, bool))
     radius, half = params_a["size"][0], params_a["size"][1]
     (R_A, p_A), (R_B, p_B), held = jax.lax.stop_gradient((X_A, X_B, params_b))
     phi = lambda s: point_distance(kind_b, held, R_B.T @ (p_A + s * R_A[:, 2] - p_B))[0]  # noqa: E731
@@ -259,28 +264,31 @@ def _capsule_middle_against(params_a, X_A, kind_b, params_b, X_B):
         return (lo, hi, jnp.where(left, probe, b), jnp.where(left, a, probe),
                 jnp.where(left, phi_probe, phi_b), jnp.where(left, phi_a, phi_probe))
 
-    lo, hi = jax.lax.stop_gradient((-half, half))
+    lo, hi = -half, half
     a, b = hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo)
     lo, hi, *_ = jax.lax.fori_loop(0, _SEARCH_STEPS, shrink, (lo, hi, a, b, phi(a), phi(b)))
     s = 0.5 * (lo + hi)
-    # more than a radius from the ends, whose spheres cover what is nearer (no double force)
-    deeper = (phi(s) < jnp.minimum(phi(-half), phi(half)) - 1e-9 * (radius + half)) & (jnp.abs(s) < half - radius)
+    rounding = 64 * jnp.finfo(p_A.dtype).eps * (1.0 + jnp.linalg.norm(p_A) + jnp.linalg.norm(p_B) + half + radius)
+    middle = phi(s) < jnp.minimum(phi(-half), phi(half)) - rounding
+    near = jnp.abs(s - jnp.stack([half, -half])) < radius
     centre = X_A[1] + s * X_A[0][:, 2]
-    return _points_against(kind_b, params_b, X_B, centre[None], radius[None], deeper[None])
+    return _concat(_points_against(kind_b, params_b, X_B, ends, radii, ~(middle & near)),
+                   _points_against(kind_b, params_b, X_B, centre[None], radius[None], middle[None]))
 
 
 def penetration(kind_a: str, params_a, X_A, kind_b: str, params_b, X_B):
     """Candidate contacts (depth (k,), C_a (k, 3), C_b (k, 3), n_BA (k, 3)) between shape A at
     world pose X_A = (R, p) and shape B at X_B; a candidate touches where depth > 0. The pair
     must be in the order `canonical_order` gives (any two shapes but two half-spaces)."""
-    if kind_a == "sphere" or (kind_a == "capsule" and kind_b != "capsule"):
-        own = _points_against(kind_b, params_b, X_B, *_contact_points(kind_a, params_a, X_A))
-        if kind_a == "capsule" and kind_b in ("box", "convex"):
-            return _concat(own, _capsule_middle_against(params_a, X_A, kind_b, params_b, X_B),
-                           _swap(_vertices_against("capsule", params_a, X_A, *_contact_points(kind_b, params_b, X_B))))
-        if kind_a == "capsule" and kind_b == "cylinder":
-            return _concat(own, _capsule_middle_against(params_a, X_A, kind_b, params_b, X_B),
-                           _swap(_rim_against(params_b, X_B, "capsule", params_a, X_A)))
+    if kind_a == "sphere":
+        return _points_against(kind_b, params_b, X_B, *_contact_points(kind_a, params_a, X_A))
+    if kind_a == "capsule" and kind_b != "capsule":
+        own = _capsule_against(params_a, X_A, kind_b, params_b, X_B)
+        if kind_b in ("box", "convex"):
+            corners = _contact_points(kind_b, params_b, X_B)
+            return _concat(own, _swap(_vertices_against("capsule", params_a, X_A, *corners)))
+        if kind_b == "cylinder":
+            return _concat(own, _swap(_rim_against(params_b, X_B, "capsule", params_a, X_A)))
         return own
     if kind_a == "capsule" and kind_b == "capsule":
         c_a = _closest_point_on_segment_a(params_a, X_A, params_b, X_B)

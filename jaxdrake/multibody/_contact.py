@@ -444,15 +444,16 @@ class ContactModel(eqx.Module):
         is_box = np.asarray(kinds_b == "box")
         normals = jnp.where(is_box[:, None, None], jnp.asarray(box_normals, n.dtype)[None], hull[..., :3])
         offsets = jnp.where(is_box[:, None], box_offsets, hull[..., 3])
-        alignment = jnp.max(jnp.abs(jnp.einsum("pfk,pk->pf", normals, jnp.einsum("pji,pj->pi", R, n))), axis=1)
+        # n leaves B along a face's outward normal on that face (signed: the face opposite does not count)
+        alignment = jnp.max(jnp.einsum("pfk,pk->pf", normals, jnp.einsum("pji,pj->pi", R, n)), axis=1)
         on_corner = faceted & (alignment < 1.0 - 1e-6)
         # the faces through the witness, by distinct normals: the most active face, the most
         # active of the others, and whether a third distinct one passes through it too
         values = jnp.einsum("pfk,pk->pf", normals, jnp.einsum("pji,pj->pi", R, pb - p)) - offsets
-        tolerance = 1e-9 * (1.0 + jnp.max(jnp.abs(offsets), axis=1))
+        tolerance = 64 * jnp.finfo(n.dtype).eps * (1.0 + jnp.max(jnp.abs(offsets), axis=1) + jnp.linalg.norm(p, axis=1))
         normal_of = lambda mask: jnp.take_along_axis(  # noqa: E731
             normals, jnp.argmax(jnp.where(mask, values, -jnp.inf), axis=1)[:, None, None], 1)[:, 0]
-        distinct = lambda m: jnp.abs(jnp.einsum("pfk,pk->pf", normals, m)) < 1.0 - 1e-9  # noqa: E731
+        distinct = lambda m: jnp.abs(jnp.einsum("pfk,pk->pf", normals, m)) < 1.0 - 1e-6  # noqa: E731
         first = normal_of(jnp.ones(values.shape, bool))
         second = normal_of(distinct(first))
         third_active = jnp.max(jnp.where(distinct(first) & distinct(second), values, -jnp.inf), axis=1) > -tolerance

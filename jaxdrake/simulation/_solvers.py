@@ -318,6 +318,8 @@ class _LinearlyImplicit(AbstractSolver):
 
         if linearization is None or k0 is None:
             f_linearized, linearization = form()
+            if k0 is None and linearized is not f:   # f's own value, with f's derivative
+                return f(t0, y0), linearization
             # given k0, the linearization's own value is dead code
             return (f_linearized if k0 is None else k0), linearization
         # after a rejected attempt, the same point's matrix again
@@ -399,8 +401,8 @@ class Ros34PW2(_LinearlyImplicit):
     in place of J (a W-method), so `jacobian="stiff"` keeps its order. For stiff systems at
     tight tolerances, where `Rosenbrock23`'s second order takes many steps.
 
-    With $W = I - h\gamma J$: $W k_i = h f(t_0 + lpha_i h, y_0 + \sum_{j<i} a_{ij} k_j) +
-    h J \sum_{j<i} \gamma_{ij} k_j + \gamma_i h^2 T$ ($lpha_i = \sum_j a_{ij}$,
+    With $W = I - h\gamma J$: $W k_i = h f(t_0 + \alpha_i h, y_0 + \sum_{j<i} a_{ij} k_j) +
+    h J \sum_{j<i} \gamma_{ij} k_j + \gamma_i h^2 T$ ($\alpha_i = \sum_j a_{ij}$,
     $\gamma_i = \gamma + \sum_{j<i}\gamma_{ij}$), $y_1 = y_0 + \sum_i b_i k_i$, error
     $\sum_i (b_i - \hat b_i) k_i$; one LU factorization per step. $f(t_0 + h, y_1)$ is
     evaluated too: the next step's first stage, and with $f_0$ the cubic Hermite dense
