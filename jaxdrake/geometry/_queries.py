@@ -204,6 +204,11 @@ def _vertices_against(kind_b, params_b, X_B, vertices, radii, valid):
     return _points_against(kind_b, planes_only, X_B, vertices, radii, valid)
 
 
+def _their_vertices(kind_a, params_a, X_A, kind_b, params_b, X_B):
+    """B's vertices (a box's or hull's) inside A, as candidates of (A, B)."""
+    return _swap(_vertices_against(kind_a, params_a, X_A, *_contact_points(kind_b, params_b, X_B)))
+
+
 def _cylinder_rim(params, X_A, n):
     """A cylinder's rim points facing a shape whose outward normal there is n: on each cap, the
     point farthest along -n and three more at quarter turns, so that a cylinder standing on a
@@ -241,6 +246,23 @@ _GOLDEN = float((np.sqrt(5.0) - 1.0) / 2.0)
 _SEARCH_STEPS = 60   # the bracket shrinks to 0.618^60 ~ 3e-13 of the segment
 
 
+def _golden_minimum(phi, lo, hi):
+    """The minimizer of a convex phi on [lo, hi] by `_SEARCH_STEPS` golden-section steps, one
+    evaluation a step (a loop traced once)."""
+    def shrink(_, bracket):   # [lo, hi] with probes a < b inside it
+        lo, hi, a, b, phi_a, phi_b = bracket
+        left = phi_a < phi_b   # the minimum is in [lo, b]: a becomes the upper probe
+        lo, hi = jnp.where(left, lo, a), jnp.where(left, b, hi)
+        probe = jnp.where(left, hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo))
+        phi_probe = phi(probe)
+        return (lo, hi, jnp.where(left, probe, b), jnp.where(left, a, probe),
+                jnp.where(left, phi_probe, phi_b), jnp.where(left, phi_a, phi_probe))
+
+    a, b = hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo)
+    lo, hi, *_ = jax.lax.fori_loop(0, _SEARCH_STEPS, shrink, (lo, hi, a, b, phi(a), phi(b)))
+    return 0.5 * (lo + hi)
+
+
 def _capsule_against(params_a, X_A, kind_b, params_b, X_B):
     """A capsule's two end spheres against B; against a box, hull or cylinder also the sphere
     about the point of its segment deepest into B where that point is deeper than both ends
@@ -254,20 +276,7 @@ def _capsule_against(params_a, X_A, kind_b, params_b, X_B):
     radius, half = params_a["size"][0], params_a["size"][1]
     (R_A, p_A), (R_B, p_B), held = jax.lax.stop_gradient((X_A, X_B, params_b))
     phi = lambda s: point_distance(kind_b, held, R_B.T @ (p_A + s * R_A[:, 2] - p_B))[0]  # noqa: E731
-
-    def shrink(_, bracket):   # [lo, hi] with probes a < b inside it; one new distance a step
-        lo, hi, a, b, phi_a, phi_b = bracket
-        left = phi_a < phi_b   # the minimum is in [lo, b]: b becomes the upper probe
-        lo, hi = jnp.where(left, lo, a), jnp.where(left, b, hi)
-        probe = jnp.where(left, hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo))
-        phi_probe = phi(probe)
-        return (lo, hi, jnp.where(left, probe, b), jnp.where(left, a, probe),
-                jnp.where(left, phi_probe, phi_b), jnp.where(left, phi_a, phi_probe))
-
-    lo, hi = -half, half
-    a, b = hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo)
-    lo, hi, *_ = jax.lax.fori_loop(0, _SEARCH_STEPS, shrink, (lo, hi, a, b, phi(a), phi(b)))
-    s = 0.5 * (lo + hi)
+    s = _golden_minimum(phi, *jax.lax.stop_gradient((-half, half)))
     rounding = 64 * jnp.finfo(p_A.dtype).eps * (1.0 + jnp.linalg.norm(p_A) + jnp.linalg.norm(p_B) + half + radius)
     middle = phi(s) < jnp.minimum(phi(-half), phi(half)) - rounding
     near = jnp.abs(s - jnp.stack([half, -half])) < radius
@@ -285,8 +294,7 @@ def penetration(kind_a: str, params_a, X_A, kind_b: str, params_b, X_B):
     if kind_a == "capsule" and kind_b != "capsule":
         own = _capsule_against(params_a, X_A, kind_b, params_b, X_B)
         if kind_b in ("box", "convex"):
-            corners = _contact_points(kind_b, params_b, X_B)
-            return _concat(own, _swap(_vertices_against("capsule", params_a, X_A, *corners)))
+            return _concat(own, _their_vertices(kind_a, params_a, X_A, kind_b, params_b, X_B))
         if kind_b == "cylinder":
             return _concat(own, _swap(_rim_against(params_b, X_B, "capsule", params_a, X_A)))
         return own
@@ -296,8 +304,7 @@ def penetration(kind_a: str, params_a, X_A, kind_b: str, params_b, X_B):
     if kind_a == "cylinder":
         own = _rim_against(params_a, X_A, kind_b, params_b, X_B)
         if kind_b in ("box", "convex"):
-            return _concat(own, _swap(_vertices_against("cylinder", params_a, X_A,
-                                                        *_contact_points(kind_b, params_b, X_B))))
+            return _concat(own, _their_vertices(kind_a, params_a, X_A, kind_b, params_b, X_B))
         if kind_b == "cylinder":
             return _concat(own, _axis_sphere_against(params_a, X_A, params_b, X_B),
                            _swap(_rim_against(params_b, X_B, "cylinder", params_a, X_A)))
@@ -305,8 +312,7 @@ def penetration(kind_a: str, params_a, X_A, kind_b: str, params_b, X_B):
     if kind_a in ("box", "convex"):
         own = _vertices_against(kind_b, params_b, X_B, *_contact_points(kind_a, params_a, X_A))
         if kind_b in ("box", "convex"):
-            theirs = _vertices_against(kind_a, params_a, X_A, *_contact_points(kind_b, params_b, X_B))
-            return _concat(own, _swap(theirs))
+            return _concat(own, _their_vertices(kind_a, params_a, X_A, kind_b, params_b, X_B))
         return own
     raise ValueError(f"unsupported shape pair ({kind_a}, {kind_b})")
 

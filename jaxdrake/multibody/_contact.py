@@ -171,6 +171,10 @@ class ContactResults(eqx.Module):
     geometry_b: tuple = eqx.field(static=True)
 
 
+_ROUNDED = ("sphere", "capsule")   # curved everywhere across their contacts
+_FACETED = ("box", "convex")       # flat faces meeting at edges and corners
+
+
 class ContactModel(eqx.Module):
     """The plant's collision geometry and its point-contact parameters.
 
@@ -348,8 +352,8 @@ class ContactModel(eqx.Module):
         # the normal turns where both surfaces are curved (B rounded, or A rounded on B's corner)
         turning = (curved_a & curved_b) | on_corner
         kinds = np.asarray(self.kinds)
-        may_curve_a, may_curve_b = (np.isin(kinds[np.asarray(i, int)], ("sphere", "capsule", "cylinder")) for i in (ia, ib))
-        may_turn = bool(np.any(may_curve_a & (may_curve_b | np.isin(kinds[np.asarray(ib, int)], ("box", "convex")))))
+        may_curve_a, may_curve_b = (np.isin(kinds[np.asarray(i, int)], _ROUNDED + ("cylinder",)) for i in (ia, ib))
+        may_turn = bool(np.any(may_curve_a & (may_curve_b | np.isin(kinds[np.asarray(ib, int)], _FACETED))))
         *per_pair, stiction_tolerance = self._pair_parameters(ia, ib)   # k, d, mu_s, mu_d per candidate; v_s
         per_candidate = (depth, pa, pb, n, jnp.asarray(moves[body_a], pa.dtype), jnp.asarray(moves[body_b], pa.dtype),
                          rho_a, rho_b, weight_b, turning, edge, tuple(per_pair))
@@ -418,7 +422,7 @@ class ContactModel(eqx.Module):
         axis (its side), else flat (its caps and their rims); 0 for the rest."""
         kinds = np.asarray(self.kinds)[np.asarray(ids, int)]
         radius = self.size[np.asarray(ids, int), 0]
-        curved = jnp.asarray(np.isin(kinds, ("sphere", "capsule")))
+        curved = jnp.asarray(np.isin(kinds, _ROUNDED))
         if np.any(kinds == "cylinder"):
             axis = R[np.asarray(ids, int)][:, :, 2]
             curved = curved | ((kinds == "cylinder") & (jnp.abs(jnp.sum(axis * n, -1)) < 1e-6))
@@ -431,7 +435,7 @@ class ContactModel(eqx.Module):
         the contact point moves with A and the normal does not turn. The faces through B's
         witness point pb tell them apart: two distinct ones, an edge; three, a corner."""
         kinds_b = np.asarray(self.kinds)[np.asarray(ib, int)]
-        faceted = np.isin(kinds_b, ("box", "convex"))
+        faceted = np.isin(kinds_b, _FACETED)
         if not faceted.any():
             return np.zeros(len(ib), bool), jnp.zeros_like(n)
         b = np.asarray(ib, int)
