@@ -283,8 +283,11 @@ def _random_rotation(rng):
 
 
 def _hull_params(hull):
+    polygons, polygon_valid, edges, edge_normals = hull.polytope_arrays(*hull.polytope_sizes)
     return {"size": jnp.zeros(3), "vertices": jnp.asarray(hull.vertices), "planes": jnp.asarray(hull.planes),
-            "vertex_valid": jnp.ones(len(hull.vertices), bool), "triangles": jnp.asarray(hull.triangles)}
+            "vertex_valid": jnp.ones(len(hull.vertices), bool), "triangles": jnp.asarray(hull.triangles),
+            "polygons": jnp.asarray(polygons), "polygon_valid": jnp.asarray(polygon_valid), "edges": jnp.asarray(edges),
+            "edge_normals": jnp.asarray(edge_normals)}
 
 
 def test_a_sphere_and_a_capsule_touch_a_convex_hull_as_they_touch_the_same_box():
@@ -368,6 +371,140 @@ def test_a_capsule_across_a_box_edge_touches_at_the_closed_form_depth():
         depth = jax.jit(penetration, static_argnums=(0, 3))("capsule", short, flat, kind, params,
                                                             (jnp.eye(3), jnp.zeros(3)))[0]
         np.testing.assert_allclose(np.sort(np.asarray(depth[depth > 0])), [x, x], atol=1e-12)
+
+
+def _least_overlap(vertices_a, vertices_b, axes):
+    """Brute force: the least overlap of two convex point sets' projections over `axes` (their
+    penetration depth where `axes` hold every face normal and edge-pair cross product)."""
+    a, b = vertices_a @ axes.T, vertices_b @ axes.T
+    return np.min(np.minimum(a.max(0) - b.min(0), b.max(0) - a.min(0)))
+
+
+def test_two_polytopes_overlap_by_the_brute_force_separating_axes_least_depth():
+    """Boxes and hulls at random poses: they touch exactly where the separating-axis test over
+    every face normal and every edge-pair cross product (brute force) finds them overlapping;
+    an edge crossing an edge is at that least depth, a face's clipped points no deeper; every
+    touching candidate's witnesses lie depth apart along its normal."""
+    rng = np.random.default_rng(5)
+    hull = Convex.from_points(rng.normal(size=(14, 3)) * [0.3, 0.2, 0.25])
+    box = Box(0.4, 0.3, 0.2)
+    shapes = {"box": ({"size": jnp.asarray(box.half_sizes)}, box.vertices(),
+                      np.array([[a, b] for a in box.vertices() for b in box.vertices()
+                                if np.sum(a != b) == 1])),
+              "convex": (_hull_params(hull), hull.vertices,
+                         np.concatenate([hull.triangles[:, [0, 1]], hull.triangles[:, [1, 2]], hull.triangles[:, [2, 0]]]))}
+    touching_edges = 0
+    for kind_a, kind_b in (("box", "box"), ("box", "convex"), ("convex", "convex")):
+        (params_a, local_a, edges_a), (params_b, local_b, edges_b) = shapes[kind_a], shapes[kind_b]
+        R_A, R_B = jnp.stack([_random_rotation(rng) for _ in range(60)]), jnp.stack([_random_rotation(rng) for _ in range(60)])
+        p_A = jnp.asarray(rng.normal(size=(60, 3)) * 0.2)
+        depth, pa, pb, n = jax.jit(jax.vmap(lambda Ra, pa, Rb: penetration(kind_a, params_a, (Ra, pa), kind_b, params_b,
+                                                                            (Rb, jnp.zeros(3)))))(R_A, p_A, R_B)
+        for k in range(60):
+            Ra, Rb = np.asarray(R_A[k]), np.asarray(R_B[k])
+            va, vb = local_a @ Ra.T + np.asarray(p_A[k]), local_b @ Rb.T
+            ea, eb = (edges_a[:, 1] - edges_a[:, 0]) @ Ra.T, (edges_b[:, 1] - edges_b[:, 0]) @ Rb.T
+            crosses = np.cross(ea[:, None], eb[None]).reshape(-1, 3)
+            crosses = crosses[np.linalg.norm(crosses, axis=1) > 1e-9]
+            faces = [np.asarray(p["planes"])[:, :3] if "planes" in p else np.eye(3) for p in (params_a, params_b)]
+            axes = np.concatenate([faces[0] @ Ra.T, faces[1] @ Rb.T, crosses / np.linalg.norm(crosses, axis=1)[:, None]])
+            least = _least_overlap(va, vb, axes)
+            d = np.asarray(depth[k])
+            if abs(least) < 1e-9:
+                continue
+            assert (d.max() > 0) == (least > 0), (kind_a, kind_b, k, least, d.max())
+            touching = d > 0
+            np.testing.assert_allclose(np.asarray(pb[k] - pa[k])[touching], d[touching, None] * np.asarray(n[k])[touching],
+                                       atol=1e-12)
+            if np.isfinite(d[-1]):   # an edge crossing an edge
+                np.testing.assert_allclose(d[-1], least, atol=1e-12)
+                touching_edges += least > 0
+            else:
+                assert d.max() <= least + 1e-12
+    assert touching_edges >= 5
+
+
+def test_crossed_planks_and_crossed_edges_touch_at_their_closed_form_points():
+    """Two planks crossed flat touch at the 4 corners of their overlap (no corner of either is
+    inside the other); two boxes standing on edges crossed at right angles touch once, at
+    their edges' crossing, along the vertical, at depth 2 h - z (h: half a face's diagonal)."""
+    x, I = 1e-3, jnp.eye(3)
+    plank_a, plank_b = {"size": jnp.array([0.5, 0.05, 0.05])}, {"size": jnp.array([0.05, 0.5, 0.05])}
+    depth, pa, pb, n = penetration("box", plank_a, (I, jnp.array([0.0, 0.0, 0.1 - x])), "box", plank_b, (I, jnp.zeros(3)))
+    touching = np.asarray(depth) > 0
+    np.testing.assert_allclose(np.asarray(depth)[touching], [x] * 4, atol=1e-15)
+    corners = [[sx * 0.05, sy * 0.05, 0.05] for sx in (-1, 1) for sy in (-1, 1)]
+    np.testing.assert_allclose(sorted(np.asarray(pb)[touching].tolist()), corners, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(n)[touching], [[0, 0, 1.0]] * 4, atol=1e-15)
+    cube = {"size": jnp.array([0.1, 0.1, 0.1])}
+    h = 0.1 * np.sqrt(2)
+    R_A, R_B = (jnp.asarray(np.asarray(jd.multibody.rpy(*angles))) for angles in ((np.pi / 4, 0, 0), (0, np.pi / 4, 0)))
+    depth, pa, pb, n = penetration("box", cube, (R_A, jnp.array([0.01, -0.02, 2 * h - x])), "box", cube, (R_B, jnp.zeros(3)))
+    touching = np.asarray(depth) > 0
+    np.testing.assert_allclose(np.asarray(depth)[touching], [x], atol=1e-15)
+    np.testing.assert_allclose(np.asarray(pb)[touching], [[0.0, -0.02, h]], atol=1e-15)   # on B's edge, under A's
+    np.testing.assert_allclose(np.asarray(pa)[touching], [[0.0, -0.02, h - x]], atol=1e-15)
+    np.testing.assert_allclose(np.asarray(n)[touching], [[0, 0, 1.0]], atol=1e-15)
+
+
+def test_polytope_contact_gradients_equal_central_differences():
+    """The depths and witnesses of a box against a hull (face and edge contacts) as functions
+    of A's pose: their derivatives equal central differences."""
+    rng = np.random.default_rng(2)
+    hull = _hull_params(Convex.from_points(rng.normal(size=(12, 3)) * 0.2))
+    box = {"size": jnp.array([0.2, 0.15, 0.1])}
+
+    def contacts(theta, R, w, p):   # A turned about the unit w by theta[3] (Rodrigues), moved by theta[:3]
+        K = jnp.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+        turn = jnp.eye(3) + jnp.sin(theta[3]) * K + (1 - jnp.cos(theta[3])) * K @ K
+        out = penetration("box", box, (turn @ R, p + theta[:3]), "convex", hull, (jnp.eye(3), jnp.zeros(3)))
+        touching = out[0] > 0
+        return jnp.concatenate([jnp.where(touching, out[0], 0.0)] + [jnp.where(touching[:, None], x, 0.0).ravel()
+                                                                     for x in out[1:]])
+
+    f, jacobian = jax.jit(contacts), jax.jit(jax.jacfwd(contacts))
+    checked, edges = 0, 0
+    for _ in range(16):
+        R, w = _random_rotation(rng), rng.normal(size=3)
+        args = (R, jnp.asarray(w / np.linalg.norm(w)), jnp.asarray(rng.normal(size=3) * 0.15))
+        value = np.asarray(f(jnp.zeros(4), *args))
+        if not np.any(value[:9] > 0):
+            continue
+        step = 1e-6
+        fd = np.stack([(np.asarray(f(step * e, *args)) - np.asarray(f(-step * e, *args))) / (2 * step)
+                       for e in np.eye(4)], 1)
+        np.testing.assert_allclose(np.asarray(jacobian(jnp.zeros(4), *args)), fd, atol=2e-6)
+        checked, edges = checked + 1, edges + (value[8] > 0)
+    assert checked >= 4 and edges >= 1
+
+
+def test_a_plank_dropped_across_a_plank_rests_on_their_overlap_sunk_m_g_over_4k(tmp_path):
+    """No corner of either plank is inside the other: before the contact polygon, the upper one
+    fell through. It rests on the overlap's 4 corners, sunk m g / (4 k)."""
+    (tmp_path / "plank.urdf").write_text("""<robot name="plank">
+      <link name="plank"><inertial><mass value="0.5"/><inertia ixx="0.0005" iyy="0.04" izz="0.04" ixy="0" ixz="0" iyz="0"/>
+        </inertial><collision><geometry><box size="1.0 0.1 0.1"/></geometry></collision></link></robot>""")
+    plank = jd.RigidBodySystem.from_urdf(tmp_path / "plank.urdf", floating_base=True, contact=True)
+    plank = plank.with_collision_geometry("world", Box(0.1, 1.0, 0.1), translation=(0.0, 0.0, 0.05), name="lower")
+    k, mg = 1e6 / 2, 0.5 * 9.81
+    x0 = jnp.array([0.0, 0.0, 0.16, 0, 0, 0, 1] + [0.0] * 6)
+    x = jd.simulate(plank, (0.0, 0.6), x0, solver=jd.simulation.Rosenbrock23(jacobian="stiff"), dense=False).final_state
+    np.testing.assert_allclose(float(x[2]), 0.15 - mg / (4 * k), atol=1e-9)
+    assert int(jnp.sum(plank.contact_results(x).active)) == 4
+
+
+def test_a_cylinder_lying_across_a_box_edge_touches_at_the_closed_form_depth():
+    """A cylinder's round side across a box's top edge (the box turned 45 degrees): one contact
+    between its rims, at depth r - (distance of its axis from the edge), along the vertical."""
+    r, x, h = 0.05, 1e-3, 0.1 * np.sqrt(2)
+    along_x = jnp.asarray(np.asarray(jd.multibody.rpy(0, np.pi / 2, 0)))
+    ridge = jnp.asarray(np.asarray(jd.multibody.rpy(0, np.pi / 4, 0)))
+    depth, pa, pb, n = penetration("cylinder", {"size": jnp.array([r, 0.2, 0.0])}, (along_x, jnp.array([0.03, 0.02, h + r - x])),
+                                   "box", {"size": jnp.array([0.1, 0.1, 0.1])}, (ridge, jnp.zeros(3)))
+    touching = np.asarray(depth) > 0
+    np.testing.assert_allclose(np.asarray(depth)[touching], [x], atol=1e-12)
+    np.testing.assert_allclose(np.asarray(pb)[touching], [[0.0, 0.02, h]], atol=1e-8)
+    np.testing.assert_allclose(np.asarray(n)[touching], [[0, 0, 1.0]], atol=1e-8)
 
 
 def test_a_cylinder_rests_on_a_box_on_two_rim_points_lying_and_four_standing(tmp_path):

@@ -21,19 +21,21 @@ all in the world:
   is deeper than both ends (lying across an edge; an end sphere within a radius of it is
   then left out; against a box or hull also their vertices inside it); the closest points
   of the two segments against a capsule;
-- a box or a convex hull: each vertex inside the other shape (x = $-\varphi_B(v)$), both
-  ways between two of them;
+- a box or a convex hull: each vertex inside the other shape (x = $-\varphi_B(v)$) against
+  anything but a box or hull; between two of them, the separating-axis test and the clipped
+  contact polygon (`_polytopes.py`): at most 4 points spanning the overlap of two faces, or
+  one where an edge crosses an edge;
 - a cylinder: four points of each rim, starting from the one deepest along the other
   shape's outward normal at the cylinder's centre (so that it stands on 4 points and lies on
-  2); against a box or hull also their vertices inside it; against a cylinder also the
-  sphere of its radius about the point of its axis nearest the other's axis, where the
-  round sides cross (exact there).
+  2); against a box or hull also their vertices inside it and, its round side lying across
+  an edge, the sphere of its radius about the point of its axis deepest into the other
+  (exact there); against a cylinder also the sphere of its radius about the point of its
+  axis nearest the other's axis, where the round sides cross (exact there).
 
 Where Drake has exact closed forms (anything with a sphere) the results equal Drake's; the
-vertex and rim sets are the multi-point contact of MuJoCo and most engines, where Drake's
-point contact keeps a single FCL point (which makes a box resting on a face ill-posed); an
-edge crossing an edge (box on box, a cylinder's side across a box's edge) is not detected. Every
-function is NaN-free and differentiable at a touch and at degenerate points ("double where").
+vertex, polygon and rim sets are the multi-point contact of MuJoCo and most engines, where
+Drake's point contact keeps a single FCL point (which makes a box resting on a face
+ill-posed). Every function is NaN-free and differentiable at a touch and at degenerate points ("double where").
 """
 
 from __future__ import annotations
@@ -42,17 +44,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-_TINY = 1e-14
+from ._polytopes import polytope_penetration
+from ._vectors import TINY as _TINY, norm_and_direction
 
-
-def norm_and_direction(v, fallback):
-    """(|v|, v / |v|) with `fallback` (a unit vector) as the direction where |v| is ~0,
-    differentiable everywhere."""
-    sq = jnp.sum(v * v, -1)
-    nonzero = sq > _TINY * _TINY
-    safe = jnp.where(nonzero[..., None], v, fallback)
-    norm = jnp.sqrt(jnp.sum(safe * safe, -1))
-    return jnp.where(nonzero, norm, 0.0), safe / norm[..., None]
 
 
 _X = jnp.array([1.0, 0.0, 0.0])
@@ -263,26 +257,50 @@ def _golden_minimum(phi, lo, hi):
     return 0.5 * (lo + hi)
 
 
+def _deepest_axis_point(params_a, X_A, kind_b, params_b, X_B):
+    """(s, phi): where along the axis of capsule or cylinder A (s in [-half, half]) B's signed
+    distance is least, by a golden-section search (B's signed distance is convex along a line;
+    not differentiated: the depth is stationary there), and that distance as a function of s."""
+    half = params_a["size"][1]
+    (R_A, p_A), (R_B, p_B), held = jax.lax.stop_gradient((X_A, X_B, params_b))
+    phi = lambda s: point_distance(kind_b, held, R_B.T @ (p_A + s * R_A[:, 2] - p_B))[0]  # noqa: E731
+    return _golden_minimum(phi, *jax.lax.stop_gradient((-half, half))), phi
+
+
+def _deeper_than_its_ends(s, phi, X_A, X_B, half, radius):
+    """Whether the axis point s lies deeper into B than both axis ends (beyond rounding)."""
+    p_A, p_B = X_A[1], X_B[1]
+    rounding = 64 * jnp.finfo(p_A.dtype).eps * (1.0 + jnp.linalg.norm(p_A) + jnp.linalg.norm(p_B) + half + radius)
+    return phi(s) < jnp.minimum(phi(-half), phi(half)) - rounding
+
+
 def _capsule_against(params_a, X_A, kind_b, params_b, X_B):
     """A capsule's two end spheres against B; against a box, hull or cylinder also the sphere
     about the point of its segment deepest into B where that point is deeper than both ends
     (a capsule lying across an edge), and then an end sphere within a radius of it is left
-    out (the same contact, counted once). B's signed distance is convex along a line, so a
-    golden-section search finds the point (not differentiated: the depth is stationary
-    there)."""
+    out (the same contact, counted once)."""
     ends, radii, _ = _contact_points("capsule", params_a, X_A)   # at s = +half, -half
     if kind_b not in ("box", "convex", "cylinder"):
         return _points_against(kind_b, params_b, X_B, ends, radii, jnp.ones(2, bool))
     radius, half = params_a["size"][0], params_a["size"][1]
-    (R_A, p_A), (R_B, p_B), held = jax.lax.stop_gradient((X_A, X_B, params_b))
-    phi = lambda s: point_distance(kind_b, held, R_B.T @ (p_A + s * R_A[:, 2] - p_B))[0]  # noqa: E731
-    s = _golden_minimum(phi, *jax.lax.stop_gradient((-half, half)))
-    rounding = 64 * jnp.finfo(p_A.dtype).eps * (1.0 + jnp.linalg.norm(p_A) + jnp.linalg.norm(p_B) + half + radius)
-    middle = phi(s) < jnp.minimum(phi(-half), phi(half)) - rounding
+    s, phi = _deepest_axis_point(params_a, X_A, kind_b, params_b, X_B)
+    middle = _deeper_than_its_ends(s, phi, X_A, X_B, half, radius)
     near = jnp.abs(s - jnp.stack([half, -half])) < radius
     centre = X_A[1] + s * X_A[0][:, 2]
     return _concat(_points_against(kind_b, params_b, X_B, ends, radii, ~(middle & near)),
                    _points_against(kind_b, params_b, X_B, centre[None], radius[None], middle[None]))
+
+
+def _cylinder_side_against(params_a, X_A, kind_b, params_b, X_B):
+    """Cylinder A's round side across an edge of a box or hull B: the sphere of A's radius about
+    the point of its axis deepest into B, where that is deeper than both axis ends and at least
+    a radius from A's flat ends (else the sphere would stick out of them); exact where the side
+    meets the edge."""
+    radius, half = params_a["size"][0], params_a["size"][1]
+    s, phi = _deepest_axis_point(params_a, X_A, kind_b, params_b, X_B)
+    across = _deeper_than_its_ends(s, phi, X_A, X_B, half, radius) & (jnp.abs(s) < half - radius)
+    centre = X_A[1] + s * X_A[0][:, 2]
+    return _points_against(kind_b, params_b, X_B, centre[None], radius[None], across[None])
 
 
 def penetration(kind_a: str, params_a, X_A, kind_b: str, params_b, X_B):
@@ -304,16 +322,16 @@ def penetration(kind_a: str, params_a, X_A, kind_b: str, params_b, X_B):
     if kind_a == "cylinder":
         own = _rim_against(params_a, X_A, kind_b, params_b, X_B)
         if kind_b in ("box", "convex"):
-            return _concat(own, _their_vertices(kind_a, params_a, X_A, kind_b, params_b, X_B))
+            return _concat(own, _cylinder_side_against(params_a, X_A, kind_b, params_b, X_B),
+                           _their_vertices(kind_a, params_a, X_A, kind_b, params_b, X_B))
         if kind_b == "cylinder":
             return _concat(own, _axis_sphere_against(params_a, X_A, params_b, X_B),
                            _swap(_rim_against(params_b, X_B, "cylinder", params_a, X_A)))
         return own
     if kind_a in ("box", "convex"):
-        own = _vertices_against(kind_b, params_b, X_B, *_contact_points(kind_a, params_a, X_A))
         if kind_b in ("box", "convex"):
-            return _concat(own, _their_vertices(kind_a, params_a, X_A, kind_b, params_b, X_B))
-        return own
+            return polytope_penetration(kind_a, params_a, X_A, kind_b, params_b, X_B)
+        return _vertices_against(kind_b, params_b, X_B, *_contact_points(kind_a, params_a, X_A))
     raise ValueError(f"unsupported shape pair ({kind_a}, {kind_b})")
 
 

@@ -9,7 +9,7 @@ r"""Collision shapes (Drake's `geometry::Shape` family), each in its own frame G
   normal $+z$), Drake's `HalfSpace`.
 - `Convex(vertices)`: the convex hull of points (a `.obj` / `.stl` mesh reduced to its hull,
   as Drake's `Convex`), kept as its vertices and its faces' planes
-  $n_f \cdot p \le d_f$.
+  $n_f \cdot p \le d_f$; its faces as polygons and its edges follow from them.
 
 Shapes are frozen host values (static structure); their sizes become pytree leaves of the
 plant's contact model, so `jax.grad` with respect to a radius works.
@@ -18,6 +18,7 @@ plant's contact model, so `jax.grad` with respect to a radius works.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import pathlib
 
 import numpy as np
@@ -57,8 +58,12 @@ class Box:
 
     def vertices(self):
         """The 8 corners, (8, 3)."""
-        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
-        return signs * self.half_sizes
+        return BOX_CORNER_SIGNS * self.half_sizes
+
+
+# a box's corners as signs of its half sizes, and its faces' planes (+x, +y, +z, -x, -y, -z)
+BOX_CORNER_SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
+BOX_FACE_NORMALS = np.vstack([np.eye(3), -np.eye(3)])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,6 +108,33 @@ class Convex:
     triangles: np.ndarray
     name: str = "convex"
 
+    @functools.cached_property
+    def faces(self) -> tuple:
+        """Each plane's face: the indices of the vertices on it, counter-clockwise about its
+        outward normal."""
+        return polygon_faces(self.vertices, self.planes, self.triangles)
+
+    @property
+    def polytope_sizes(self) -> tuple[int, int, int]:
+        """(faces, most corners of a face, edges)."""
+        return len(self.faces), max(len(f) for f in self.faces), len(polygon_edges(self.faces)[0])
+
+    def polytope_arrays(self, faces: int, corners: int, edges: int):
+        """Its face polygons (faces, corners, 3) with their validity (faces, corners), and its
+        edges (edges, 2, 3) with the outward normals of the two faces at each (edges, 2, 3),
+        padded to the given counts by repeating the first face or edge (which changes no
+        maximum) and by masked corners."""
+        polygons = np.zeros((faces, corners, 3))
+        valid = np.zeros((faces, corners), bool)
+        for f, face in enumerate(self.faces):
+            polygons[f, :len(face)], valid[f, :len(face)] = self.vertices[list(face)], True
+        polygons[len(self.faces):], valid[len(self.faces):] = polygons[0], valid[0]
+        index, edge_faces = polygon_edges(self.faces)
+        ends, normals = np.zeros((edges, 2, 3)), np.zeros((edges, 2, 3))
+        ends[:len(index)], normals[:len(index)] = self.vertices[index], self.planes[edge_faces, :3]
+        ends[len(index):], normals[len(index):] = ends[0], normals[0]
+        return polygons, valid, ends, normals
+
     @classmethod
     def from_points(cls, points, name: str = "convex") -> "Convex":
         from scipy.spatial import ConvexHull, QhullError
@@ -144,6 +176,38 @@ class Convex:
                     "each), or collide with its hull: from_urdf(..., mesh_hulls=True), or "
                     "Convex.from_mesh_file(..., require_convex=False) for a shape of your own")
         return shape
+
+
+def polygon_faces(vertices, planes, triangles) -> tuple:
+    """For each plane row [n, d] of a convex polytope, the indices of its `vertices` on that
+    face, ordered counter-clockwise about n (the face is convex: by angle about its centre).
+    A face's corners are those of the boundary `triangles` (t, 3, 3) that lie in its plane
+    (each triangle goes to the plane it fits best)."""
+    distance = np.abs(np.einsum("tkj,fj->tfk", triangles, planes[:, :3]) - planes[None, :, 3, None]).sum(-1)
+    plane_of = np.argmin(distance, axis=1)
+    index = np.argmin(np.linalg.norm(triangles[:, :, None, :] - vertices[None, None], axis=-1), axis=-1)
+    return tuple(counter_clockwise(vertices, np.unique(index[plane_of == f]), n) for f, n in enumerate(planes[:, :3]))
+
+
+def counter_clockwise(vertices, on, n) -> tuple:
+    """The indices `on` of a convex face's corners among `vertices`, ordered counter-clockwise
+    about its normal n (by angle about their centre)."""
+    offsets = vertices[on] - vertices[on].mean(0)
+    u = np.cross(n, np.eye(3)[np.argmin(np.abs(n))])
+    u /= np.linalg.norm(u)
+    return tuple(int(i) for i in np.asarray(on)[np.argsort(np.arctan2(offsets @ np.cross(n, u), offsets @ u))])
+
+
+def polygon_edges(faces) -> tuple[np.ndarray, np.ndarray]:
+    """The edges of a closed polytope given as counter-clockwise `faces`: (e, 2) vertex indices
+    and (e, 2) indices of the two faces that meet there (each edge once)."""
+    seen = {}
+    for f, face in enumerate(faces):
+        for a, b in zip(face, face[1:] + face[:1]):
+            seen.setdefault(frozenset((a, b)), []).append((f, (a, b)))
+    shared = [uses for uses in seen.values() if len(uses) == 2]
+    return (np.array([uses[0][1] for uses in shared], int).reshape(-1, 2),
+            np.array([[uses[0][0], uses[1][0]] for uses in shared], int).reshape(-1, 2))
 
 
 def _hull_volume(shape: Convex) -> float:

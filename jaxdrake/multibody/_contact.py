@@ -181,7 +181,8 @@ class ContactModel(eqx.Module):
     Static: geometry `names`, `links`, `kinds`, `bodies` (the tree body each is fixed to, -1
     the world) and `groups`: (kind_a, kind_b, geometry indices a, b) of the candidate pairs,
     grouped by shape kinds. Leaves: each geometry's pose in its body's frame (`rotation`,
-    `translation`), `size`, convex `vertices` / `planes` / `triangles` (padded), and `stiffness`,
+    `translation`), `size`, convex `vertices` / `planes` / `triangles` / face `polygons` / `edges`
+    with their faces' `edge_normals` (padded), and `stiffness`,
     `dissipation`, `mu_static`, `mu_dynamic`; the plant's `stiction_tolerance`.
     """
 
@@ -197,6 +198,10 @@ class ContactModel(eqx.Module):
     vertex_valid: jax.Array
     planes: jax.Array
     triangles: jax.Array
+    polygons: jax.Array
+    polygon_valid: jax.Array
+    edges: jax.Array
+    edge_normals: jax.Array
     stiffness: jax.Array
     dissipation: jax.Array
     mu_static: jax.Array
@@ -263,7 +268,8 @@ class ContactModel(eqx.Module):
         the static geometry indices a, b of each."""
         R, p = self.geometry_poses(motion)
         params = {"size": self.size, "vertices": self.vertices, "vertex_valid": self.vertex_valid,
-                  "planes": self.planes, "triangles": self.triangles}
+                  "planes": self.planes, "triangles": self.triangles, "polygons": self.polygons,
+                  "polygon_valid": self.polygon_valid, "edges": self.edges, "edge_normals": self.edge_normals}
         parts, ia, ib = [], [], []
         for kind_a, kind_b, a, b in self.groups:
             a_idx, b_idx = np.asarray(a), np.asarray(b)
@@ -587,6 +593,11 @@ def build_contact_model(tree, geometries, *, excluded_pairs=(), stiction_toleran
     valid = np.zeros((len(geometries), nv), bool)
     planes = np.tile(np.array([0.0, 0.0, 1.0, 0.0]), (len(geometries), nf, 1))
     triangles = np.tile(np.eye(3), (len(geometries), nt, 1, 1))
+    polytope_sizes = np.max([c.polytope_sizes for c in convex] or [(1, 1, 1)], axis=0)
+    polygons = np.zeros((len(geometries), *polytope_sizes[:2], 3))
+    polygon_valid = np.zeros((len(geometries), *polytope_sizes[:2]), bool)
+    edges = np.zeros((len(geometries), polytope_sizes[2], 2, 3))
+    edge_normals = np.zeros((len(geometries), polytope_sizes[2], 2, 3))
     for i, g in enumerate(geometries):
         if isinstance(g.shape, Convex):   # padded by repeating a first entry (no mask needed)
             m, f, t = len(g.shape.vertices), len(g.shape.planes), len(g.shape.triangles)
@@ -594,6 +605,7 @@ def build_contact_model(tree, geometries, *, excluded_pairs=(), stiction_toleran
             vertices[i, m:] = g.shape.vertices[0]
             planes[i, :f], planes[i, f:] = g.shape.planes, g.shape.planes[0]
             triangles[i, :t], triangles[i, t:] = g.shape.triangles, g.shape.triangles[0]
+            polygons[i], polygon_valid[i], edges[i], edge_normals[i] = g.shape.polytope_arrays(*polytope_sizes)
     value = lambda x, default: default if x is None else x  # noqa: E731
     rotation, translation = _poses_in_bodies(tree, geometries)
     return ContactModel(
@@ -602,7 +614,8 @@ def build_contact_model(tree, geometries, *, excluded_pairs=(), stiction_toleran
         rotation=rotation, translation=translation,
         size=floats([_size(g.shape) for g in geometries]).reshape(-1, 3),
         vertices=floats(vertices), vertex_valid=jax.device_put(valid), planes=floats(planes),
-        triangles=floats(triangles),
+        triangles=floats(triangles), polygons=floats(polygons), polygon_valid=jax.device_put(polygon_valid),
+        edges=floats(edges), edge_normals=floats(edge_normals),
         stiffness=floats([value(g.material.point_contact_stiffness, DEFAULT_STIFFNESS) for g in geometries]),
         dissipation=floats([value(g.material.hunt_crossley_dissipation, DEFAULT_DISSIPATION) for g in geometries]),
         mu_static=floats([g.material.friction()[0] for g in geometries]),
