@@ -449,7 +449,7 @@ def test_crossed_planks_and_crossed_edges_touch_at_their_closed_form_points():
 
 def test_polytope_contact_gradients_equal_central_differences():
     """The depths and witnesses of a box against a hull (face and edge contacts) as functions
-    of A's pose: their derivatives equal central differences."""
+    of A's pose: their derivatives, forward and reverse, equal central differences."""
     rng = np.random.default_rng(2)
     hull = _hull_params(Convex.from_points(rng.normal(size=(12, 3)) * 0.2))
     box = {"size": jnp.array([0.2, 0.15, 0.1])}
@@ -462,7 +462,7 @@ def test_polytope_contact_gradients_equal_central_differences():
         return jnp.concatenate([jnp.where(touching, out[0], 0.0)] + [jnp.where(touching[:, None], x, 0.0).ravel()
                                                                      for x in out[1:]])
 
-    f, jacobian = jax.jit(contacts), jax.jit(jax.jacfwd(contacts))
+    f, forward, reverse = jax.jit(contacts), jax.jit(jax.jacfwd(contacts)), jax.jit(jax.jacrev(contacts))
     checked, edges = 0, 0
     for _ in range(16):
         R, w = _random_rotation(rng), rng.normal(size=3)
@@ -473,7 +473,8 @@ def test_polytope_contact_gradients_equal_central_differences():
         step = 1e-6
         fd = np.stack([(np.asarray(f(step * e, *args)) - np.asarray(f(-step * e, *args))) / (2 * step)
                        for e in np.eye(4)], 1)
-        np.testing.assert_allclose(np.asarray(jacobian(jnp.zeros(4), *args)), fd, atol=2e-6)
+        for jacobian in (forward, reverse):
+            np.testing.assert_allclose(np.asarray(jacobian(jnp.zeros(4), *args)), fd, atol=2e-6)
         checked, edges = checked + 1, edges + (value[8] > 0)
     assert checked >= 4 and edges >= 1
 

@@ -70,22 +70,30 @@ def _face_separations(normals, offsets, vertices, valid):
 
 
 def _edge_separations(edges_a, normals_a, centre_a, edges_b, normals_b):
-    """(separation (ea, eb), unit axis n (ea, eb, 3) pointing out of A) for every edge pair whose
-    normal arcs cross (-inf elsewhere): the distance along n from A's edge to B's."""
+    """The separation (ea, eb) along m = d_a x d_b (d: the edges' directions), oriented out of
+    A, of every edge pair whose normal arcs cross (-inf elsewhere): the distance along m from
+    A's edge to B's. Triple products as matrix products, (d_a x d_b) . x = d_a . (d_b x x)
+    = d_b . (x x d_a), so no (ea, eb, 3) array is formed."""
     a1, a2 = normals_a[:, 0], normals_a[:, 1]
     c, d = -normals_b[:, 0], -normals_b[:, 1]   # the Minkowski difference A - B holds -B's normals
     ba, dc = jnp.cross(a2, a1), jnp.cross(d, c)
-    cba, dba = c @ ba.T, d @ ba.T                 # (eb, ea)
-    adc, bdc = a1 @ dc.T, a2 @ dc.T               # (ea, eb)
-    crossing = (cba.T * dba.T < 0) & (adc * bdc < 0) & (cba.T * bdc > 0)
-    along_a, along_b = edges_a[:, 1] - edges_a[:, 0], edges_b[:, 1] - edges_b[:, 0]
-    m = jnp.cross(along_a[:, None], along_b[None])
-    length, n = jax.vmap(jax.vmap(norm_and_direction, (0, None)), (0, None))(m, jnp.eye(3, dtype=m.dtype)[0])
-    size = jnp.linalg.norm(along_a, axis=-1)[:, None] * jnp.linalg.norm(along_b, axis=-1)[None]
-    crossing = crossing & (length > 1e-6 * size)
-    n = jnp.where((jnp.sum(n * (edges_a[:, None, 0] - centre_a), -1) < 0)[..., None], -n, n)
-    separation = jnp.sum(n * (edges_b[None, :, 0] - edges_a[:, None, 0]), -1)
-    return jnp.where(crossing, separation, -jnp.inf), n
+    cba, dba = (c @ ba.T).T, (d @ ba.T).T         # (ea, eb)
+    adc, bdc = a1 @ dc.T, a2 @ dc.T
+    crossing = (cba * dba < 0) & (adc * bdc < 0) & (cba * bdc > 0)
+    start_a, start_b = edges_a[:, 0], edges_b[:, 0]
+    along_a, along_b = edges_a[:, 1] - start_a, edges_b[:, 1] - start_b
+    squared = jnp.sum(along_a ** 2, -1)[:, None] * jnp.sum(along_b ** 2, -1)[None] - (along_a @ along_b.T) ** 2
+    crossing = crossing & (squared > 1e-12 * jnp.sum(along_a ** 2, -1)[:, None] * jnp.sum(along_b ** 2, -1)[None])
+    outward = jnp.sign(jnp.cross(start_a - centre_a, along_a) @ along_b.T)   # m . (a - centre) > 0
+    gap = along_a @ jnp.cross(along_b, start_b).T - jnp.cross(start_a, along_a) @ along_b.T   # m . (b - a)
+    return jnp.where(crossing, outward * gap / jnp.sqrt(jnp.where(crossing, squared, 1.0)), -jnp.inf)
+
+
+def _edge_axis(edge_a, edge_b, centre_a):
+    """The unit d_a x d_b of two edges, pointing out of A."""
+    along_a = edge_a[1] - edge_a[0]
+    n = norm_and_direction(jnp.cross(along_a, edge_b[1] - edge_b[0]), jnp.eye(3, dtype=along_a.dtype)[0])[1]
+    return jnp.where(jnp.dot(n, edge_a[0] - centre_a) < 0, -n, n)
 
 
 def _clip(polygon, valid, reference, reference_valid, normal, tolerance):
@@ -127,11 +135,12 @@ def _four_of(points, depth, touching, normal, tolerance):
     with the polygon's corner count (two equal squares stacked, turned a little: 8 corners,
     4 chosen, as when aligned). Points closer than `tolerance` to those already chosen (a
     clipped corner repeated) are left out: (points, depths, whether each is in use)."""
-    first = jnp.argmax(jnp.where(touching, depth, -jnp.inf))
-    apart = jnp.sqrt(jnp.sum((points - points[first]) ** 2, -1))
+    held, depth_held = jax.lax.stop_gradient((points, depth))   # a choice: nothing to differentiate
+    first = jnp.argmax(jnp.where(touching, depth_held, -jnp.inf))
+    apart = jnp.sqrt(jnp.sum((held - held[first]) ** 2, -1))
     second = jnp.argmax(jnp.where(touching, apart, -jnp.inf))
-    line = norm_and_direction(points[second] - points[first], jnp.zeros_like(normal))[1]
-    off_line = jnp.cross(line, points - points[first]) @ normal   # signed distance from the line
+    line = norm_and_direction(held[second] - held[first], normal)[1]
+    off_line = jnp.cross(line, held - held[first]) @ jax.lax.stop_gradient(normal)   # signed distance from the line
     third = jnp.argmax(jnp.where(touching, off_line, -jnp.inf))
     fourth = jnp.argmin(jnp.where(touching, off_line, jnp.inf))
     chosen = jnp.stack([first, second, third, fourth])
@@ -167,18 +176,25 @@ def polytope_penetration(kind_a, params_a, X_A, kind_b, params_b, X_B):
     (Pa, pa_valid), (Pb, pb_valid) = _pad_corners(Pa, pa_valid, corners), _pad_corners(Pb, pb_valid, corners)
     scale = 1.0 + jnp.max(jnp.where(va[:, None], jnp.abs(Va), 0.0)) + jnp.max(jnp.where(vb[:, None], jnp.abs(Vb), 0.0))
     tolerance = 64 * jnp.finfo(Va.dtype).eps * scale
-    sep_a = _face_separations(Na, da, Vb, vb)
-    sep_b = _face_separations(Nb, db, Va, va)
     centre_a = jnp.sum(jnp.where(va[:, None], Va, 0.0), 0) / jnp.sum(va)
-    sep_e, axes = _edge_separations(Ea, ENa, centre_a, Eb, ENb)
-    fa, fb, e = jnp.argmax(sep_a), jnp.argmax(sep_b), jnp.argmax(sep_e)
-    face_separation = jnp.maximum(sep_a[fa], sep_b[fb])
-    edge_separation = sep_e.reshape(-1)[e]
+    # the axes are chosen on values held constant, and the chosen ones' separations recomputed
+    # (differentiated through one face or edge pair, not through every one)
+    held = jax.lax.stop_gradient((Na, da, Va, Nb, db, Vb, Ea, ENa, Eb, ENb, centre_a))
+    fa = jnp.argmax(_face_separations(held[0], held[1], held[5], vb))
+    fb = jnp.argmax(_face_separations(held[3], held[4], held[2], va))
+    sep_e = _edge_separations(held[6], held[7], held[10], held[8], held[9])
+    i = jnp.argmax(jnp.max(sep_e, 1))   # by rows: a flat argmax over all pairs is several times slower
+    j = jnp.argmax(sep_e[i])
+    sep_a = _face_separations(Na[fa, None], da[fa, None], Vb, vb)[0]
+    sep_b = _face_separations(Nb[fb, None], db[fb, None], Va, va)[0]
+    face_separation = jnp.maximum(sep_a, sep_b)
+    axis = _edge_axis(Ea[i], Eb[j], centre_a)
+    edge_separation = jnp.where(jnp.isfinite(sep_e[i, j]), jnp.dot(axis, Eb[j, 0] - Ea[i, 0]), -jnp.inf)
     use_edge = edge_separation > face_separation + tolerance
     least_depth = -jnp.maximum(face_separation, edge_separation)
     # the reference face (A's where A's face separates at least as much) and the incident face
     # of the other shape, the one most opposed to it
-    a_refers = sep_a[fa] >= sep_b[fb]
+    a_refers = sep_a >= sep_b
     normal = jnp.where(a_refers, Na[fa], Nb[fb])
     offset = jnp.where(a_refers, da[fa], db[fb])
     reference = jnp.where(a_refers, Pa[fa], Pb[fb])
@@ -195,9 +211,8 @@ def polytope_penetration(kind_a, params_a, X_A, kind_b, params_b, X_B):
     face_b = jnp.where(a_refers, points.T, on_reference.T).T
     face_n = jnp.broadcast_to(jnp.where(a_refers, -normal, normal), points.shape)
     # an edge crossing an edge
-    i, j = jnp.unravel_index(e, sep_e.shape)
     edge_a, edge_b = _closest_points_of_segments(Ea[i, 0], Ea[i, 1], Eb[j, 0], Eb[j, 1])
     edge_depth = jnp.where(use_edge, -edge_separation, -jnp.inf)
     return (jnp.concatenate([face_depth, edge_depth[None]]), jnp.concatenate([face_a, edge_a[None]]),
-            jnp.concatenate([face_b, edge_b[None]]), jnp.concatenate([face_n, -axes[i, j][None]]))
+            jnp.concatenate([face_b, edge_b[None]]), jnp.concatenate([face_n, -axis[None]]))
 
