@@ -426,8 +426,9 @@ def test_two_polytopes_overlap_by_the_brute_force_separating_axes_least_depth():
 
 def test_crossed_planks_and_crossed_edges_touch_at_their_closed_form_points():
     """Two planks crossed flat touch at the 4 corners of their overlap (no corner of either is
-    inside the other); two boxes standing on edges crossed at right angles touch once, at
-    their edges' crossing, along the vertical, at depth 2 h - z (h: half a face's diagonal)."""
+    inside the other); two equal cubes stacked, aligned or turned a little, on 4 points; two
+    cubes standing on edges crossed at right angles touch once, at their edges' crossing,
+    along the vertical, at depth 2 h - z (h: half a face's diagonal)."""
     x, I = 1e-3, jnp.eye(3)
     plank_a, plank_b = {"size": jnp.array([0.5, 0.05, 0.05])}, {"size": jnp.array([0.05, 0.5, 0.05])}
     depth, pa, pb, n = penetration("box", plank_a, (I, jnp.array([0.0, 0.0, 0.1 - x])), "box", plank_b, (I, jnp.zeros(3)))
@@ -437,6 +438,11 @@ def test_crossed_planks_and_crossed_edges_touch_at_their_closed_form_points():
     np.testing.assert_allclose(sorted(np.asarray(pb)[touching].tolist()), corners, atol=1e-15)
     np.testing.assert_allclose(np.asarray(n)[touching], [[0, 0, 1.0]] * 4, atol=1e-15)
     cube = {"size": jnp.array([0.1, 0.1, 0.1])}
+    for turn in (0.0, 1e-7, 1e-3):   # their overlap: a square, then an octagon of 8 corners, 4 of them in use
+        c, s = np.cos(turn), np.sin(turn)
+        depth = penetration("box", cube, (jnp.asarray([[c, -s, 0], [s, c, 0], [0, 0, 1]]), jnp.array([0.0, 0.0, 0.2 - x])),
+                            "box", cube, (I, jnp.zeros(3)))[0]
+        np.testing.assert_allclose(np.asarray(depth)[np.asarray(depth) > 0], [x] * 4, atol=1e-15)
     h = 0.1 * np.sqrt(2)
     R_A, R_B = (jnp.asarray(np.asarray(jd.multibody.rpy(*angles))) for angles in ((np.pi / 4, 0, 0), (0, np.pi / 4, 0)))
     depth, pa, pb, n = penetration("box", cube, (R_A, jnp.array([0.01, -0.02, 2 * h - x])), "box", cube, (R_B, jnp.zeros(3)))
