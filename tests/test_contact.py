@@ -247,6 +247,26 @@ def test_vmap_over_friction_equals_a_loop():
     assert batched[0, 0] > batched[2, 0]   # less friction, further
 
 
+def test_the_default_solver_is_the_stiff_w_method_for_contact_at_everyday_tolerances():
+    """solver="auto": a contact plant at rtol >= 1e-7 runs Rosenbrock23(jacobian="stiff") (a
+    box tumbling to rest: 10x faster than dopri5 at rtol 1e-6, benchmarks/RESULTS.md),
+    tighter or without contact dopri5; the same steps and state as asking for them."""
+    ball = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True, contact=True)
+    x0 = jnp.array([0.0, 0.0, 0.2, 0, 0, 0, 1, 0.5, 0, 0, 0, 0, 0])
+    stiff = jd.simulation.Rosenbrock23(jacobian="stiff")
+    # (the ball alone has collision geometry but nothing to touch: dopri5, and no step bound,
+    # which was NaN without a pair)
+    for system, rtol, expected in ((ball.with_ground(), 1e-6, stiff), (ball.with_ground(), 1e-8, "dopri5"),
+                                   (ball, 1e-6, "dopri5")):
+        run = lambda solver, rtol=rtol, system=system: jd.simulate(system, (0.0, 0.3), x0, solver=solver,  # noqa: E731
+                                                                   rtol=rtol, dense=False, throw=False)
+        auto, chosen = run("auto"), run(expected)
+        assert bool(auto.success) and int(auto.num_accepted_steps) == int(chosen.num_accepted_steps)
+        np.testing.assert_array_equal(np.asarray(auto.final_state), np.asarray(chosen.final_state))
+        if expected is stiff:   # dopri5 runs out of its 4096 default steps before the ball has bounced twice
+            assert int(run("dopri5").status) == jd.simulation.SimulationStatus.MAX_STEPS_REACHED
+
+
 # ----- geometry ---------------------------------------------------------------------------------
 
 

@@ -235,8 +235,9 @@ class ContactModel(eqx.Module):
         return delta / (s + jnp.sqrt(s * s + g * delta))
 
     def moves(self) -> bool:
-        """Whether a geometry is fixed to a body (not all to the world)."""
-        return any(b >= 0 for b in self.bodies)
+        """Whether a geometry of a candidate pair is fixed to a body (not all to the world;
+        without pairs nothing touches, and no step is bounded)."""
+        return any(self.bodies[g] >= 0 for _, _, a, b in self.groups for g in a + b)
 
     def _reach_and_thickness(self, tree, q):
         """(c (nv, geometries), delta) of `step_bound`."""
