@@ -149,6 +149,19 @@ def test_a_sliding_box_stops_after_v0_squared_over_2_mu_g():
     assert abs(x[7]) < 1e-3 and abs(x[2] - 0.1) < 1e-4   # stopped, upright on the floor
 
 
+def test_a_float32_ball_thrown_onto_the_floor_lands_and_rolls_as_float64_does():
+    """Thrown sideways at 1 m/s with Drake's default contact properties: the touchdown needs
+    steps of ~3 units of float32's spacing of t there; the old floor of 16 units (MATLAB's)
+    stopped it with STEP_SIZE_TOO_SMALL. At the default tolerances it ends within float32's
+    tolerances of float64's run at rtol 1e-9."""
+    ball = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True, contact=True).with_ground()
+    x0 = np.array([0, 0, 0.3, 0, 0, 0, 1, 1.0, 0, 0, 0, 0, 0])
+    single = jd.simulate(ball, (0.0, 1.0), jnp.asarray(x0, jnp.float32), dense=False).final_state
+    double = jd.simulate(ball, (0.0, 1.0), jnp.asarray(x0), rtol=1e-9, atol=1e-10, dense=False, max_steps=20000).final_state
+    assert single.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(single, float), np.asarray(double), atol=2e-3)
+
+
 def test_a_float32_box_slides_its_closed_form_distance_at_the_default_tolerances():
     """float32 with float64's atol 1e-9 (below float32's rounding near 1) ran out of steps
     within 0.06 s; float32's default atol is 1e-5, and an explicit 1e-9 is told why it failed.

@@ -300,9 +300,10 @@ def test_a_call_from_python_runs_on_the_host_when_the_default_device_is_a_gpu():
 
 
 def test_float32_steps_may_be_far_below_float32_eps_early_in_time():
-    """The step-size floor is 16 units of t's floating-point spacing (MATLAB's 16*eps(t)), not
-    16 eps: a pulse of width 1e-6 s at t = 1e-3 needs float32 steps of ~1e-7 s, 20x below
-    float32's eps. x' = a / (1 + (a (t - c))^2) integrates to arctan(a (t - c))."""
+    """The step-size floor is a few units of t's floating-point spacing (float32: 2; float64: 16,
+    MATLAB's 16*eps(t)), not a multiple of eps: a pulse of width 1e-6 s at t = 1e-3 needs
+    float32 steps of ~1e-7 s, 20x below float32's eps. x' = a / (1 + (a (t - c))^2)
+    integrates to arctan(a (t - c))."""
     a, c = 1e6, 1e-3
     pulse = jd.System.from_functions(dynamics=lambda t, x, u: a / (1 + (a * (t - c)) ** 2) + 0 * x,
                                      num_states=1)

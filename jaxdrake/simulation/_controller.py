@@ -25,15 +25,20 @@ def least_step(t):
 
 def smallest_step(t, finite):
     """The step size at or below which a rejected step ends an adaptive simulation: for a
-    finite attempt 16 units of the floating-point spacing at t (16 `least_step`s: MATLAB's
-    `16*eps(t)`; SciPy's `solve_ivp` likewise scales its floor with t), then
-    STEP_SIZE_TOO_SMALL; relative to t, not to 1, because float32 steps of ~1e-8 s at
-    t = 0.01 are ~30 units of t's spacing, and stiff contact onsets need them. For a
-    non-finite attempt 16 eps max(|t|, 1), then NONFINITE_STATE: a NaN or overflow that
+    finite attempt a few units of the floating-point spacing at t (`least_step`s; SciPy's
+    `solve_ivp` likewise scales its floor with t), then STEP_SIZE_TOO_SMALL. Relative to t,
+    not to 1, because float32 steps of ~1e-8 s at t = 0.01 are ~30 units of t's spacing, and
+    stiff contact onsets need them. In float64, 16 units (MATLAB's `16*eps(t)`), far below
+    any physical step; in float32, 2, since a ball or box landing with Drake's default contact
+    properties needs steps of 3-5 units at its touchdown, which 16 stopped (a step's size is
+    the exact difference of its ends, so short steps lose nothing but time; in float64 a
+    lower floor let a finite-time blow-up step on past its pole instead of stopping there).
+    For a non-finite attempt 16 eps max(|t|, 1), then NONFINITE_STATE: a NaN or overflow that
     persists down to such steps is the vector field's, and near t = 0 the relative floor
     would take hundreds of rejections to say so."""
-    eps = jnp.finfo(t.dtype).eps
-    return jnp.where(finite, 16 * least_step(t), 16 * eps * jnp.maximum(jnp.abs(t), 1.0))
+    finfo = jnp.finfo(t.dtype)
+    units = 16 if finfo.bits >= 64 else 2
+    return jnp.where(finite, units * least_step(t), 16 * finfo.eps * jnp.maximum(jnp.abs(t), 1.0))
 
 
 class AbstractStepSizeController(eqx.Module):

@@ -281,7 +281,7 @@ class Loop(eqx.Module):
         h = s.h
         if self.solver.adaptive and self.num_continuous:
             # the first step at least one unit of t's spacing (`least_step`): after it, steps shrink
-            # only by rejections, which end the simulation at `smallest_step`, 16 units
+            # only by rejections, which end the simulation at `smallest_step`, 2 or 16 units
             first = jnp.minimum(self.controller.initial_step(s.t, s.x[self.num_discrete:], k0), self.dt_max)
             h = jnp.where(jnp.isnan(h), jnp.maximum(first, least_step(s.t)), h)
         if self.system.bounds_steps and self.num_continuous:
