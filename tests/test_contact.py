@@ -486,6 +486,51 @@ def test_crossed_planks_and_crossed_edges_touch_at_their_closed_form_points():
     np.testing.assert_allclose(np.asarray(n)[touching], [[0, 0, 1.0]], atol=1e-15)
 
 
+def _plank_on_a_ridge(tmp_path):
+    """A 1 kg plank (1 x 0.2 x 0.05 m) free above a box (0.2 x 1 x 0.2 m) turned 45 degrees about
+    y, whose top edge (the ridge) runs along y at z = 0.1 sqrt(2)."""
+    (tmp_path / "plank.urdf").write_text("""<robot name="plank">
+      <link name="plank"><inertial><mass value="1"/><inertia ixx="0.0035" iyy="0.0835" izz="0.0867" ixy="0" ixz="0" iyz="0"/>
+        </inertial><collision><geometry><box size="1.0 0.2 0.05"/></geometry></collision></link></robot>""")
+    plank = jd.RigidBodySystem.from_urdf(tmp_path / "plank.urdf", floating_base=True, contact=True)
+    return plank.with_collision_geometry("world", Box(0.2, 1.0, 0.2), rotation=_rotation_y(np.pi / 4), name="ridge")
+
+
+def test_a_plank_across_a_ridge_rests_on_both_ends_of_the_ridge_under_it(tmp_path):
+    """The plank's face lies on the ridge: two points, where the ridge leaves the face under
+    its two long edges, at their closed-form depths below the face, however little the plank
+    is turned along the ridge (an edge-edge axis ties with the face there: turned by 1e-9 rad,
+    the edge was chosen and gave one point, the support halving in a jump)."""
+    plank = _plank_on_a_ridge(tmp_path)
+    top, x = 0.1 * np.sqrt(2), 1e-5
+    for a in (0.0, 1e-9, -1e-9, 1e-7, 1e-5, -1e-5):
+        c, s = np.cos(a), np.sin(a)
+        p = np.array([0.0, 0.003, top + 0.025 - x])
+        q = np.concatenate([p, [np.sin(a / 2), 0, 0, np.cos(a / 2)], np.zeros(6)])
+        res = plank.contact_results(jnp.asarray(q))
+        active = np.asarray(res.active)
+        b = p + 0.025 * np.array([0.0, s, -c])                  # the plank's bottom face's centre
+        expected = []
+        for side in (0.1, -0.1):                                 # the ridge crossing its long edges
+            y = p[1] + (side - s * (top - p[2])) / c
+            expected.append(s * (b[1] - y) - c * (b[2] - top))   # n . (b - r), n = (0, s, -c)
+        np.testing.assert_allclose(np.sort(np.asarray(res.depth)[active]), np.sort(expected), rtol=1e-9, atol=1e-15)
+
+
+def test_a_plank_sliding_along_a_ridge_stops_after_v0_squared_over_2_mu_g(tmp_path):
+    """Resting on the ridge (sunk m g / 2k at its two points), sliding along it at 0.5 m/s:
+    it stops after v0^2 / (2 mu g), mu = 2/3 (Drake's defaults, 1.0 for the URDF's collision
+    and 0.5 for the ridge's, combined as 2 mu_a mu_b / (mu_a + mu_b)). Before a face was
+    preferred over an edge that ties with it, its contact points flipped between one and two
+    and the run stalled at t = 5e-5 s with steps of 1e-10 s."""
+    plank = _plank_on_a_ridge(tmp_path)
+    top, v0, mu, g, k = 0.1 * np.sqrt(2), 0.5, 2 * 1.0 * 0.5 / (1.0 + 0.5), 9.81, 1e6 / 2
+    x0 = jnp.array([0.0, 0.0, top + 0.025 - g / (2 * k), 0, 0, 0, 1, 0, v0, 0, 0, 0, 0])
+    traj = jd.simulate(plank, (0.0, 0.2), x0, dense=False)
+    np.testing.assert_allclose(float(traj.final_state[1]), v0 ** 2 / (2 * mu * g), rtol=1e-4)
+    assert abs(float(traj.final_state[8])) < 1e-4
+
+
 def test_polytope_contact_gradients_equal_central_differences():
     """The depths and witnesses of a box against a hull (face and edge contacts) as functions
     of A's pose: their derivatives, forward and reverse, equal central differences."""
