@@ -416,8 +416,9 @@ def _least_overlap(vertices_a, vertices_b, axes):
 def test_two_polytopes_overlap_by_the_brute_force_separating_axes_least_depth():
     """Boxes and hulls at random poses: they touch exactly where the separating-axis test over
     every face normal and every edge-pair cross product (brute force) finds them overlapping;
-    an edge crossing an edge is at that least depth, a face's clipped points no deeper; every
-    touching candidate's witnesses lie depth apart along its normal."""
+    an edge crossing an edge is at the overlap along its normal, a face's clipped points no
+    deeper than that along theirs; every touching candidate's witnesses lie depth apart along
+    its normal."""
     rng = np.random.default_rng(5)
     hull = Convex.from_points(rng.normal(size=(14, 3)) * [0.3, 0.2, 0.25])
     box = Box(0.4, 0.3, 0.2)
@@ -449,11 +450,14 @@ def test_two_polytopes_overlap_by_the_brute_force_separating_axes_least_depth():
             touching = d > 0
             np.testing.assert_allclose(np.asarray(pb[k] - pa[k])[touching], d[touching, None] * np.asarray(n[k])[touching],
                                        atol=1e-12)
-            if np.isfinite(d[-1]):   # an edge crossing an edge
-                np.testing.assert_allclose(d[-1], least, atol=1e-12)
-                touching_edges += least > 0
-            else:
-                assert d.max() <= least + 1e-12
+            # each touching point no deeper than the overlap along its own normal; an edge
+            # crossing an edge at exactly that overlap
+            for i in np.flatnonzero(touching):
+                along = _least_overlap(va, vb, np.asarray(n[k, i])[None])
+                assert d[i] <= along + 1e-12, (kind_a, kind_b, k, i, d[i], along)
+            if np.isfinite(d[-1]):
+                np.testing.assert_allclose(d[-1], _least_overlap(va, vb, np.asarray(n[k, -1])[None]), atol=1e-12)
+                touching_edges += d[-1] > 0
     assert touching_edges >= 5
 
 
