@@ -316,11 +316,7 @@ def _random_rotation(rng):
 
 
 def _hull_params(hull):
-    polygons, polygon_valid, edges, edge_normals = hull.polytope_arrays(*hull.polytope_sizes)
-    return {"size": jnp.zeros(3), "vertices": jnp.asarray(hull.vertices), "planes": jnp.asarray(hull.planes),
-            "vertex_valid": jnp.ones(len(hull.vertices), bool), "triangles": jnp.asarray(hull.triangles),
-            "polygons": jnp.asarray(polygons), "polygon_valid": jnp.asarray(polygon_valid), "edges": jnp.asarray(edges),
-            "edge_normals": jnp.asarray(edge_normals)}
+    return jd.geometry.shape_parameters(hull)[1]
 
 
 def test_a_sphere_and_a_capsule_touch_a_convex_hull_as_they_touch_the_same_box():

@@ -127,7 +127,7 @@ def convex_distance(planes, triangles, Q):
 
 def point_distance(kind: str, params, Q):
     """(distance, nearest point N, unit gradient) of point Q (shape frame) to a shape of `kind`
-    with parameters `params` (see `ShapeParameters`)."""
+    with parameters `params` (`shape_parameters(shape)` gives both)."""
     size = params["size"]
     if kind == "sphere":
         return sphere_distance(size[0], Q)
@@ -305,8 +305,9 @@ def _cylinder_side_against(params_a, X_A, kind_b, params_b, X_B):
 
 def penetration(kind_a: str, params_a, X_A, kind_b: str, params_b, X_B):
     """Candidate contacts (depth (k,), C_a (k, 3), C_b (k, 3), n_BA (k, 3)) between shape A at
-    world pose X_A = (R, p) and shape B at X_B; a candidate touches where depth > 0. The pair
-    must be in the order `canonical_order` gives (any two shapes but two half-spaces)."""
+    world pose X_A = (R, p) and shape B at X_B; a candidate touches where depth > 0. Each
+    shape as (kind, params), which `shape_parameters(shape)` gives. The pair must be in the
+    order `canonical_order` gives (any two shapes but two half-spaces)."""
     if kind_a == "sphere":
         return _points_against(kind_b, params_b, X_B, *_contact_points(kind_a, params_a, X_A))
     if kind_a == "capsule" and kind_b != "capsule":

@@ -137,6 +137,8 @@ class Convex:
 
     @classmethod
     def from_points(cls, points, name: str = "convex") -> "Convex":
+        """The convex hull of `points` (m, 3), m >= 4 spanning a volume (SciPy's Qhull); its
+        coplanar triangles merged into one plane each."""
         from scipy.spatial import ConvexHull, QhullError
 
         points = np.asarray(points, float)
@@ -232,3 +234,48 @@ def _positive(shape, name, allow_zero=False):
 
 
 SHAPES = (Sphere, Box, Capsule, Cylinder, HalfSpace, Convex)
+_KINDS = {Sphere: "sphere", Box: "box", Capsule: "capsule", Cylinder: "cylinder", HalfSpace: "halfspace",
+          Convex: "convex"}
+
+
+def shape_kind(shape) -> str:
+    """The query name of a shape's kind: "sphere", "box", "capsule", "cylinder", "halfspace",
+    "convex"."""
+    try:
+        return _KINDS[type(shape)]
+    except KeyError:
+        raise GeometryError(f"unsupported collision shape {shape!r}; use one of "
+                            f"{', '.join(t.__name__ for t in _KINDS)}") from None
+
+
+def shape_size(shape) -> list:
+    """A shape's `size` parameter (3 numbers): a sphere's [r, 0, 0], a box's half sizes, a
+    capsule's or cylinder's [r, length / 2, 0]; zeros for a half-space or hull (whose
+    parameters are arrays)."""
+    if isinstance(shape, Sphere):
+        return [shape.radius, 0.0, 0.0]
+    if isinstance(shape, Box):
+        return list(shape.half_sizes)
+    if isinstance(shape, (Capsule, Cylinder)):
+        return [shape.radius, shape.length / 2, 0.0]
+    return [0.0, 0.0, 0.0]
+
+
+def shape_parameters(shape) -> tuple[str, dict]:
+    """(kind, params) of a shape, as `penetration` and `point_distance` take them: params is
+    {"size": ...} (`shape_size`), and for a `Convex` hull also its arrays in its frame:
+    `vertices` with `vertex_valid`, `planes`, `triangles`, face `polygons` with
+    `polygon_valid`, `edges` with their faces' `edge_normals`. E.g.
+    `penetration(*shape_parameters(Sphere(0.1)), (R_a, p_a), *shape_parameters(Box(1, 1, 1)), (R_b, p_b))`
+    (the kinds in `canonical_order`)."""
+    import jax.numpy as jnp
+
+    kind = shape_kind(shape)
+    params = {"size": jnp.asarray(shape_size(shape), float)}
+    if isinstance(shape, Convex):
+        polygons, polygon_valid, edges, edge_normals = shape.polytope_arrays(*shape.polytope_sizes)
+        params.update(vertices=jnp.asarray(shape.vertices), vertex_valid=jnp.ones(len(shape.vertices), bool),
+                      planes=jnp.asarray(shape.planes), triangles=jnp.asarray(shape.triangles),
+                      polygons=jnp.asarray(polygons), polygon_valid=jnp.asarray(polygon_valid),
+                      edges=jnp.asarray(edges), edge_normals=jnp.asarray(edge_normals))
+    return kind, params

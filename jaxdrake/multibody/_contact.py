@@ -33,8 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._numbers import device_array
-from ..geometry import (Box, Capsule, Convex, Cylinder, GeometryError, HalfSpace, Sphere, canonical_order,
-                        norm_and_direction, penetration)
+from ..geometry import (Convex, GeometryError, HalfSpace, canonical_order,
+                        norm_and_direction, penetration, shape_kind, shape_size)
 from . import _algorithms as alg
 from ._joints import JointType
 
@@ -106,18 +106,6 @@ class CollisionGeometry:
         object.__setattr__(self, "translation", tuple(p.tolist()))
 
 
-_KINDS = {Sphere: "sphere", Box: "box", Capsule: "capsule", Cylinder: "cylinder", HalfSpace: "halfspace",
-          Convex: "convex"}
-
-
-def shape_kind(shape) -> str:
-    try:
-        return _KINDS[type(shape)]
-    except KeyError:
-        raise GeometryError(f"unsupported collision shape {shape!r}; use one of "
-                            f"{', '.join(t.__name__ for t in _KINDS)}") from None
-
-
 def _extents_and_thicknesses(kinds, size, vertices, valid, planes):
     """Each geometry's largest distance of its points from its frame's origin (0: a half-space,
     which sits on the world) and a lower bound on its thinnest width (a hull's: its inscribed
@@ -137,16 +125,6 @@ def _extents_and_thicknesses(kinds, size, vertices, valid, planes):
                            [2 * r, 2 * jnp.min(size, axis=1), 2 * jnp.minimum(r, half), inscribed],
                            jnp.inf)
     return extent, thickness
-
-
-def _size(shape):
-    if isinstance(shape, Sphere):
-        return [shape.radius, 0.0, 0.0]
-    if isinstance(shape, Box):
-        return list(shape.half_sizes)
-    if isinstance(shape, (Capsule, Cylinder)):
-        return [shape.radius, shape.length / 2, 0.0]
-    return [0.0, 0.0, 0.0]
 
 
 class ContactResults(eqx.Module):
@@ -613,7 +591,7 @@ def build_contact_model(tree, geometries, *, excluded_pairs=(), stiction_toleran
         names=names, links=tuple(g.link for g in geometries), kinds=tuple(kinds), bodies=tuple(bodies),
         groups=tuple((ka, kb, tuple(a), tuple(b)) for (ka, kb), (a, b) in sorted(groups.items())),
         rotation=rotation, translation=translation,
-        size=floats([_size(g.shape) for g in geometries]).reshape(-1, 3),
+        size=floats([shape_size(g.shape) for g in geometries]).reshape(-1, 3),
         vertices=floats(vertices), vertex_valid=jax.device_put(valid), planes=floats(planes),
         triangles=floats(triangles), polygons=floats(polygons), polygon_valid=jax.device_put(polygon_valid),
         edges=floats(edges), edge_normals=floats(edge_normals),

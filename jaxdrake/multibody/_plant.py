@@ -544,7 +544,8 @@ class RigidBodySystem(System):
 
     @compiled_query
     def energy(self, x):
-        """Kinetic plus potential energy."""
+        """Kinetic plus gravity's potential energy. The contact springs' energy is not in it:
+        during an impact it rises by what they store, and it falls as their dissipation acts."""
         q, v = x[: self.tree.nq], x[self.tree.nq:]
         return alg.kinetic_energy(self.tree, q, v) + alg.potential_energy(self.tree, q)
 

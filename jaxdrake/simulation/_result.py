@@ -23,9 +23,10 @@ class SimulatedTrajectory(eqx.Module, Reported):
     - `state_trajectory`: x(t) as a `Trajectory` (one piece per accepted step, in the
       solver's dense output; left-continuous at jumps, the notes' timing for discrete states).
     - `modes`: the hybrid mode of each piece.
-    - `t_final`, `status` (a `SimulationStatus` code; `success`, True when the final time was
-      reached or a reset stopped it, and `message` from it), `num_accepted_steps`,
-      `num_rejected_steps`.
+    - `t_final`, `status` (a `SimulationStatus` code: 0 SUCCESS, 1 MAX_STEPS_REACHED, 2
+      NONFINITE_STATE, 3 STEP_SIZE_TOO_SMALL, ...; `jd.SimulationStatus(int(s)).name` names
+      one of a vmapped batch; `success`, True when the final time was reached or a reset
+      stopped it, and `message` from it), `num_accepted_steps`, `num_rejected_steps`.
     - `event_times`, `event_indices`, `event_modes`, `event_states`, `num_events`: the
       events, in fixed-size buffers (`events` gives them on the host).
     - `system`, `inputs`: the simulated system and its input source, so `eval(t)` gives the

@@ -257,22 +257,24 @@ def _precision_advice(dtype, status, rtol, atol) -> str:
     far below t's spacing nor error estimates near its rounding (a stiff contact's touchdown
     at rtol 1e-4: benchmarks/RESULTS.md); or that ran out of steps with atol below float32's
     default 1e-5 (at 1e-9 a box sliding on the floor took 20,000 steps for 0.06 s) or rtol
-    within 100 eps of float32's resolution (a float32 x0 keeps a simulation in float32 under
-    x64: a pendulum at rtol 1e-10 ran out of steps, where float64 takes 655)."""
+    below `simulate`'s default 1e-6, within 8 eps of float32's resolution (a float32 x0 keeps
+    a simulation in float32 under x64: a pendulum at rtol 1e-10 ran out of steps, where
+    float64 takes 655)."""
     if np.dtype(dtype) != np.float32:
         return ""
     tight = [f"{name}={float(value):g}" for name, value, floor in (
-        ("rtol", rtol, 100 * float(np.finfo(np.float32).eps)), ("atol", atol, DEFAULT_ATOL["float32"]))
-        if _concrete(value) and float(value) < floor]
+        ("rtol", rtol, _FLOAT32_RTOL), ("atol", atol, DEFAULT_ATOL["float32"])) if _concrete(value) and float(value) < floor]
     if status == SimulationStatus.MAX_STEPS_REACHED and tight:
         return (f". The state is float32, whose rounding near 1 is 6e-8: with {' and '.join(tight)} the error test "
-                f"may never pass; use rtol >= 1e-5 and atol >= {DEFAULT_ATOL['float32']:g} (float32's default), or "
-                f"{_IN_FLOAT64}")
+                f"may never pass; use rtol >= {_FLOAT32_RTOL:g} and atol >= {DEFAULT_ATOL['float32']:g} (float32's "
+                f"defaults), or {_IN_FLOAT64}")
     if status != SimulationStatus.STEP_SIZE_TOO_SMALL:
         return ""
     return (". The state is float32: unless the solution blows up here, its 7 digits may be what stops the steps "
             f"(a step below t's spacing, an error estimate at its rounding): {_IN_FLOAT64}, or loosen rtol / atol")
 
+
+_FLOAT32_RTOL = 1e-6   # float32 is told an rtol below this is too tight for it (simulate's default is this)
 
 _IN_FLOAT64 = ("simulate in float64 (jax.config.update('jax_enable_x64', True) and x0 as float64, e.g. "
                "jnp.asarray(x0, jnp.float64): x0's dtype is the simulation's)")
