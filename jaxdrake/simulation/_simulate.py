@@ -65,7 +65,7 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="a
     - `key`: a JAX PRNG key, for a stochastic system (required then, refused otherwise): the
       noise path is a function of the key alone; `jax.vmap` over keys gives a Monte-Carlo batch.
     - `solver`: `"auto"` (default): `Rosenbrock23(jacobian="stiff")` for a system with
-      contact (collision geometry on a moving body: `System.bounds_steps`) at rtol >= 1e-7,
+      contact (a candidate pair's geometry on a moving body: `System.bounds_steps`) at rtol >= 1e-7,
       else `"dopri5"` (`benchmarks/RESULTS.md`, "The default solver for contact");
       `"dopri5"` (adaptive), `"rosenbrock23"` (adaptive, for stiff systems), `"ros34pw2"`
       (adaptive, third order, for stiff systems at tight tolerances), `"rk4"`, `"midpoint"`
@@ -218,8 +218,8 @@ def _failure_message(system, status, t0, tf, traj) -> str:
             + (f"{hint} (status: {status.name})" if hint else f"{status.message} (status: {status.name})"))
 
 
-# the loosest rtol at which `solver="auto"` leaves contact to dopri5: tighter, its fifth order
-# wins on bouncing and sliding (2.6x), the W-method's second order on resting contact (3x)
+# the tightest rtol at which `solver="auto"` gives contact the W-method; tighter, dopri5's fifth
+# order wins on bouncing and sliding (2.6x at 1e-8), the W-method only on resting contact (3x)
 _STIFF_CONTACT_RTOL = 1e-7
 
 
