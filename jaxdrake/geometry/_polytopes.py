@@ -47,7 +47,8 @@ _FACE_MARGIN = 0.98
 def _box_tables():
     """A box's faces (6, 4) and edges (12, 2) as indices into `BOX_CORNER_SIGNS`, and the two
     faces meeting at each edge (12, 2)."""
-    faces = tuple(counter_clockwise(BOX_CORNER_SIGNS, np.flatnonzero(BOX_CORNER_SIGNS @ n > 0), n) for n in BOX_FACE_NORMALS)
+    faces = tuple(counter_clockwise(BOX_CORNER_SIGNS, np.flatnonzero(BOX_CORNER_SIGNS @ n > 0), n)
+                  for n in BOX_FACE_NORMALS)
     edges, edge_faces = polygon_edges(faces)
     return np.array(faces), edges, edge_faces
 

@@ -35,7 +35,8 @@ all in the world:
 Where Drake has exact closed forms (anything with a sphere) the results equal Drake's; the
 vertex, polygon and rim sets are the multi-point contact of MuJoCo and most engines, where
 Drake's point contact keeps a single FCL point (which makes a box resting on a face
-ill-posed). Every function is NaN-free and differentiable at a touch and at degenerate points ("double where").
+ill-posed). Every function is NaN-free and differentiable at a touch and at degenerate
+points ("double where").
 """
 
 from __future__ import annotations
@@ -46,8 +47,6 @@ import numpy as np
 
 from ._polytopes import polytope_penetration
 from ._vectors import TINY as _TINY, norm_and_direction
-
-
 
 _X = jnp.array([1.0, 0.0, 0.0])
 _Z = jnp.array([0.0, 0.0, 1.0])

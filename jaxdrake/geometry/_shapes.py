@@ -61,7 +61,8 @@ class Box:
         return BOX_CORNER_SIGNS * self.half_sizes
 
 
-# a box's corners as signs of its half sizes, and its faces' planes (+x, +y, +z, -x, -y, -z)
+# a box's corners as signs of its half sizes, and its faces' outward normals (+x, +y, +z, -x,
+# -y, -z; the face along normal i is n_i . p <= half size i mod 3)
 BOX_CORNER_SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
 BOX_FACE_NORMALS = np.vstack([np.eye(3), -np.eye(3)])
 

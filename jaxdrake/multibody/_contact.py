@@ -33,8 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._numbers import device_array
-from ..geometry import (Convex, GeometryError, HalfSpace, canonical_order,
-                        norm_and_direction, penetration, shape_kind, shape_size)
+from ..geometry import (BOX_FACE_NORMALS, Convex, GeometryError, HalfSpace, canonical_order, norm_and_direction,
+                        penetration, shape_kind, shape_size)
 from . import _algorithms as alg
 from ._joints import JointType
 
@@ -427,7 +427,7 @@ class ContactModel(eqx.Module):
         R, p = poses[0][b], poses[1][b]
         faces = self.planes.shape[1]
         count = max(6, faces)   # a box's 6 faces or a hull's, in B's frame, padded by repeats
-        box_normals = np.vstack([np.eye(3), -np.eye(3)])[np.minimum(np.arange(count), 5)]
+        box_normals = BOX_FACE_NORMALS[np.minimum(np.arange(count), 5)]
         box_offsets = jnp.concatenate([self.size[b], self.size[b]], 1)[:, np.minimum(np.arange(count), 5)]
         hull = self.planes[b][:, np.minimum(np.arange(count), faces - 1)].astype(n.dtype)
         is_box = np.asarray(kinds_b == "box")
