@@ -21,6 +21,7 @@ import dataclasses
 import functools
 import pathlib
 
+import jax.numpy as jnp
 import numpy as np
 
 from .._extras import require
@@ -115,10 +116,15 @@ class Convex:
         outward normal."""
         return polygon_faces(self.vertices, self.planes, self.triangles)
 
+    @functools.cached_property
+    def edges(self) -> tuple[np.ndarray, np.ndarray]:
+        """(e, 2) vertex indices of its edges, and (e, 2) the two faces meeting at each."""
+        return polygon_edges(self.faces)
+
     @property
     def polytope_sizes(self) -> tuple[int, int, int]:
         """(faces, most corners of a face, edges)."""
-        return len(self.faces), max(len(f) for f in self.faces), len(polygon_edges(self.faces)[0])
+        return len(self.faces), max(len(f) for f in self.faces), len(self.edges[0])
 
     def polytope_arrays(self, faces: int, corners: int, edges: int):
         """Its face polygons (faces, corners, 3) with their validity (faces, corners), and its
@@ -130,7 +136,7 @@ class Convex:
         for f, face in enumerate(self.faces):
             polygons[f, :len(face)], valid[f, :len(face)] = self.vertices[list(face)], True
         polygons[len(self.faces):], valid[len(self.faces):] = polygons[0], valid[0]
-        index, edge_faces = polygon_edges(self.faces)
+        index, edge_faces = self.edges
         ends, normals = np.zeros((edges, 2, 3)), np.zeros((edges, 2, 3))
         ends[:len(index)], normals[:len(index)] = self.vertices[index], self.planes[edge_faces, :3]
         ends[len(index):], normals[len(index):] = ends[0], normals[0]
@@ -185,11 +191,18 @@ def polygon_faces(vertices, planes, triangles) -> tuple:
     """For each plane row [n, d] of a convex polytope, the indices of its `vertices` on that
     face, ordered counter-clockwise about n (the face is convex: by angle about its centre).
     A face's corners are those of the boundary `triangles` (t, 3, 3) that lie in its plane
-    (each triangle goes to the plane it fits best)."""
-    distance = np.abs(np.einsum("tkj,fj->tfk", triangles, planes[:, :3]) - planes[None, :, 3, None]).sum(-1)
-    plane_of = np.argmin(distance, axis=1)
-    index = np.argmin(np.linalg.norm(triangles[:, :, None, :] - vertices[None, None], axis=-1), axis=-1)
-    return tuple(counter_clockwise(vertices, np.unique(index[plane_of == f]), n) for f, n in enumerate(planes[:, :3]))
+    (each triangle goes to the plane nearest its own)."""
+    from scipy.spatial import cKDTree
+
+    # each triangle's own outward plane [n, d], matched to the nearest of `planes`
+    n = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    n *= np.sign(np.sum(n * (triangles[:, 0] - vertices.mean(0)), 1))[:, None]
+    plane_of = cKDTree(planes).query(np.column_stack([n, np.sum(n * triangles[:, 0], 1)]))[1]
+    where = {tuple(v): i for i, v in enumerate(vertices)}   # a triangle's corners are hull vertices
+    index = np.array([[where[tuple(p)] for p in triangle] for triangle in triangles], int).reshape(-1, 3)
+    return tuple(counter_clockwise(vertices, np.unique(index[plane_of == f]), normal)
+                 for f, normal in enumerate(planes[:, :3]))
 
 
 def counter_clockwise(vertices, on, n) -> tuple:
@@ -220,9 +233,11 @@ def _hull_volume(shape: Convex) -> float:
 
 def _merge_coplanar(planes, tol=1e-9):
     """Qhull triangulates faces: keep one row per distinct plane (the first of each)."""
+    from scipy.spatial import cKDTree
+
     scale = tol * np.maximum(1.0, np.abs(planes[:, 3]))
-    same = np.all(np.abs(planes[:, None, :] - planes[None, :, :]) <= scale[:, None, None], axis=-1)
-    first = np.argmax(same, axis=1)   # the first row equal to each row
+    # the first row within `scale` of each row (a tree: an all-pairs table is quadratic in rows)
+    first = np.array([min(near) for near in cKDTree(planes).query_ball_point(planes, scale, p=np.inf)])
     return planes[first == np.arange(len(planes))]
 
 
@@ -269,8 +284,6 @@ def shape_parameters(shape) -> tuple[str, dict]:
     `polygon_valid`, `edges` with their faces' `edge_normals`. E.g.
     `penetration(*shape_parameters(Sphere(0.1)), (R_a, p_a), *shape_parameters(Box(1, 1, 1)), (R_b, p_b))`
     (the kinds in `canonical_order`)."""
-    import jax.numpy as jnp
-
     kind = shape_kind(shape)
     params = {"size": jnp.asarray(shape_size(shape), float)}
     if isinstance(shape, Convex):
