@@ -3,6 +3,7 @@ closed forms, finite differences, and named errors for bad robot files."""
 
 import functools
 import pathlib
+import warnings
 
 import equinox as eqx
 import jax
@@ -683,6 +684,21 @@ def test_bad_collision_elements_are_named_errors(tmp_path):
                               ("package://robot/x.stl", "pass package_map")):
         with pytest.raises(URDFError, match=message):
             jd.RigidBodySystem.from_urdf(_urdf(tmp_path, outside.format(filename)), contact=True)
+
+
+def test_two_detailed_hulls_that_may_touch_are_warned_of_with_the_remedy():
+    """Two hulls test every pair of their edges: a pair of 642-vertex hulls (3.7 million edge
+    pairs per evaluation) is named at construction, with the remedy; small hulls are not."""
+    trimesh = pytest.importorskip("trimesh")
+    ball = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True)
+    detailed = Convex.from_points(trimesh.creation.icosphere(3, radius=0.1).vertices)
+    with pytest.warns(UserWarning, match=r"'mesh' and 'rock' are hulls of 642 and 642 vertices.*3,686,400 edge pairs"
+                                         r".*Simplify the meshes"):
+        ball.with_collision_geometry("ball", detailed, name="mesh").with_collision_geometry("world", detailed, name="rock")
+    coarse = Convex.from_points(trimesh.creation.icosphere(1, radius=0.1).vertices)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ball.with_collision_geometry("ball", coarse, name="mesh").with_collision_geometry("world", coarse, name="rock")
 
 
 def test_bad_shapes_and_materials_are_named_at_construction():

@@ -26,6 +26,7 @@ that collision filtering lets through); at run time a candidate acts only where 
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import equinox as eqx
 import jax
@@ -563,6 +564,7 @@ def build_contact_model(tree, geometries, *, excluded_pairs=(), stiction_toleran
             groups.setdefault(key, ([], []))
             groups[key][0].append(a)
             groups[key][1].append(b)
+            _warn_of_costly_hull_pair(geometries[a], geometries[b], source)
     floats = lambda x: device_array(np.asarray(x, float))  # noqa: E731
     convex = [g.shape for g in geometries if isinstance(g.shape, Convex)]
     nv = max((len(c.vertices) for c in convex), default=0)
@@ -600,6 +602,23 @@ def build_contact_model(tree, geometries, *, excluded_pairs=(), stiction_toleran
         mu_static=floats([g.material.friction()[0] for g in geometries]),
         mu_dynamic=floats([g.material.friction()[1] for g in geometries]),
         stiction_tolerance=floats(stiction_tolerance))
+
+
+MANY_EDGE_PAIRS = 1_000_000   # above this, a pair of hulls is warned of at construction
+
+
+def _warn_of_costly_hull_pair(a, b, source):
+    """Two hulls touch through every pair of their edges (`geometry/_polytopes.py`): warn where
+    that passes `MANY_EDGE_PAIRS` per evaluation, with the remedy."""
+    if not (isinstance(a.shape, Convex) and isinstance(b.shape, Convex)):
+        return
+    pairs = len(a.shape.edges[0]) * len(b.shape.edges[0])
+    if pairs > MANY_EDGE_PAIRS:
+        warnings.warn(f"{source + ': ' if source else ''}collisions {a.name!r} and {b.name!r} are hulls of "
+                      f"{len(a.shape.vertices)} and {len(b.shape.vertices)} vertices: their contact tests {pairs:,} edge "
+                      "pairs at every evaluation (a few milliseconds per million on a CPU core, and memory to match). "
+                      "Simplify the meshes (e.g. trimesh's simplify_quadric_decimation to a few hundred faces), "
+                      "or exclude the pair (a collision filter group)", stacklevel=4)
 
 
 def _poses_in_bodies(tree, geometries):
