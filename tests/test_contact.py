@@ -532,6 +532,51 @@ def test_a_plank_sliding_along_a_ridge_stops_after_v0_squared_over_2_mu_g(tmp_pa
     assert abs(float(traj.final_state[8])) < 1e-4
 
 
+def _turned_about_z(angle):
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def test_polytope_contact_keeps_four_points_of_a_larger_polygon_and_the_least_deep_face():
+    """(helper-13's review) A cube turned over a slab's corner has a 5-corner overlap: 4 points
+    are kept (the fourth once fell on the first two's line and was dropped). An upright cube on
+    one turned 0.01 rad rests along its own face's normal, the least deep axis (the face margin
+    once chose the deeper one). Two float32 cubes stacked, turned by rounding (1e-7 rad), all
+    touch on 4 points (a near-parallel edge pair once passed as an axis through rounding and
+    reported them apart, in 69 of 2000 poses)."""
+    cube, slab = {"size": jnp.array([0.1, 0.1, 0.1])}, {"size": jnp.array([1.0, 1.0, 0.1])}
+    over_corner = jax.jit(jax.vmap(lambda R, p: penetration("box", cube, (R, p), "box", slab, (jnp.eye(3), jnp.zeros(3)))))
+    angles = np.linspace(0.1, 0.7, 7)
+    depth = over_corner(jnp.asarray(np.stack([_turned_about_z(a) for a in angles])), jnp.tile(jnp.array([0.97, 0.97, 0.199]), (7, 1)))[0]
+    assert np.all(np.sum(np.asarray(depth) > 0, 1) == 4)
+    # A's bottom face: 1.0010e-3 deep; B's turned top face: 1.0111e-3
+    depth, _, _, n = penetration("box", cube, (jnp.eye(3), jnp.array([0.0, 0.0, 0.2])), "box", cube,
+                                 (jnp.asarray(_rotation_y(0.01)), jnp.zeros(3)))
+    np.testing.assert_allclose(np.asarray(n)[np.asarray(depth) > 0], [[0, 0, 1.0]] * 2, atol=1e-12)
+    rng = np.random.default_rng(4)
+    turns = rng.normal(size=(500, 3)) * 1e-7
+    rotations = np.stack([np.asarray(jax.scipy.linalg.expm(jnp.asarray(np.cross(np.eye(3), w)))) for w in turns[:50]])
+    single = {"size": jnp.array([0.1, 0.1, 0.1], jnp.float32)}
+    stacked = jax.jit(jax.vmap(lambda R: penetration("box", single, (R, jnp.array([0.0, 0.0, 0.199], jnp.float32)), "box",
+                                                     single, (jnp.eye(3, dtype=jnp.float32), jnp.zeros(3, jnp.float32)))[0]))
+    depth = stacked(jnp.asarray(rotations, jnp.float32))
+    assert depth.dtype == jnp.float32 and np.all(np.sum(np.asarray(depth) > 0, 1) == 4)
+
+
+def test_a_hull_of_slightly_noisy_points_has_the_faces_of_the_exact_one():
+    """(helper-13's review) A 64-sided cylinder's points moved by 1e-12, or written with 10
+    digits: its flat caps are one face each, as without the noise (merging some of a cap's
+    triangles but not others had given overlapping faces, V - E + F = 14)."""
+    ring = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    points = np.vstack([np.column_stack([0.1 * np.cos(ring), 0.1 * np.sin(ring), np.full(64, z)]) for z in (-0.05, 0.05)])
+    turned = points @ np.asarray(jd.multibody.rpy(0.3, 0.2, 0.1)).T
+    for noisy in (points + 1e-12 * np.random.default_rng(0).normal(size=points.shape),
+                  np.array([[float(f"{x:.10g}") for x in p] for p in turned])):
+        hull = Convex.from_points(noisy)
+        assert hull.is_closed() and sorted(len(f) for f in hull.faces)[-2:] == [64, 64]
+        assert len(hull.faces) == 66
+
+
 def test_polytope_contact_gradients_equal_central_differences():
     """The depths and witnesses of a box against a hull (face and edge contacts) as functions
     of A's pose: their derivatives, forward and reverse, equal central differences."""

@@ -13,8 +13,9 @@ is the penetration's least depth.
   points left below the reference face, at most 4 that span them are candidates, at their
   depth below it, along its normal. So a box on a larger box rests on its 4 corners, two
   crossed planks on the corners of their overlap.
-- **An edge axis**, less deep than every face axis (beyond rounding): one candidate at the
-  closest points of the two edges (an edge crossing an edge), along their common normal.
+- **An edge axis**, at most half as deep as every face axis (`_EDGE_MARGIN`), or the only
+  touching feature: one candidate at the closest points of the two edges (an edge crossing
+  an edge), along their common normal.
 
 The edge pairs cost O(E_A E_B) products per evaluation (a box's 12 edges; a mesh's hull of a
 few hundred vertices, about a thousand).
@@ -95,7 +96,9 @@ def _edge_separations(edges_a, normals_a, centre_a, edges_b, normals_b):
     start_a, start_b = edges_a[:, 0], edges_b[:, 0]
     along_a, along_b = edges_a[:, 1] - start_a, edges_b[:, 1] - start_b
     squared = jnp.sum(along_a ** 2, -1)[:, None] * jnp.sum(along_b ** 2, -1)[None] - (along_a @ along_b.T) ** 2
-    crossing = crossing & (squared > 1e-12 * jnp.sum(along_a ** 2, -1)[:, None] * jnp.sum(along_b ** 2, -1)[None])
+    # near-parallel pairs out: sin^2 of their angle above rounding (squared loses eps |a|^2 |b|^2)
+    parallel = max(1e-12, 64 * float(jnp.finfo(squared.dtype).eps))
+    crossing = crossing & (squared > parallel * jnp.sum(along_a ** 2, -1)[:, None] * jnp.sum(along_b ** 2, -1)[None])
     outward = jnp.sign(jnp.cross(start_a - centre_a, along_a) @ along_b.T)   # m . (a - centre) > 0
     gap = along_a @ jnp.cross(along_b, start_b).T - jnp.cross(start_a, along_a) @ along_b.T   # m . (b - a)
     return jnp.where(crossing, outward * gap / jnp.sqrt(jnp.where(crossing, squared, 1.0)), -jnp.inf)
@@ -142,21 +145,29 @@ def _clip(polygon, valid, reference, reference_valid, normal, tolerance):
 
 def _four_of(points, depth, touching, normal, tolerance):
     """At most four of the touching clipped points, spanning the contact polygon (the usual
-    reduction, as Bullet's or Box2D's): the deepest, the one farthest from it, and the two
-    farthest from the line through those on either side. So the total force does not jump
-    with the polygon's corner count (two equal squares stacked, turned a little: 8 corners,
-    4 chosen, as when aligned). Points closer than `tolerance` to those already chosen (a
+    reduction, as Bullet's or Box2D's): the deepest, the one farthest from it, the one
+    farthest from the line through those, and the one farthest outside the triangle of the
+    three. So the total force does not jump with the polygon's corner count (two equal
+    squares stacked, turned a little: 8 corners, 4 chosen, as when aligned). Points closer than `tolerance` to those already chosen (a
     clipped corner repeated) are left out: (points, depths, whether each is in use)."""
     held, depth_held = jax.lax.stop_gradient((points, depth))   # a choice: nothing to differentiate
     first = jnp.argmax(jnp.where(touching, depth_held, -jnp.inf))
     apart = jnp.sqrt(jnp.sum((held - held[first]) ** 2, -1))
     second = jnp.argmax(jnp.where(touching, apart, -jnp.inf))
-    line = norm_and_direction(held[second] - held[first], normal)[1]
-    off_line = jnp.cross(line, held - held[first]) @ jax.lax.stop_gradient(normal)   # signed distance from the line
-    third = jnp.argmax(jnp.where(touching, off_line, -jnp.inf))
-    fourth = jnp.argmin(jnp.where(touching, off_line, jnp.inf))
+    n = jax.lax.stop_gradient(normal)
+
+    def outside(a, b):   # each point's signed distance from the line a -> b, positive to its left
+        return jnp.cross(norm_and_direction(held[b] - held[a], n)[1], held - held[a]) @ n
+
+    off_line = outside(first, second)
+    third = jnp.argmax(jnp.where(touching, jnp.abs(off_line), -jnp.inf))   # the farthest, either side
+    # the fourth: the farthest outside the triangle (its sides taken counter-clockwise)
+    a, b = jnp.where(off_line[third] > 0, first, second), jnp.where(off_line[third] > 0, second, first)
+    beyond = jnp.max(jnp.stack([-outside(a, b), -outside(b, third), -outside(third, a)]), axis=0)
+    fourth = jnp.argmax(jnp.where(touching, beyond, -jnp.inf))
     chosen = jnp.stack([first, second, third, fourth])
-    distinct = jnp.stack([True, apart[second] > tolerance, off_line[third] > tolerance, off_line[fourth] < -tolerance])
+    distinct = jnp.stack([True, apart[second] > tolerance, jnp.abs(off_line[third]) > tolerance,
+                          beyond[fourth] > tolerance])
     return points[chosen], depth[chosen], distinct & touching[chosen]
 
 
@@ -207,7 +218,7 @@ def polytope_penetration(kind_a, params_a, X_A, kind_b, params_b, X_B):
     least_depth = -jnp.maximum(face_separation, edge_separation)
     # the reference face (A's where A's face separates at least as much) and the incident face
     # of the other shape, the one most opposed to it
-    a_refers = sep_a >= _FACE_MARGIN * sep_b - tolerance   # A's face unless B's is clearly shallower
+    a_refers = ~(sep_b > _FACE_MARGIN * sep_a + tolerance)   # A's face unless B's is clearly shallower
     normal = jnp.where(a_refers, Na[fa], Nb[fb])
     offset = jnp.where(a_refers, da[fa], db[fb])
     reference = jnp.where(a_refers, Pa[fa], Pb[fb])

@@ -121,6 +121,13 @@ class Convex:
         """(e, 2) vertex indices of its edges, and (e, 2) the two faces meeting at each."""
         return polygon_edges(self.faces)
 
+    def is_closed(self) -> bool:
+        """Whether its faces close up: every edge shared by exactly two of them, and
+        V - E + F = 2 (Euler's formula for a convex polyhedron)."""
+        edges = len(self.edges[0])
+        used = sum(len(face) for face in self.faces)
+        return used == 2 * edges and len(self.vertices) - edges + len(self.faces) == 2
+
     @property
     def polytope_sizes(self) -> tuple[int, int, int]:
         """(faces, most corners of a face, edges)."""
@@ -157,8 +164,16 @@ class Convex:
         except QhullError:
             raise GeometryError(f"{name}: the points are flat (they span no volume), so they have no "
                                 "convex hull to collide with; use a Box of small thickness instead") from None
-        planes = _merge_coplanar(np.column_stack([hull.equations[:, :3], -hull.equations[:, 3]]))
-        return cls(points[hull.vertices], planes, points[hull.simplices], name)
+        equations = np.column_stack([hull.equations[:, :3], -hull.equations[:, 3]])
+        # Qhull's triangles merged into faces within the loosest tolerance whose faces close up:
+        # a mesh file's rounding (float32 in an STL) tilts a flat face's triangles by up to
+        # ~1e-7, and merging some of them but not others gave overlapping faces; at 0, Qhull's
+        # own facets, each exactly one plane
+        for tol in _MERGE_TOLERANCES:
+            shape = cls(points[hull.vertices], _merge_coplanar(equations, tol), points[hull.simplices], name)
+            if shape.is_closed():
+                return shape
+        return shape
 
     @classmethod
     def from_mesh_file(cls, path, scale=(1.0, 1.0, 1.0), *, require_convex: bool = True) -> "Convex":
@@ -231,7 +246,10 @@ def _hull_volume(shape: Convex) -> float:
     return float(ConvexHull(shape.vertices).volume)
 
 
-def _merge_coplanar(planes, tol=1e-9):
+_MERGE_TOLERANCES = (1e-5, 1e-7, 1e-9, 0.0)   # relative, loosest first
+
+
+def _merge_coplanar(planes, tol):
     """Qhull triangulates faces: keep one row per distinct plane (the first of each)."""
     from scipy.spatial import cKDTree
 

@@ -65,8 +65,9 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="a
     - `key`: a JAX PRNG key, for a stochastic system (required then, refused otherwise): the
       noise path is a function of the key alone; `jax.vmap` over keys gives a Monte-Carlo batch.
     - `solver`: `"auto"` (default): `Rosenbrock23(jacobian="stiff")` for a system with
-      contact (a candidate pair's geometry on a moving body: `System.bounds_steps`) at rtol >= 1e-7,
-      else `"dopri5"` (`benchmarks/RESULTS.md`, "The default solver for contact");
+      contact (a candidate pair's geometry on a moving body: `System.bounds_steps`) at rtol >= 1e-7
+      (a traced rtol counts as one: pass `solver=` for a traced tight one), else `"dopri5"`
+      (`benchmarks/RESULTS.md`, "The default solver for contact");
       `"dopri5"` (adaptive), `"rosenbrock23"` (adaptive, for stiff systems), `"ros34pw2"`
       (adaptive, third order, for stiff systems at tight tolerances), `"rk4"`, `"midpoint"`
       or `"euler"` (fixed step `dt`), or a solver instance (`Rosenbrock23(jacobian="stiff")`:
