@@ -148,8 +148,9 @@ def _four_of(points, depth, touching, normal, tolerance):
     reduction, as Bullet's or Box2D's): the deepest, the one farthest from it, the one
     farthest from the line through those, and the one farthest outside the triangle of the
     three. So the total force does not jump with the polygon's corner count (two equal
-    squares stacked, turned a little: 8 corners, 4 chosen, as when aligned). Points closer than `tolerance` to those already chosen (a
-    clipped corner repeated) are left out: (points, depths, whether each is in use)."""
+    squares stacked, turned a little: 8 corners, 4 chosen, as when aligned). Points closer
+    than `tolerance` to those already chosen (a clipped corner repeated) are left out:
+    (points, depths, whether each is in use)."""
     held, depth_held = jax.lax.stop_gradient((points, depth))   # a choice: nothing to differentiate
     first = jnp.argmax(jnp.where(touching, depth_held, -jnp.inf))
     apart = jnp.sqrt(jnp.sum((held - held[first]) ** 2, -1))
@@ -200,12 +201,13 @@ def polytope_penetration(kind_a, params_a, X_A, kind_b, params_b, X_B):
     scale = 1.0 + jnp.max(jnp.where(va[:, None], jnp.abs(Va), 0.0)) + jnp.max(jnp.where(vb[:, None], jnp.abs(Vb), 0.0))
     tolerance = 64 * jnp.finfo(Va.dtype).eps * scale
     centre_a = jnp.sum(jnp.where(va[:, None], Va, 0.0), 0) / jnp.sum(va)
-    # the axes are chosen on values held constant, and the chosen ones' separations recomputed
-    # (differentiated through one face or edge pair, not through every one)
-    held = jax.lax.stop_gradient((Na, da, Va, Nb, db, Vb, Ea, ENa, Eb, ENb, centre_a))
-    fa = jnp.argmax(_face_separations(held[0], held[1], held[5], vb))
-    fb = jnp.argmax(_face_separations(held[3], held[4], held[2], va))
-    sep_e = _edge_separations(held[6], held[7], held[10], held[8], held[9])
+    # the axes are chosen on values held constant (trailing _), and the chosen ones'
+    # separations recomputed (differentiated through one face or edge pair, not every one)
+    Na_, da_, Va_, Nb_, db_, Vb_, Ea_, ENa_, Eb_, ENb_, centre_a_ = jax.lax.stop_gradient(
+        (Na, da, Va, Nb, db, Vb, Ea, ENa, Eb, ENb, centre_a))
+    fa = jnp.argmax(_face_separations(Na_, da_, Vb_, vb))
+    fb = jnp.argmax(_face_separations(Nb_, db_, Va_, va))
+    sep_e = _edge_separations(Ea_, ENa_, centre_a_, Eb_, ENb_)
     i = jnp.argmax(jnp.max(sep_e, 1))   # by rows: a flat argmax over all pairs is several times slower
     j = jnp.argmax(sep_e[i])
     sep_a = _face_separations(Na[fa, None], da[fa, None], Vb, vb)[0]

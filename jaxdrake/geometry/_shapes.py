@@ -267,7 +267,6 @@ def _positive(shape, name, allow_zero=False):
                             f"finite length in metres, got {value}")
 
 
-SHAPES = (Sphere, Box, Capsule, Cylinder, HalfSpace, Convex)
 _KINDS = {Sphere: "sphere", Box: "box", Capsule: "capsule", Cylinder: "cylinder", HalfSpace: "halfspace",
           Convex: "convex"}
 
