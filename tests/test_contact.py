@@ -163,6 +163,28 @@ def test_a_float32_ball_thrown_onto_the_floor_lands_and_rolls_as_float64_does():
     np.testing.assert_allclose(np.asarray(single, float), np.asarray(double), atol=2e-3)
 
 
+def test_float32_cubes_landing_while_they_slide_or_tumble_come_to_rest(tmp_path):
+    """A 1-kg cube dropped flat while it slides, or tilted onto a corner: its corners go from
+    sliding to sticking under kilonewtons, where float64 takes steps of ~2e-9 s, below
+    float32's spacing of t there (1.5e-8 to 3e-8 s). Each stopped with STEP_SIZE_TOO_SMALL
+    (17 of 36 such drops did); float32 now carries time as a pair, and each comes to rest on
+    a face, sunk m g / (4 k) (k: the geometries' 1e6 N/m in series)."""
+    (tmp_path / "cube.urdf").write_text("""<robot name="cube"><link name="cube">
+      <inertial><mass value="1.0"/><inertia ixx="0.001667" iyy="0.001667" izz="0.001667" ixy="0" ixz="0" iyz="0"/></inertial>
+      <collision><geometry><box size="0.1 0.1 0.1"/></geometry></collision></link></robot>""")
+    cube = jd.RigidBodySystem.from_urdf(tmp_path / "cube.urdf", floating_base=True, contact=True).with_ground()
+    starts = []
+    for z, vx, tilt in ((0.3, 0.3, 0.0), (0.5, 0.3, 0.7), (1.0, 1.0, 0.3), (1.0, 0.0, 0.7)):
+        c, s = np.cos(tilt / 2), np.sin(tilt / 2)
+        starts.append([0, 0, z, c, 0.6 * s, 0.8 * s, 0, vx, 0, 0, 0, 0, 0])
+    traj = jax.vmap(lambda x0: jd.simulate(cube, (0.0, 1.5), x0, max_steps=20000, throw=False, dense=False))(
+        jnp.asarray(starts, jnp.float32))
+    assert traj.final_state.dtype == jnp.float32
+    np.testing.assert_array_equal(traj.status, jd.SimulationStatus.SUCCESS)
+    np.testing.assert_allclose(traj.final_state[:, 2], 0.05 - 9.81 / (4 * 5e5), atol=2e-6)
+    np.testing.assert_allclose(traj.final_state[:, 7:], 0.0, atol=1e-3)
+
+
 def test_a_float32_box_slides_its_closed_form_distance_at_the_default_tolerances():
     """float32 with float64's atol 1e-9 (below float32's rounding near 1) ran out of steps
     within 0.06 s; float32's default atol is 1e-5, and an explicit 1e-9 is told why it failed.

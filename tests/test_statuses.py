@@ -186,17 +186,25 @@ def test_a_float32_simulation_out_of_steps_at_a_tight_rtol_is_told_about_float64
     assert jd.simulate(jd.models.Pendulum(), (0.0, 5.0), x0, rtol=1e-10, atol=1e-12, dense=False).success
 
 
-def test_a_float32_simulation_whose_steps_became_too_small_is_told_about_float64():
-    """An oscillation of period 6e-7 s near t = 1 needs steps of ~1e-8 s, below float32's
-    spacing of t there (1.2e-7 s); float64 resolves them (closed form cos(w (t - 1)))."""
+def test_float32_takes_steps_below_the_spacing_of_t():
+    """An oscillation of period 6e-7 s near t = 1 needs steps of ~4e-8 s, below float32's
+    spacing of t there (1.2e-7 s): float32 carries time as a pair and resolves them, as
+    float64 does (closed form cos(w (t - 1)) over float32's interval: tf = 1 + 1e-5 rounds to
+    1.0000100136, 0.14 rad of phase). A float32 run that does stop with its steps too small
+    is told about float64."""
     w = 1e7
     fast = jd.System.from_functions(dynamics=lambda t, x, u: w * jnp.stack([x[1], -x[0]]), num_states=2)
     x0 = jnp.array([1.0, 0.0])
-    with pytest.raises(jd.SimulationError, match="STEP_SIZE_TOO_SMALL.*float64") as raised:
-        jd.simulate(fast, (1.0, 1.0 + 1e-5), x0.astype(jnp.float32))
-    assert raised.value.status == S.STEP_SIZE_TOO_SMALL
+    single = jd.simulate(fast, (1.0, 1.0 + 1e-5), x0.astype(jnp.float32), dense=False)
+    span = float(np.float32(1.0 + 1e-5)) - 1.0
+    assert single.final_state.dtype == jnp.float32
+    np.testing.assert_allclose(single.final_state, [np.cos(w * span), -np.sin(w * span)], atol=2e-3)
     traj = jd.simulate(fast, (1.0, 1.0 + 1e-5), x0, rtol=1e-10, atol=1e-12, dense=False)
     np.testing.assert_allclose(traj.final_state, [np.cos(w * 1e-5), -np.sin(w * 1e-5)], atol=1e-7)
+    blow_up = jd.System.from_functions(dynamics=lambda t, x, u: x ** 2, num_states=1)   # x = 1 / (1 - t)
+    with pytest.raises(jd.SimulationError, match="STEP_SIZE_TOO_SMALL.*float64") as raised:
+        jd.simulate(blow_up, (0.0, 2.0), jnp.ones(1, jnp.float32))
+    assert raised.value.status == S.STEP_SIZE_TOO_SMALL
 
 
 def test_a_nan_error_estimate_rejects_the_step_and_shrinks_it():

@@ -15,30 +15,68 @@ def rms(v):
     return jnp.sqrt(jnp.mean(v * v)) if v.shape[0] else jnp.zeros((), v.dtype)
 
 
-def least_step(t):
+def carries_low_part(dtype) -> bool:
+    """Whether the loop carries time as a pair $t + t_{low}$ (`advance`): in float32, whose
+    spacing of t (3e-8 s at t = 0.3 s) is coarser than the steps in which a contact goes
+    from sliding to sticking (float64 takes ~2e-9 s there). Without it a 1-kg cube dropped
+    flat while sliding stopped with STEP_SIZE_TOO_SMALL in float32; float64 needs no pair."""
+    return jnp.finfo(dtype).bits < 64
+
+
+def advance(t, t_low, h):
+    """The time $(t + t_{low}) + h$ as a pair: t the float nearest the sum, t_low the rest
+    (Knuth's two-sum, exact in floating point), so that a step shorter than t's spacing
+    still moves time; `(t + h, 0)` where time is one number (`carries_low_part`). The rest
+    has no derivative: t carries all of time's."""
+    if not carries_low_part(t.dtype):
+        return t + h, jnp.zeros_like(t)
+    b = t_low + h
+    total = t + b
+    b_part = total - t
+    return total, (t - (total - b_part)) + (b - b_part)
+
+
+def elapsed(t0, low0, t1, low1):
+    """The exact time from the pair (t0, low0) to (t1, low1): a step's size."""
+    return (t1 - t0) + (low1 - low0)
+
+
+def time_resolution(t):
+    """The spacing of time as the loop carries it (`carries_low_part`): eps |t| for one
+    number, eps^2 |t| for a pair (at least the smallest normal number)."""
+    finfo = jnp.finfo(t.dtype)
+    spacing = finfo.eps * jnp.abs(t) * (finfo.eps if carries_low_part(t.dtype) else 1.0)
+    return jnp.maximum(spacing, finfo.tiny)
+
+
+def least_step(t, low_part: bool = False):
     """The smallest step an adaptive simulation attempts: one unit of t's spacing (eps |t|,
-    at least the smallest normal number). A smaller one would not move t: a zero step,
-    accepted and grown from zero, on which the loop would spin until max_steps."""
+    at least the smallest normal number; with `low_part` (`simulate`'s loop) the spacing of
+    time as the loop carries it, `time_resolution`). A smaller one would not move t: a zero
+    step, accepted and grown from zero, on which the loop would spin until max_steps."""
+    if low_part:
+        return time_resolution(t)
     finfo = jnp.finfo(t.dtype)
     return jnp.maximum(finfo.eps * jnp.abs(t), finfo.tiny)
 
 
-def smallest_step(t, finite):
+def smallest_step(t, finite, low_part: bool = False):
     """The step size at or below which a rejected step ends an adaptive simulation: for a
-    finite attempt a few units of the floating-point spacing at t (`least_step`s; SciPy's
-    `solve_ivp` likewise scales its floor with t), then STEP_SIZE_TOO_SMALL. Relative to t,
-    not to 1, because float32 steps of ~1e-8 s at t = 0.01 are ~30 units of t's spacing, and
-    stiff contact onsets need them. In float64, 16 units (MATLAB's `16*eps(t)`), far below
-    any physical step; in float32, 2, since a ball or box landing with Drake's default contact
-    properties needs steps of 3-5 units at its touchdown, which 16 stopped (a step's size is
-    the exact difference of its ends, so short steps lose nothing but time; in float64 a
-    lower floor let a finite-time blow-up step on past its pole instead of stopping there).
-    For a non-finite attempt 16 eps max(|t|, 1), then NONFINITE_STATE: a NaN or overflow that
+    finite attempt 16 units of the spacing of time (MATLAB's `16*eps(t)`; SciPy's `solve_ivp`
+    likewise scales its floor with t), far below any physical step (in float64 a lower floor
+    let a finite-time blow-up step on past its pole instead of stopping there). With
+    `low_part` (`simulate`'s loop) that spacing is time's as the loop carries it
+    (`time_resolution`: float32 carries a pair); `simulate_ensemble`'s float32 time is one
+    number, and there the floor is 2 units, since a touchdown needs steps of 3-5. For a
+    non-finite attempt 16 eps max(|t|, 1), then NONFINITE_STATE: a NaN or overflow that
     persists down to such steps is the vector field's, and near t = 0 the relative floor
     would take hundreds of rejections to say so."""
     finfo = jnp.finfo(t.dtype)
-    units = 16 if finfo.bits >= 64 else 2
-    return jnp.where(finite, units * least_step(t), 16 * finfo.eps * jnp.maximum(jnp.abs(t), 1.0))
+    if low_part:
+        floor = 16 * time_resolution(t)
+    else:
+        floor = (16 if finfo.bits >= 64 else 2) * least_step(t)
+    return jnp.where(finite, floor, 16 * finfo.eps * jnp.maximum(jnp.abs(t), 1.0))
 
 
 class AbstractStepSizeController(eqx.Module):

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 from ..systems import System
 from ..trajectories import NUM_COEFFICIENTS, Trajectory, eval_polynomial
 from . import _events as ev
-from ._controller import AbstractStepSizeController, least_step, smallest_step
+from ._controller import AbstractStepSizeController, advance, carries_low_part, elapsed, least_step, smallest_step
 from ._inputs import InputSource
 from ._result import SimulatedTrajectory
 from ._reverse import run_adjoint, run_reverse
@@ -86,7 +86,8 @@ class LoopState(eqx.Module):
     """Everything the loop carries from one iteration to the next."""
 
     # where the simulation is
-    t: jax.Array  # time
+    t: jax.Array  # time: t + t_low (`_controller.advance`)
+    t_low: jax.Array  # float32: the part of time below t's spacing, so that shorter steps move it; else 0
     x: jax.Array  # state [x_d; x_c] (padded to the largest mode for a hybrid system)
     mode: jax.Array  # active hybrid mode (0 for a plain system)
     saturation: jax.Array  # per input: 0 free, +1 held at u_max, -1 held at u_min
@@ -127,6 +128,7 @@ class Attempt(eqx.Module):
     """One attempted step, cut at an event if one was located."""
 
     t_end: jax.Array  # where the step ends (the event time if one was located)
+    t_end_low: jax.Array  # and its part below t_end's spacing (`LoopState.t_low`)
     x_end: jax.Array  # the state there, before any reset
     coefficients: jax.Array  # its dense output, [x_d constant; x_c polynomial]
     h_proposed: jax.Array  # the step the controller asked for
@@ -222,7 +224,7 @@ class Loop(eqx.Module):
                              modes=jnp.full((m,), -1, jnp.int32), states=jnp.zeros((m, nx), dtype),
                              count=jnp.asarray(0))
         return LoopState(
-            t=t0, x=x0, mode=mode0, saturation=ev.initial_saturation(system, self.source.on_step(t0)(t0)),
+            t=t0, t_low=jnp.zeros_like(t0), x=x0, mode=mode0, saturation=ev.initial_saturation(system, self.source.on_step(t0)(t0)),
             h=jnp.minimum(jnp.asarray(h0, dtype), self.dt_max),
             k0=jnp.zeros(self.num_continuous, dtype) if self.fsal else None,
             k0_valid=jnp.asarray(False) if self.fsal else None,
@@ -276,24 +278,27 @@ class Loop(eqx.Module):
         return target
 
     def step_end(self, s: LoopState, k0, target):
-        """The proposed step (the controller's initial step from k0 while none is chosen) and
-        where the step ends: t + h, snapped onto the next stopping point when within rounding."""
+        """The proposed step (the controller's initial step from k0 while none is chosen), where
+        the step ends, t + h as a pair (`_controller.advance`), snapped onto the next stopping
+        point when within rounding, and the step's exact size."""
         h = s.h
         if self.solver.adaptive and self.num_continuous:
-            # the first step at least one unit of t's spacing (`least_step`): after it, steps shrink
-            # only by rejections, which end the simulation at `smallest_step`, 2 or 16 units
+            # the first step at least one unit of time's spacing (`least_step`): after it, steps
+            # shrink only by rejections, which end the simulation at `smallest_step`, 16 units
             first = jnp.minimum(self.controller.initial_step(s.t, s.x[self.num_discrete:], k0), self.dt_max)
-            h = jnp.where(jnp.isnan(h), jnp.maximum(first, least_step(s.t)), h)
+            h = jnp.where(jnp.isnan(h), jnp.maximum(first, least_step(s.t, low_part=True)), h)
         if self.system.bounds_steps and self.num_continuous:
             # every attempt, a given first step and a held one too; a fixed step is shortened
             # where the bound is shorter (and takes dt again after it)
             h = jnp.minimum(h, self.step_limit(s.t, s.x))
-        eps = jnp.finfo(s.x.dtype).eps
-        t_next = s.t + h
-        t_next = jnp.where(t_next >= target - (1e-6 * h + 64 * eps * jnp.abs(target)), target, t_next)
+        t_next, low_next = advance(s.t, s.t_low, h)
+        # within rounding of the target: there (a pair's rounding is its low part's own)
+        slack = 1e-6 * h + (0.0 if carries_low_part(s.t.dtype) else 64 * jnp.finfo(s.t.dtype).eps * jnp.abs(target))
+        snap = elapsed(t_next, low_next, target, jnp.zeros_like(target)) <= slack
+        t_next, low_next = jnp.where(snap, target, t_next), jnp.where(snap, 0.0, low_next)
         if self.fsal:  # until k0 has been evaluated, a step of size 0 that only does that
-            t_next = jnp.where(s.k0_valid, t_next, s.t)
-        return h, t_next
+            t_next, low_next = jnp.where(s.k0_valid, t_next, s.t), jnp.where(s.k0_valid, low_next, s.t_low)
+        return h, t_next, low_next, elapsed(s.t, s.t_low, t_next, low_next)
 
     def attempt_step(self, s: LoopState, ready: Ready) -> Attempt:
         """(4) One step of the continuous state with the discrete state, the mode and each
@@ -308,9 +313,9 @@ class Loop(eqx.Module):
                 return system.mode_dynamics(s.mode, t, jnp.concatenate([xd, xc]), self.input(t, s.saturation, source))
 
             stiff = functools.partial(vector_field, system=self.system.stiff_linearization())
-            result = self.solver.step(vector_field, s.t, xc, lambda k0: self.step_end(s, k0, target)[1] - s.t,
+            result = self.solver.step(vector_field, s.t, xc, lambda k0: self.step_end(s, k0, target)[3],
                                       s.k0 if self.fsal else None, stiff, s.linearization)
-            h_proposed, t_next = self.step_end(s, result.k_first, target)
+            h_proposed, t_next, low_next, h = self.step_end(s, result.k_first, target)
             xc1, coefficients = result.y1, result.coefficients
             # the error estimate too: a finite y1 whose last stage was NaN (an absurd y1 after an
             # over-long step) has a NaN estimate, which would otherwise grow the step it rejects
@@ -319,14 +324,14 @@ class Loop(eqx.Module):
             accept, h_next, _ = self.controller.adapt(result.h, xc, xc1, result.error, finite)
             k_last, linearization = result.k_last, result.linearization
         else:
-            h_proposed, t_next = self.step_end(s, None, target)
+            h_proposed, t_next, low_next, h = self.step_end(s, None, target)
             xc1, coefficients = xc, jnp.zeros((NUM_COEFFICIENTS, 0), dtype)
             finite, accept, h_next, k_last = jnp.asarray(True), jnp.asarray(True), h_proposed, None
             linearization = None
         coefficients_d = jnp.zeros((NUM_COEFFICIENTS, nd), dtype).at[0].set(xd)
-        return Attempt(t_end=t_next, x_end=jnp.concatenate([xd, xc1]),
+        return Attempt(t_end=t_next, t_end_low=low_next, x_end=jnp.concatenate([xd, xc1]),
                        coefficients=jnp.concatenate([coefficients_d, coefficients], axis=1),
-                       h_proposed=h_proposed, h=t_next - s.t, accept=accept & ~ready.fired & ~priming,
+                       h_proposed=h_proposed, h=h, accept=accept & ~ready.fired & ~priming,
                        finite=finite, h_next=h_next, k_last=k_last,
                        linearization=linearization if self.reuse_linearization else None, priming=priming,
                        event=jnp.asarray(False), which=jnp.asarray(-1, jnp.int32))
@@ -364,13 +369,14 @@ class Loop(eqx.Module):
             theta = jnp.clip(newton(newton(theta_located)), 0.0, 1.0)
             powers = jnp.cumprod(jnp.concatenate([jnp.ones(1, dtype), jnp.full(NUM_COEFFICIENTS - 1, theta)]))
             coefficients = a.coefficients * powers[:, None]
-            return coefficients, t + theta * h, eval_polynomial(coefficients, 1.0), which
+            return coefficients, *advance(t, s.t_low, theta * h), eval_polynomial(coefficients, 1.0), which
 
         def no_cut(a):
-            return a.coefficients, a.t_end, a.x_end, jnp.asarray(-1, jnp.int32)
+            return a.coefficients, a.t_end, a.t_end_low, a.x_end, jnp.asarray(-1, jnp.int32)
 
-        coefficients, t_end, x_end, which = jax.lax.cond(event, cut, no_cut, a)
-        a = dataclasses.replace(a, coefficients=coefficients, t_end=t_end, x_end=x_end, event=event, which=which)
+        coefficients, t_end, t_end_low, x_end, which = jax.lax.cond(event, cut, no_cut, a)
+        a = dataclasses.replace(a, coefficients=coefficients, t_end=t_end, t_end_low=t_end_low, x_end=x_end,
+                                event=event, which=which)
         return dataclasses.replace(s, status=status), a
 
     def take_event(self, s: LoopState, ready: Ready, a: Attempt):
@@ -418,7 +424,7 @@ class Loop(eqx.Module):
             # a step shortened to land on a stopping point does not shrink the next one
             h_next = jnp.where(a.accept & (a.h < a.h_proposed), jnp.maximum(a.h_proposed, a.h_next), a.h_next)
             h_next = jnp.where(hold, s.h, jnp.minimum(h_next, self.dt_max))
-            tiny = ~a.accept & ~hold & ~(h_next > smallest_step(s.t, a.finite))  # a NaN step size too
+            tiny = ~a.accept & ~hold & ~(h_next > smallest_step(s.t, a.finite, low_part=True))  # a NaN step size too
             status = jnp.where(tiny, jnp.where(a.finite, SimulationStatus.STEP_SIZE_TOO_SMALL,
                                                SimulationStatus.NONFINITE_STATE), status)
         else:
@@ -451,7 +457,7 @@ class Loop(eqx.Module):
         under vmap too)."""
         x = jnp.where(ready.fired, x_after, jnp.where(accept, x_after, s.x))
         mode = jnp.where(ready.fired | accept, mode_after, s.mode)
-        t = jnp.where(accept, a.t_end, s.t)
+        t, t_low = jnp.where(accept, a.t_end, s.t), jnp.where(accept, a.t_end_low, s.t_low)
         if self.windowed:
             def write(buffer, n, value, pred):
                 return buffer.at[0].set(jnp.where(pred, value, buffer[0]))
@@ -477,7 +483,7 @@ class Loop(eqx.Module):
             k0 = jnp.where(accept | a.priming, a.k_last, s.k0)
             k0_valid = jnp.asarray(True)
         return LoopState(
-            t=t, x=x, mode=mode, saturation=saturation, h=jax.lax.stop_gradient(h_next), k0=k0,
+            t=t, t_low=t_low, x=x, mode=mode, saturation=saturation, h=jax.lax.stop_gradient(h_next), k0=k0,
             k0_valid=k0_valid, linearization=a.linearization.after(accept) if self.reuse_linearization else None,
             samples=s.samples,
             at_breakpoint=jnp.where(accept, ~a.event & (a.t_end >= self.next_breakpoint(s.t)), s.at_breakpoint),
@@ -497,9 +503,13 @@ class Loop(eqx.Module):
             return run_adjoint(self, t0, x0, h0, status)
         return self.run_loop(t0, x0, h0, status)
 
+    def before_tf(self, s: LoopState):
+        """Whether time has not reached tf (t itself may round to tf, short of it)."""
+        return elapsed(s.t, s.t_low, self.tf, jnp.zeros_like(s.t)) > 0
+
     def continues(self, s: LoopState):
         """Whether the loop takes another iteration."""
-        return (s.status == SimulationStatus.SUCCESS) & (s.t < self.tf) & (s.iterations < self.max_steps)
+        return (s.status == SimulationStatus.SUCCESS) & self.before_tf(s) & (s.iterations < self.max_steps)
 
     def run_loop(self, t0, x0, h0, status) -> LoopState:
         return eqxi.while_loop(self.continues, self.iterate, self.initial_state(t0, x0, h0, status),
@@ -542,7 +552,7 @@ def run_simulation(system, solver, controller, source, t0, tf, x0, h0, dt_max, e
     loop = Loop(system, solver, controller, source, tf, dt_max, event_tol, periods, max_steps, max_events,
                 dense, constraint_projection, fsal)
     s = loop.run(t0, x0, h0, status, autodiff)
-    status = jnp.where((s.status == SimulationStatus.SUCCESS) & (s.t < tf), SimulationStatus.MAX_STEPS_REACHED,
+    status = jnp.where((s.status == SimulationStatus.SUCCESS) & loop.before_tf(s), SimulationStatus.MAX_STEPS_REACHED,
                        s.status)
     p = s.pieces
     t_start, t_end, coefficients, modes, count = p.t_start, p.t_end, p.coefficients, p.modes, p.count

@@ -254,9 +254,9 @@ def _solver_advice(solver, status) -> str:
 
 
 def _precision_advice(dtype, status, rtol, atol) -> str:
-    """For a float32 simulation whose steps became too small: float32 resolves neither steps
-    far below t's spacing nor error estimates near its rounding (a stiff contact's touchdown
-    at rtol 1e-4: benchmarks/RESULTS.md); or that ran out of steps with atol below float32's
+    """For a float32 simulation whose steps became too small: float32 does not resolve error
+    estimates near its rounding (steps below t's spacing it does: time is carried as a pair,
+    `_controller.advance`); or that ran out of steps with atol below float32's
     default 1e-5 (at 1e-9 a box sliding on the floor took 20,000 steps for 0.06 s) or rtol
     below `simulate`'s default 1e-6, within 8 eps of float32's resolution (a float32 x0 keeps
     a simulation in float32 under x64: a pendulum at rtol 1e-10 ran out of steps, where
@@ -272,7 +272,7 @@ def _precision_advice(dtype, status, rtol, atol) -> str:
     if status != SimulationStatus.STEP_SIZE_TOO_SMALL:
         return ""
     return (". The state is float32: unless the solution blows up here, its 7 digits may be what stops the steps "
-            f"(a step below t's spacing, an error estimate at its rounding): {_IN_FLOAT64}, or loosen rtol / atol")
+            f"(error estimates at its rounding): {_IN_FLOAT64}, or loosen rtol / atol")
 
 
 _FLOAT32_RTOL = 1e-6   # float32 is told an rtol below this is too tight for it (simulate's default is this)
