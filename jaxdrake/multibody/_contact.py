@@ -310,7 +310,8 @@ class ContactModel(eqx.Module):
         curvature $O_A, O_B$ of the two surfaces, weighted as rolling contact has it (a
         sphere's centre on a flat face or half-space, a box's corner or edge itself under a
         rolling ball, but along an edge with the ball), along $\hat n$ by half their
-        approach (C is the witnesses' midpoint). Where both surfaces are curved (two round
+        approach (C is the witnesses' midpoint); a cylinder tilted on a rim rolls on it, C
+        the rim's lowest point (`_rolling_rim`). Where both surfaces are curved (two round
         shapes, a ball on a corner or edge) the normal turns, $\partial \hat n = P(\partial
         O_A - \partial O_B) / (\rho_A + \rho_B)$, P the projection across $\hat n$ (and
         across an edge's direction) (a ball rolling off a box's edge: 5x fewer steps).
@@ -341,13 +342,15 @@ class ContactModel(eqx.Module):
         may_curve_a, may_curve_b = (np.isin(kinds[np.asarray(i, int)], _ROUNDED + ("cylinder",)) for i in (ia, ib))
         may_turn = bool(np.any(may_curve_a & (may_curve_b | np.isin(kinds[np.asarray(ib, int)], _FACETED))))
         *per_pair, stiction_tolerance = self._pair_parameters(ia, ib)   # k, d, mu_s, mu_d per candidate; v_s
+        rim = self._rolling_rim(poses, ia, pa, n)
+        rim = None if rim is None else (rim[0] & ~curved_b,) + rim[1:]   # A's rim on a flat B
         per_candidate = (depth, pa, pb, n, jnp.asarray(moves[body_a], pa.dtype), jnp.asarray(moves[body_b], pa.dtype),
-                         rho_a, rho_b, weight_b, turning, edge, tuple(per_pair))
+                         rho_a, rho_b, weight_b, turning, edge, rim, tuple(per_pair))
         kept = max(MIN_STIFF_CANDIDATES, int(np.sum((body_a == 0) | (body_b == 0))))   # row 0: the world
         if kept < depth.shape[0]:
             deepest = jax.lax.top_k(jax.lax.stop_gradient(depth), kept)[1]
             per_candidate = jax.tree.map(lambda x: x[deepest], per_candidate)
-        depth, pa, pb, n, mask_a, mask_b, rho_a, rho_b, weight_b, turning, edge, per_pair = per_candidate
+        depth, pa, pb, n, mask_a, mask_b, rho_a, rho_b, weight_b, turning, edge, rim, per_pair = per_candidate
         params = per_pair + (stiction_tolerance,)
         C = 0.5 * (pa + pb)
         w, u = motion.columns[:, :3], motion.columns[:, 3:]                             # (nv, 3) each
@@ -359,6 +362,11 @@ class ContactModel(eqx.Module):
         dC = (1.0 - weight_b)[:, None, None] * centre_a + weight_b[:, None, None] * centre_b
         along_edge = edge[:, :, None] * edge[:, None, :]
         dC = dC + (centre_a - centre_b) @ along_edge   # along an edge, C moves with A
+        if rim is not None:   # A rolling on a rim: C swings along it as A turns about its axis or its radius to C
+            rolls, axis, down, cot, radius = rim
+            turn_about = lambda d: jnp.einsum("jk,pk->pj", w, d)  # noqa: E731   (P, nv): each column's turn about d
+            swing = -radius[:, None] * (turn_about(axis) + cot[:, None] * turn_about(down))
+            dC = dC + jnp.where(rolls[:, None, None], (swing * mask_a)[:, :, None] * jnp.cross(axis, down)[:, None, :], 0.0)
         along = n[:, :, None] * n[:, None, :]   # and along n by half the centres' approach
         dC = dC - dC @ along + 0.5 * (centre_a + centre_b) @ along
         v_AcBc = jnp.sum(G * v[None, :, None], 1)
@@ -413,6 +421,33 @@ class ContactModel(eqx.Module):
             axis = R[np.asarray(ids, int)][:, :, 2]
             curved = curved | ((kinds == "cylinder") & (jnp.abs(jnp.sum(axis * n, -1)) < 1e-6))
         return jnp.where(curved, radius, 0.0), curved
+
+    def _rolling_rim(self, poses, ids, witness, toward):
+        """(rolls, axis a, u, cot, radius r) of each candidate whose geometry (ids) is a
+        cylinder touching at the point of a rim farthest along -`toward` (the other shape's
+        normal n, pointing at this one), tilted: C = O + r u with u the unit projection of -n
+        across a, so as the cylinder turns by $\delta\theta$, C moves as its material point
+        would, less $r(\delta\theta \cdot a + \cot\vartheta\, \delta\theta \cdot u)$ along the
+        rim's tangent $a \times u$ ($\cos\vartheta = n \cdot a$; the lowest point of a wheel
+        turning about its axis stays put, and one of a tilted disk swings around its rim as the
+        disk tips sideways). None without cylinders."""
+        ids = np.asarray(ids, int)
+        is_cylinder = np.asarray(self.kinds)[ids] == "cylinder"
+        if not is_cylinder.any():
+            return None
+        R, p = poses[0][ids], poses[1][ids]
+        radius, half = self.size[ids, 0], self.size[ids, 1]
+        axis = R[:, :, 2]
+        cos = jnp.sum(toward * axis, -1)
+        sin, down = norm_and_direction(-(toward - cos[:, None] * axis), jnp.zeros_like(axis))
+        offset = witness - p
+        axial = jnp.sum(offset * axis, -1)
+        radial, outward = norm_and_direction(offset - axial[:, None] * axis, jnp.zeros_like(axis))
+        size = 1e-6 * (radius + half)
+        rolls = (jnp.asarray(is_cylinder) & (sin > 1e-3) & (jnp.abs(cos) > 1e-6)
+                 & (jnp.abs(jnp.abs(axial) - half) < size) & (jnp.abs(radial - radius) < size)
+                 & (jnp.sum(outward * down, -1) > 1.0 - 1e-4))
+        return jax.lax.stop_gradient(rolls), axis, down, cos / jnp.where(rolls, sin, 1.0), radius
 
     def _on_corner_or_edge(self, poses, ib, n, pb):
         """(on_corner, edge): whether each candidate's normal n meets its geometry B (a box or
