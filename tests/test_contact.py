@@ -167,7 +167,7 @@ def test_float32_cubes_landing_while_they_slide_or_tumble_come_to_rest(tmp_path)
     """A 1-kg cube dropped flat while it slides, or tilted onto a corner: its corners go from
     sliding to sticking under kilonewtons, where float64 takes steps of ~2e-9 s, below
     float32's spacing of t there (1.5e-8 to 3e-8 s). Each stopped with STEP_SIZE_TOO_SMALL
-    (17 of 36 such drops did); float32 now carries time as a pair, and each comes to rest on
+    (19 of 36 such drops did); float32 now carries time as a pair, and each comes to rest on
     a face, sunk m g / (4 k) (k: the geometries' 1e6 N/m in series)."""
     (tmp_path / "cube.urdf").write_text("""<robot name="cube"><link name="cube">
       <inertial><mass value="1.0"/><inertia ixx="0.001667" iyy="0.001667" izz="0.001667" ixy="0" ixz="0" iyz="0"/></inertial>

@@ -302,12 +302,14 @@ def test_a_call_from_python_runs_on_the_host_when_the_default_device_is_a_gpu():
 def test_float32_time_is_carried_as_an_exact_pair_and_float64_time_as_one_number():
     """`advance`: (t + t_low) + h as Knuth's two-sum, so that float32 steps of 4e-8 s at t = 1
     (a third of t's spacing) add up exactly, under jit as eagerly (XLA must not reassociate
-    the sum); float64 keeps one number, and t carries all of time's derivative."""
+    the sum), t the float at or below the sum; float64 keeps one number, and t carries all of
+    time's derivative."""
     from jaxdrake.simulation._controller import advance
     run = jax.jit(lambda t, h: jax.lax.fori_loop(0, 25, lambda i, c: advance(c[0], c[1], h), (t, jnp.zeros_like(t))))
     t, low = run(jnp.float32(1.0), jnp.float32(4e-8))
     exact = 1.0 + 25 * float(np.float32(4e-8))
-    assert float(t) == float(np.float32(exact)) and abs(float(t) + float(low) - exact) < 1e-13
+    assert float(t) <= exact < float(np.nextafter(t, np.float32(np.inf))) and float(low) >= 0
+    assert abs(float(t) + float(low) - exact) < 1e-13
     t, low = advance(jnp.float64(1.0), jnp.float64(0.0), jnp.float64(1e-17))
     assert float(t) == 1.0 and float(low) == 0.0
     tangent = jax.jvp(lambda t0: advance(t0, jnp.float32(1e-8), jnp.float32(1e-8)), (jnp.float32(1.0),), (jnp.float32(1.0),))[1]
@@ -323,6 +325,28 @@ def test_float32_fixed_steps_add_up_to_the_time_span():
                         max_steps=200000, dense=False) for dtype in (jnp.float32, jnp.float64)]
     assert [int(r.num_accepted_steps) for r in runs] == [100000, 100000]
     np.testing.assert_allclose(runs[0].final_state, runs[1].final_state, atol=1e-4)
+    # float32(0.01) is below 0.01: the 1000th step ends 2e-7 short of tf = 10 and is stretched
+    # onto it (a sliver step after it ran out of max_steps = T / dt)
+    short = jd.simulate(pendulum, (0.0, 10.0), jnp.asarray([0.5, 0.0], jnp.float32), solver="rk4", dt=0.01,
+                        max_steps=1000)
+    assert int(short.num_accepted_steps) == 1000 and float(short.t_final) == 10.0
+
+
+def test_float32_steps_over_an_input_tape_end_on_its_breakpoints():
+    """x' = u, u a zero-order-hold tape switching sign every 0.1 s, RK4 at dt = 0.01 in
+    float32: every step ends on the tape's breakpoints (t is never read past one), no
+    sliver steps beside them, and x(tf) is the tape's integral to float32's rounding."""
+    ts = (np.arange(0, 101) * 0.1).astype(np.float32)
+    values = np.where(np.arange(101) % 2 == 0, 1.0, -1.0).astype(np.float32)
+    tape = jd.Trajectory.from_samples(jnp.asarray(ts), jnp.asarray(values), interpolation="zoh")
+    integrator = jd.System.from_functions(dynamics=lambda t, x, u: u, num_states=1, num_inputs=1)
+    tf = np.float32(9.95)
+    traj = jd.simulate(integrator, (0.0, float(tf)), jnp.zeros(1, jnp.float32), inputs=tape, solver="rk4", dt=0.01)
+    count = int(traj.num_accepted_steps)
+    widths = np.asarray(traj.state_trajectory.t_end[1:count + 1]) - np.asarray(traj.state_trajectory.t_start[1:count + 1])
+    assert count == 995 and np.min(widths) > 0.009
+    exact = sum(v * (min(b, tf) - a) for a, b, v in zip(ts[:-1].astype(float), ts[1:].astype(float), values) if a < tf)
+    np.testing.assert_allclose(float(traj.final_state[0]), exact, atol=2e-6)
 
 
 def test_float32_steps_may_be_far_below_float32_eps_early_in_time():

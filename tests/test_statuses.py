@@ -205,6 +205,13 @@ def test_float32_takes_steps_below_the_spacing_of_t():
     with pytest.raises(jd.SimulationError, match="STEP_SIZE_TOO_SMALL.*float64") as raised:
         jd.simulate(blow_up, (0.0, 2.0), jnp.ones(1, jnp.float32))
     assert raised.value.status == S.STEP_SIZE_TOO_SMALL
+    # a vector field that reads t sees it as one float32 number, which steps below its spacing
+    # do not move: a pulse 1e-8 s wide at t = 1 (its integral pi) passed unseen between such
+    # steps with SUCCESS; there steps keep one number's floor, and the run says so
+    pulse = jd.System.from_functions(dynamics=lambda t, x, u: 1e8 / (1 + (1e8 * (t - 1.0)) ** 2) + 0 * x,
+                                     num_states=1)
+    with pytest.raises(jd.SimulationError, match="STEP_SIZE_TOO_SMALL.*float64"):
+        jd.simulate(pulse, (1.0 - 3e-6, 1.0 + 3e-6), jnp.zeros(1, jnp.float32))
 
 
 def test_a_nan_error_estimate_rejects_the_step_and_shrinks_it():

@@ -423,7 +423,7 @@ class ContactModel(eqx.Module):
         return jnp.where(curved, radius, 0.0), curved
 
     def _rolling_rim(self, poses, ids, witness, toward):
-        """(rolls, axis a, u, cot, radius r) of each candidate whose geometry (ids) is a
+        r"""(rolls, axis a, u, cot, radius r) of each candidate whose geometry (ids) is a
         cylinder touching at the point of a rim farthest along -`toward` (the other shape's
         normal n, pointing at this one), tilted: C = O + r u with u the unit projection of -n
         across a, so as the cylinder turns by $\delta\theta$, C moves as its material point

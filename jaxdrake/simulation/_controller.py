@@ -24,16 +24,22 @@ def carries_low_part(dtype) -> bool:
 
 
 def advance(t, t_low, h):
-    """The time $(t + t_{low}) + h$ as a pair: t the float nearest the sum, t_low the rest
-    (Knuth's two-sum, exact in floating point), so that a step shorter than t's spacing
-    still moves time; `(t + h, 0)` where time is one number (`carries_low_part`). The rest
-    has no derivative: t carries all of time's."""
+    r"""The time $(t + t_{low}) + h$ as a pair: t the largest float at or below the sum and
+    $0 \le t_{low}$ < t's spacing the rest (Knuth's two-sum, exact in floating point; the
+    rest's own rounding, ~eps^2 t, where t steps down), so that a step shorter than t's
+    spacing still moves time, and t read alone (a breakpoint, a sample instant, tf) is never
+    past it. `(t + h, 0)` where time is one number (`carries_low_part`). The rest is held
+    under differentiation: t carries all of time's derivative."""
     if not carries_low_part(t.dtype):
         return t + h, jnp.zeros_like(t)
     b = t_low + h
     total = t + b
     b_part = total - t
-    return total, (t - (total - b_part)) + (b - b_part)
+    low = (t - (total - b_part)) + (b - b_part)
+    held = jax.lax.stop_gradient(total)
+    gap = held - jnp.nextafter(held, jnp.asarray(-jnp.inf, held.dtype))   # to the float below, exactly
+    below = low < 0
+    return jnp.where(below, total - gap, total), jax.lax.stop_gradient(jnp.where(below, low + gap, low))
 
 
 def elapsed(t0, low0, t1, low1):

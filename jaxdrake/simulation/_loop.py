@@ -36,6 +36,7 @@ import jax.numpy as jnp
 from ..systems import System
 from ..trajectories import NUM_COEFFICIENTS, Trajectory, eval_polynomial
 from . import _events as ev
+from .._jaxprs import reads_argument
 from ._controller import AbstractStepSizeController, advance, carries_low_part, elapsed, least_step, smallest_step
 from ._inputs import InputSource
 from ._result import SimulatedTrajectory
@@ -277,7 +278,7 @@ class Loop(eqx.Module):
             target = jnp.minimum(target, jnp.min(s.samples * self.periods))
         return target
 
-    def step_end(self, s: LoopState, k0, target):
+    def step_end(self, s: LoopState, k0, target, below_spacing: bool):
         """The proposed step (the controller's initial step from k0 while none is chosen), where
         the step ends, t + h as a pair (`_controller.advance`), snapped onto the next stopping
         point when within rounding, and the step's exact size."""
@@ -286,21 +287,43 @@ class Loop(eqx.Module):
             # the first step at least one unit of time's spacing (`least_step`): after it, steps
             # shrink only by rejections, which end the simulation at `smallest_step`, 16 units
             first = jnp.minimum(self.controller.initial_step(s.t, s.x[self.num_discrete:], k0), self.dt_max)
-            h = jnp.where(jnp.isnan(h), jnp.maximum(first, least_step(s.t, low_part=True)), h)
+            h = jnp.where(jnp.isnan(h), jnp.maximum(first, least_step(s.t, low_part=below_spacing)), h)
         if self.system.bounds_steps and self.num_continuous:
             # every attempt, a given first step and a held one too; a fixed step is shortened
             # where the bound is shorter (and takes dt again after it)
             h = jnp.minimum(h, self.step_limit(s.t, s.x))
         t_next, low_next = advance(s.t, s.t_low, h)
-        # within rounding of the target: there (a pair's rounding is its low part's own)
-        slack = 1e-6 * h + (0.0 if carries_low_part(s.t.dtype) else 64 * jnp.finfo(s.t.dtype).eps * jnp.abs(target))
+        # within rounding of the target: there (a pair's steps may be shorter than t's rounding:
+        # stretched by at most 0.1% onto it; else the last step of a float32 dt just below its
+        # decimal fell a sliver short of tf)
+        rounding = 64 * jnp.finfo(s.t.dtype).eps * jnp.abs(target)
+        slack = 1e-6 * h + (jnp.minimum(rounding, 1e-3 * h) if carries_low_part(s.t.dtype) else rounding)
         snap = elapsed(t_next, low_next, target, jnp.zeros_like(target)) <= slack
         t_next, low_next = jnp.where(snap, target, t_next), jnp.where(snap, 0.0, low_next)
         if self.fsal:  # until k0 has been evaluated, a step of size 0 that only does that
             t_next, low_next = jnp.where(s.k0_valid, t_next, s.t), jnp.where(s.k0_valid, low_next, s.t_low)
         return h, t_next, low_next, elapsed(s.t, s.t_low, t_next, low_next)
 
-    def attempt_step(self, s: LoopState, ready: Ready) -> Attempt:
+    def vector_field(self, s: LoopState, source):
+        r"""This step's $\dot x_c = f(t, x_c)$, with the discrete state, the mode and each input's
+        saturation held."""
+        xd = s.x[: self.num_discrete]
+
+        def f(t, xc, system=self.system):
+            return system.mode_dynamics(s.mode, t, jnp.concatenate([xd, xc]), self.input(t, s.saturation, source))
+        return f
+
+    def steps_below_spacing(self, s: LoopState) -> bool:
+        """Whether a step may be shorter than t's spacing (a fact of the traced program): where
+        time is a pair (`_controller.carries_low_part`) and the vector field does not read t,
+        whose one-number value would stand still through such steps (a pulse narrower than
+        t's spacing passed unseen, with SUCCESS); else steps end at one number's floor."""
+        if not (carries_low_part(s.t.dtype) and self.num_continuous):
+            return False
+        field = self.vector_field(s, self.source.on_step(s.t))
+        return not reads_argument(field, (s.t, s.x[self.num_discrete:]), 0)
+
+    def attempt_step(self, s: LoopState, ready: Ready, below_spacing: bool) -> Attempt:
         """(4) One step of the continuous state with the discrete state, the mode and each
         input's saturation held, so the right-hand side is smooth within the step."""
         nd, dtype = self.num_discrete, s.x.dtype
@@ -309,13 +332,11 @@ class Loop(eqx.Module):
         target = self.next_stop(s)
         priming = ~s.k0_valid if self.fsal else jnp.asarray(False)
         if self.num_continuous:
-            def vector_field(t, xc, system=self.system):
-                return system.mode_dynamics(s.mode, t, jnp.concatenate([xd, xc]), self.input(t, s.saturation, source))
-
+            vector_field = self.vector_field(s, source)
             stiff = functools.partial(vector_field, system=self.system.stiff_linearization())
-            result = self.solver.step(vector_field, s.t, xc, lambda k0: self.step_end(s, k0, target)[3],
+            result = self.solver.step(vector_field, s.t, xc, lambda k0: self.step_end(s, k0, target, below_spacing)[3],
                                       s.k0 if self.fsal else None, stiff, s.linearization)
-            h_proposed, t_next, low_next, h = self.step_end(s, result.k_first, target)
+            h_proposed, t_next, low_next, h = self.step_end(s, result.k_first, target, below_spacing)
             xc1, coefficients = result.y1, result.coefficients
             # the error estimate too: a finite y1 whose last stage was NaN (an absurd y1 after an
             # over-long step) has a NaN estimate, which would otherwise grow the step it rejects
@@ -324,7 +345,7 @@ class Loop(eqx.Module):
             accept, h_next, _ = self.controller.adapt(result.h, xc, xc1, result.error, finite)
             k_last, linearization = result.k_last, result.linearization
         else:
-            h_proposed, t_next, low_next, h = self.step_end(s, None, target)
+            h_proposed, t_next, low_next, h = self.step_end(s, None, target, below_spacing)
             xc1, coefficients = xc, jnp.zeros((NUM_COEFFICIENTS, 0), dtype)
             finite, accept, h_next, k_last = jnp.asarray(True), jnp.asarray(True), h_proposed, None
             linearization = None
@@ -415,7 +436,7 @@ class Loop(eqx.Module):
         through a thin geometry unseen), not differentiated: step sizes are held."""
         return jax.lax.stop_gradient(self.system.step_size_bound(t, x))
 
-    def adapt_step_size(self, s: LoopState, ready: Ready, a: Attempt):
+    def adapt_step_size(self, s: LoopState, ready: Ready, a: Attempt, below_spacing: bool):
         """(8) The next step size and the failures of this attempt (non-finite state, a step
         size that collapsed). Returns (h_next, status)."""
         hold = ready.fired | a.priming
@@ -424,7 +445,7 @@ class Loop(eqx.Module):
             # a step shortened to land on a stopping point does not shrink the next one
             h_next = jnp.where(a.accept & (a.h < a.h_proposed), jnp.maximum(a.h_proposed, a.h_next), a.h_next)
             h_next = jnp.where(hold, s.h, jnp.minimum(h_next, self.dt_max))
-            tiny = ~a.accept & ~hold & ~(h_next > smallest_step(s.t, a.finite, low_part=True))  # a NaN step size too
+            tiny = ~a.accept & ~hold & ~(h_next > smallest_step(s.t, a.finite, low_part=below_spacing))  # a NaN step size too
             status = jnp.where(tiny, jnp.where(a.finite, SimulationStatus.STEP_SIZE_TOO_SMALL,
                                                SimulationStatus.NONFINITE_STATE), status)
         else:
@@ -441,12 +462,13 @@ class Loop(eqx.Module):
         s, ready = self.find_ready_transition(s)
         s = self.apply_due_updates(s, ready)
         s = self.refresh_saturation(s)
-        a = self.attempt_step(s, ready)
+        below_spacing = self.steps_below_spacing(s)
+        a = self.attempt_step(s, ready, below_spacing)
         s, a = self.locate_event(s, a)
         x_after, mode_after, saturation, stop = self.take_event(s, ready, a)
         took_transition = a.event & (a.which >= self.num_limit_guards)
         a, x_after = self.project_onto_constraints(a, x_after, took_transition)
-        h_next, status = self.adapt_step_size(s, ready, a)
+        h_next, status = self.adapt_step_size(s, ready, a, below_spacing)
         accept = a.accept & SimulationStatus.is_success(status)
         status = jnp.where((accept & stop) | (ready.fired & stop), SimulationStatus.STOPPED_BY_RESET, status)
         return self.record(s, ready, a, accept, x_after, mode_after, saturation, h_next, status)

@@ -125,7 +125,9 @@ class SimulatedTrajectory(eqx.Module, Reported):
     def state(self, t, side: str | None = None):
         """The state x(t) (shape (n,), or (len(t), n) for an array of times). Outside
         [t0, t_final] it holds the value at the nearer end (no extrapolation, as Drake's
-        trajectories); a simulation that failed inside `jit` ends at its `t_final`."""
+        trajectories); a simulation that failed inside `jit` ends at its `t_final`. Float32
+        steps shorter than t's spacing (a contact's stick) share their ends' float time: there
+        x(t) is the state when time first reached it (`final_state` is the last state)."""
         self._check_dense()
         return self.state_trajectory.eval(t, side)
 
