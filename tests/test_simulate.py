@@ -316,6 +316,28 @@ def test_float32_time_is_carried_as_an_exact_pair_and_float64_time_as_one_number
     assert (float(tangent[0]), float(tangent[1])) == (1.0, 0.0)
 
 
+def test_whether_a_vector_field_reads_time_is_followed_into_jit_and_custom_derivatives():
+    """`_jaxprs.reads_argument` (the loop's test for steps below t's spacing): a jitted
+    function or a custom derivative that ignores t does not read it; one that passes t
+    through a loop is taken to read it (conservative), as is any arithmetic on it."""
+    from jaxdrake._jaxprs import reads_argument
+
+    @jax.jit
+    def inner(t, x):
+        return -x
+
+    @jax.custom_jvp
+    def smooth(t, x):
+        return jnp.tanh(x)
+
+    smooth.defjvp(lambda primals, tangents: (smooth(*primals), tangents[1] / jnp.cosh(primals[1]) ** 2))
+    looped = lambda t, x: jax.lax.fori_loop(0, 3, lambda i, c: c + 0.0 * t, x)  # noqa: E731
+    args = (jnp.float32(0.5), jnp.ones(3, jnp.float32))
+    assert not reads_argument(inner, args, 0) and reads_argument(inner, args, 1)
+    assert not reads_argument(smooth, args, 0)
+    assert reads_argument(looped, args, 0) and reads_argument(lambda t, x: x * jnp.sin(t), args, 0)
+
+
 def test_float32_fixed_steps_add_up_to_the_time_span():
     """RK4 at dt = 1e-3 for 100 s in float32: t rounded after every step made some steps
     short, 100043 of them; time carried as a pair takes exactly T / dt, and an undamped

@@ -71,9 +71,10 @@ def smallest_step(t, finite, low_part: bool = False):
     finite attempt 16 units of the spacing of time (MATLAB's `16*eps(t)`; SciPy's `solve_ivp`
     likewise scales its floor with t), far below any physical step (in float64 a lower floor
     let a finite-time blow-up step on past its pole instead of stopping there). With
-    `low_part` (`simulate`'s loop) that spacing is time's as the loop carries it
-    (`time_resolution`: float32 carries a pair); `simulate_ensemble`'s float32 time is one
-    number, and there the floor is 2 units, since a touchdown needs steps of 3-5. For a
+    `low_part` (`simulate`'s loop where steps may go below t's spacing) that spacing is
+    time's as the loop carries it (`time_resolution`: float32 carries a pair); where float32
+    time is one number (`simulate_ensemble`; a vector field that reads t) the floor is 2
+    units, since a touchdown needs steps of 3-5. For a
     non-finite attempt 16 eps max(|t|, 1), then NONFINITE_STATE: a NaN or overflow that
     persists down to such steps is the vector field's, and near t = 0 the relative floor
     would take hundreds of rejections to say so."""

@@ -285,7 +285,7 @@ class Loop(eqx.Module):
         h = s.h
         if self.solver.adaptive and self.num_continuous:
             # the first step at least one unit of time's spacing (`least_step`): after it, steps
-            # shrink only by rejections, which end the simulation at `smallest_step`, 16 units
+            # shrink only by rejections, which end the simulation at `smallest_step`
             first = jnp.minimum(self.controller.initial_step(s.t, s.x[self.num_discrete:], k0), self.dt_max)
             h = jnp.where(jnp.isnan(h), jnp.maximum(first, least_step(s.t, low_part=below_spacing)), h)
         if self.system.bounds_steps and self.num_continuous:
