@@ -1,5 +1,6 @@
 """Bad input gets a clear Python error that names the problem."""
 
+import jax
 import jax.numpy as jnp
 import pytest
 
@@ -148,3 +149,18 @@ def test_a_finite_time_blow_up_says_so():
     with pytest.raises(jd.SimulationError, match="blow-up") as info:
         jd.simulate(blow_up, (0.0, 2.0), 1.0)
     assert abs(float(str(info.value).split("t = ")[1].split(" ")[0]) - 1.0) < 1e-3
+
+
+def test_a_float64_constant_in_a_float32_simulation_is_named_with_the_remedy():
+    """With x64 on, a float32 x0 makes a float32 simulation; a controller holding
+    jnp.array([...]) of Python floats computes in float64, which met the state deep inside
+    the loop as a concatenation's or a scan carry's dtype error."""
+    assert jax.config.jax_enable_x64   # tests/conftest.py
+    pendulum = Pendulum()
+    pd = jd.System.from_functions(output=lambda t, x, y: -10.0 * (y[:1] - jnp.array([jnp.pi])) - y[1:],
+                                  num_states=0, num_inputs=2, num_outputs=1)
+    with pytest.raises(TypeError, match=r"state is float32.*computes part of it in float64.*x\.dtype"):
+        jd.simulate(jd.feedback(pendulum, pd), (0.0, 0.5), jnp.array([0.5, 0.0], jnp.float32))
+    follows = jd.System.from_functions(output=lambda t, x, y: -10.0 * (y[:1] - jnp.array([jnp.pi], y.dtype)) - y[1:],
+                                       num_states=0, num_inputs=2, num_outputs=1)
+    assert jd.simulate(jd.feedback(pendulum, follows), (0.0, 0.5), jnp.array([0.5, 0.0], jnp.float32)).success

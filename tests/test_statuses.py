@@ -210,7 +210,7 @@ def test_float32_takes_steps_below_the_spacing_of_t():
     # steps with SUCCESS; there steps keep one number's floor, and the run says so
     pulse = jd.System.from_functions(dynamics=lambda t, x, u: 1e8 / (1 + (1e8 * (t - 1.0)) ** 2) + 0 * x,
                                      num_states=1)
-    with pytest.raises(jd.SimulationError, match="STEP_SIZE_TOO_SMALL.*float64"):
+    with pytest.raises(jd.SimulationError, match="STEP_SIZE_TOO_SMALL.*reads t.*float32 holds as one number.*float64"):
         jd.simulate(pulse, (1.0 - 3e-6, 1.0 + 3e-6), jnp.zeros(1, jnp.float32))
 
 

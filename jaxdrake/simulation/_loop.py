@@ -538,6 +538,19 @@ class Loop(eqx.Module):
                                max_steps=self.max_steps, kind="lax", buffers=LoopState.buffers)
 
 
+def vector_field_reads_time(system, source, t0, x0) -> bool:
+    """Whether the system's vector field with its inputs reads t (at its initial mode and
+    saturation): where it does, float32 steps keep one number's floor (`Loop.steps_below_spacing`)."""
+    nd = system.num_discrete_states
+    inputs = source.on_step(t0)
+    saturation = ev.initial_saturation(system, inputs(t0))
+
+    def field(t, xc):
+        x = jnp.concatenate([x0[:nd], xc])
+        return system.mode_dynamics(system.initial_mode, t, x, ev.saturated_input(system, inputs(t), saturation))
+    return reads_argument(field, (t0, x0[nd:]), 0)
+
+
 def initial_status(system, source, t0, tf, x0):
     """The failures visible before the first step (inside `jit`, where they cannot raise): a
     time span that is not finite with t0 < tf, a non-finite x0 or u(t0), a NaN parameter."""

@@ -24,7 +24,7 @@ from ..systems import System
 from ..systems import check_initialised
 from ._controller import ConstantStepSize, IController
 from ._inputs import NoisyInput, leaf_to_array, make_source
-from ._loop import run_simulation
+from ._loop import run_simulation, vector_field_reads_time
 from ._result import SimulatedTrajectory, trajectory_bytes
 from ._solvers import Ros34PW2, Rosenbrock23, make_solver
 from ._status import SimulationError, SimulationStatus
@@ -174,17 +174,33 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="a
                           "simulate(..., dense=False) keeps only the final state, and "
                           "jd.run_batch(fn, inputs, chunk_size=...) runs it in chunks") from error
     except TypeError as error:
-        if "forward-mode autodiff" not in str(error):
-            raise
-        raise TypeError("simulate: forward-mode differentiation (jax.jvp, jax.jacfwd, jax.hessian) needs "
-                        "simulate(..., autodiff='forward'); the default autodiff='reverse' is for "
-                        "jax.grad / jax.vjp") from error
+        if "forward-mode autodiff" in str(error):
+            raise TypeError("simulate: forward-mode differentiation (jax.jvp, jax.jacfwd, jax.hessian) needs "
+                            "simulate(..., autodiff='forward'); the default autodiff='reverse' is for "
+                            "jax.grad / jax.vjp") from error
+        if _mixes_in_float64(error, dtype):
+            raise TypeError(f"simulate: the state is float32 (x0's dtype, the simulation's), but {system.name} "
+                            "computes part of it in float64 (with jax_enable_x64 on, a constant such as "
+                            "jnp.array([0.5, -0.9]) or np.pi * jnp.ones(2) inside one of its functions is float64): "
+                            "make such constants follow the state, e.g. jnp.array([0.5, -0.9], x.dtype), or pass "
+                            f"x0 as float64. ({str(error).splitlines()[0]})") from error
+        raise
     if throw and _concrete(traj.status):
         status = SimulationStatus(int(traj.status))
         if not SimulationStatus.is_success(status):
             raise SimulationError(status, _failure_message(system, status, t0, tf, traj)
-                                  + _solver_advice(solver, status) + _precision_advice(x0.dtype, status, rtol, atol))
+                                  + _solver_advice(solver, status)
+                                  + (_clock_advice(system, source, t0, x0, status)
+                                     or _precision_advice(x0.dtype, status, rtol, atol)))
     return traj
+
+
+def _mixes_in_float64(error, dtype) -> bool:
+    """Whether a TypeError raised while tracing a float32 simulation under x64 is a float64
+    value meeting the float32 state (a scan's carry, a concatenation, a select)."""
+    text = str(error)
+    return (np.dtype(dtype) == np.float32 and jax.config.jax_enable_x64
+            and "float64" in text and "float32" in text)
 
 
 def _placement(device, arguments):
@@ -273,6 +289,22 @@ def _precision_advice(dtype, status, rtol, atol) -> str:
         return ""
     return (". The state is float32: unless the solution blows up here, its 7 digits may be what stops the steps "
             f"(error estimates at its rounding): {_IN_FLOAT64}, or loosen rtol / atol")
+
+
+def _clock_advice(system, source, t0, x0, status) -> str:
+    """For a float32 simulation whose steps became too small while its vector field reads t
+    (an input tape, a reference r(t)): t is one float32 number there, so steps below its
+    spacing, which a contact's stick needs, are refused (`Loop.steps_below_spacing`). A leg
+    pushed by a constant tape stopped at its touchdown; the same torque as a constant, the
+    reference as an oscillator's state, or the tape held by a sampled system ran."""
+    if np.dtype(x0.dtype) != np.float32 or status != SimulationStatus.STEP_SIZE_TOO_SMALL:
+        return ""
+    if not system.num_continuous_states or not vector_field_reads_time(system, source, jnp.asarray(t0, x0.dtype), x0):
+        return ""
+    return (". Its vector field reads t (an input tape or function of t, a reference r(t)), which float32 holds "
+            "as one number: steps shorter than its spacing (a contact going from sliding to sticking needs them) "
+            "are refused there. Make the reference a state of the diagram (e.g. an oscillator), hold the tape "
+            "with a sampled system (sample_time=) or a constant input, or simulate in float64")
 
 
 _FLOAT32_RTOL = 1e-6   # float32 is told an rtol below this is too tight for it (simulate's default is this)
