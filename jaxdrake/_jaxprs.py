@@ -6,8 +6,9 @@ import jax
 import jax.extend
 
 # primitives that call one jaxpr with their own inputs and outputs (jit, custom derivatives,
-# checkpointing): followed inside; any other sub-program (a loop, a branch) counts as one
-# equation whose outputs all depend on any input that does
+# checkpointing): followed inside, as are the branches of a switch (a hybrid system's modes)
+# whose index does not depend; any other sub-program (a loop) counts as one equation whose
+# outputs all depend on any input that does
 _CALLS = frozenset({"pjit", "jit", "closed_call", "core_call", "custom_jvp_call", "custom_vjp_call",
                     "custom_vjp_call_jaxpr", "checkpoint", "remat", "remat2"})
 
@@ -23,7 +24,13 @@ def outputs_depending_on(jaxpr, reads) -> list[bool]:
         if not any(inputs):
             continue
         called = _called_jaxpr(eqn)
-        outputs = outputs_depending_on(called, inputs) if called is not None else [True] * len(eqn.outvars)
+        if called is not None:
+            outputs = outputs_depending_on(called, inputs)
+        elif eqn.primitive.name == "cond" and not inputs[0]:   # a switch whose index does not depend
+            branches = [outputs_depending_on(b.jaxpr, inputs[1:]) for b in eqn.params["branches"]]
+            outputs = [any(column) for column in zip(*branches)]
+        else:
+            outputs = [True] * len(eqn.outvars)
         depends.update(v for v, out in zip(eqn.outvars, outputs) if out)
     return [not isinstance(v, literal) and v in depends for v in jaxpr.outvars]
 

@@ -318,8 +318,10 @@ def test_float32_time_is_carried_as_an_exact_pair_and_float64_time_as_one_number
 
 def test_whether_a_vector_field_reads_time_is_followed_into_jit_and_custom_derivatives():
     """`_jaxprs.reads_argument` (the loop's test for steps below t's spacing): a jitted
-    function or a custom derivative that ignores t does not read it; one that passes t
-    through a loop is taken to read it (conservative), as is any arithmetic on it."""
+    function, a custom derivative or a switch of modes (a hybrid system: every multi-mode one
+    counted as reading t, and its float32 drops stopped) that ignores t does not read it; one
+    that passes t through a loop is taken to read it (conservative), as is any arithmetic on
+    it."""
     from jaxdrake._jaxprs import reads_argument
 
     @jax.jit
@@ -332,10 +334,16 @@ def test_whether_a_vector_field_reads_time_is_followed_into_jit_and_custom_deriv
 
     smooth.defjvp(lambda primals, tangents: (smooth(*primals), tangents[1] / jnp.cosh(primals[1]) ** 2))
     looped = lambda t, x: jax.lax.fori_loop(0, 3, lambda i, c: c + 0.0 * t, x)  # noqa: E731
+
+    def switched(t, x, reading):   # a hybrid system's modes: a switch whose index is a state's
+        return jax.lax.switch(jnp.int32(x[0] > 0), [lambda t, x: -x, lambda t, x: x * (t if reading else 2.0)], t, x)
+
     args = (jnp.float32(0.5), jnp.ones(3, jnp.float32))
     assert not reads_argument(inner, args, 0) and reads_argument(inner, args, 1)
     assert not reads_argument(smooth, args, 0)
     assert reads_argument(looped, args, 0) and reads_argument(lambda t, x: x * jnp.sin(t), args, 0)
+    assert not reads_argument(lambda t, x: switched(t, x, False), args, 0)
+    assert reads_argument(lambda t, x: switched(t, x, True), args, 0)
 
 
 def test_float32_fixed_steps_add_up_to_the_time_span():

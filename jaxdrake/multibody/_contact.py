@@ -443,7 +443,9 @@ class ContactModel(eqx.Module):
         offset = witness - p
         axial = jnp.sum(offset * axis, -1)
         radial, outward = norm_and_direction(offset - axial[:, None] * axis, jnp.zeros_like(axis))
-        size = 1e-6 * (radius + half)
+        # on the rim to rounding (float32's: the witness's, and u's as the tilt goes to 0)
+        size = 1e-6 * (radius + half) + 64 * jnp.finfo(axis.dtype).eps * (
+            jnp.linalg.norm(p, axis=-1) + (radius + half) / jnp.maximum(sin, 1e-3))
         rolls = (jnp.asarray(is_cylinder) & (sin > 1e-3) & (jnp.abs(cos) > 1e-6)
                  & (jnp.abs(jnp.abs(axial) - half) < size) & (jnp.abs(radial - radius) < size)
                  & (jnp.sum(outward * down, -1) > 1.0 - 1e-4))

@@ -301,10 +301,11 @@ def _clock_advice(system, source, t0, x0, status) -> str:
         return ""
     if not system.num_continuous_states or not vector_field_reads_time(system, source, jnp.asarray(t0, x0.dtype), x0):
         return ""
-    return (". Its vector field reads t (an input tape or function of t, a reference r(t)), which float32 holds "
-            "as one number: steps shorter than its spacing (a contact going from sliding to sticking needs them) "
-            "are refused there. Make the reference a state of the diagram (e.g. an oscillator), hold the tape "
-            "with a sampled system (sample_time=) or a constant input, or simulate in float64")
+    return (". Unless the solution blows up here: its vector field reads t (an input tape or function of t, a "
+            "reference r(t)), which float32 holds as one number, so steps shorter than its spacing (a contact "
+            "going from sliding to sticking needs them) are refused. Make the reference a state of the diagram "
+            "(e.g. an oscillator), hold the input with a sampled system (sample_time=) or give a constant, or "
+            "simulate in float64")
 
 
 _FLOAT32_RTOL = 1e-6   # float32 is told an rtol below this is too tight for it (simulate's default is this)
