@@ -305,13 +305,8 @@ class Loop(eqx.Module):
         return h, t_next, low_next, elapsed(s.t, s.t_low, t_next, low_next)
 
     def vector_field(self, s: LoopState, source):
-        r"""This step's $\dot x_c = f(t, x_c)$, with the discrete state, the mode and each input's
-        saturation held."""
-        xd = s.x[: self.num_discrete]
-
-        def f(t, xc, system=self.system):
-            return system.mode_dynamics(s.mode, t, jnp.concatenate([xd, xc]), self.input(t, s.saturation, source))
-        return f
+        """This step's vector field (`held_vector_field`)."""
+        return held_vector_field(self.system, s.mode, s.x[: self.num_discrete], s.saturation, source)
 
     def steps_below_spacing(self, s: LoopState) -> bool:
         """Whether a step may be shorter than t's spacing (a fact of the traced program): where
@@ -333,7 +328,7 @@ class Loop(eqx.Module):
         priming = ~s.k0_valid if self.fsal else jnp.asarray(False)
         if self.num_continuous:
             vector_field = self.vector_field(s, source)
-            stiff = functools.partial(vector_field, system=self.system.stiff_linearization())
+            stiff = functools.partial(vector_field, dynamics_of=self.system.stiff_linearization())
             result = self.solver.step(vector_field, s.t, xc, lambda k0: self.step_end(s, k0, target, below_spacing)[3],
                                       s.k0 if self.fsal else None, stiff, s.linearization)
             h_proposed, t_next, low_next, h = self.step_end(s, result.k_first, target, below_spacing)
@@ -538,16 +533,20 @@ class Loop(eqx.Module):
                                max_steps=self.max_steps, kind="lax", buffers=LoopState.buffers)
 
 
+def held_vector_field(system, mode, xd, saturation, inputs):
+    r"""$\dot x_c = f(t, x_c)$ with the discrete state `xd`, the `mode` and each input's
+    `saturation` held (`dynamics_of`: the system whose dynamics, e.g. its stiff linearization)."""
+    def f(t, xc, dynamics_of=system):
+        u = ev.saturated_input(system, inputs(t), saturation)
+        return dynamics_of.mode_dynamics(mode, t, jnp.concatenate([xd, xc]), u)
+    return f
+
+
 def vector_field_reads_time(system, source, t0, x0) -> bool:
     """Whether the system's vector field with its inputs reads t (at its initial mode and
     saturation): where it does, float32 steps keep one number's floor (`Loop.steps_below_spacing`)."""
-    nd = system.num_discrete_states
-    inputs = source.on_step(t0)
-    saturation = ev.initial_saturation(system, inputs(t0))
-
-    def field(t, xc):
-        x = jnp.concatenate([x0[:nd], xc])
-        return system.mode_dynamics(system.initial_mode, t, x, ev.saturated_input(system, inputs(t), saturation))
+    nd, inputs = system.num_discrete_states, source.on_step(t0)
+    field = held_vector_field(system, system.initial_mode, x0[:nd], ev.initial_saturation(system, inputs(t0)), inputs)
     return reads_argument(field, (t0, x0[nd:]), 0)
 
 
