@@ -1003,6 +1003,24 @@ def test_the_stiff_linearization_of_a_can_rolling_on_its_rim_is_the_exact_jacobi
     assert np.max(error) < 0.05, np.max(error, 0)
 
 
+def test_a_can_rolling_on_its_rim_on_a_cylinder_listed_before_it_has_the_exact_jacobian(tmp_path):
+    """Two cylinders pair in the order of their geometries: a can on the cap of a post listed
+    first in the file is B of the pair, and its rolling rim was modelled as a corner moving
+    with it (rotation columns 80-290% off)."""
+    (tmp_path / "post.urdf").write_text("""<robot name="post"><link name="world"/>
+      <link name="post"><collision><origin xyz="0 0 -0.1"/><geometry><cylinder radius="0.5" length="0.2"/></geometry></collision></link>
+      <joint name="fix" type="fixed"><parent link="world"/><child link="post"/></joint>
+      <link name="can"><inertial><mass value="0.8"/><inertia ixx="0.002" iyy="0.002" izz="0.001" ixy="0" ixz="0" iyz="0"/>
+        </inertial><collision><geometry><cylinder radius="0.05" length="0.15"/></geometry></collision></link>
+      <joint name="free" type="floating"><parent link="world"/><child link="can"/></joint></robot>""")
+    plant = jd.RigidBodySystem.from_urdf(tmp_path / "post.urdf", contact=True)
+    assert plant.contact.names[0] == "post_collision_0"   # the post is A
+    x = jnp.asarray(_can_on_its_rim(np.pi / 3, azimuth=0.4, where=(0.1, -0.05)))
+    error, exact = _rotation_column_errors(plant, x)
+    assert int(np.sum(plant.contact_results(x).active)) == 1 and np.max(np.abs(exact[:, 3:])) > 1e5
+    assert np.max(error) < 0.05, np.max(error, 0)
+
+
 def test_a_float32_can_on_its_rim_is_found_to_float32_rounding(tmp_path):
     """The rolling rim point is recognised to the rounding of its witness and of u (float32's
     too): with a float64 margin, 4 of 12 float32 cans tilted by 11-80 degrees within 10 m of

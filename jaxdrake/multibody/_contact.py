@@ -342,15 +342,17 @@ class ContactModel(eqx.Module):
         may_curve_a, may_curve_b = (np.isin(kinds[np.asarray(i, int)], _ROUNDED + ("cylinder",)) for i in (ia, ib))
         may_turn = bool(np.any(may_curve_a & (may_curve_b | np.isin(kinds[np.asarray(ib, int)], _FACETED))))
         *per_pair, stiction_tolerance = self._pair_parameters(ia, ib)   # k, d, mu_s, mu_d per candidate; v_s
-        rim = self._rolling_rim(poses, ia, pa, n)
-        rim = None if rim is None else (rim[0] & ~curved_b,) + rim[1:]   # A's rim on a flat B
+        rim_a = self._rolling_rim(poses, ia, pa, n)   # A's rim on a flat B, or B's on a flat A
+        rim_a = None if rim_a is None else (rim_a[0] & ~curved_b,) + rim_a[1:]
+        rim_b = self._rolling_rim(poses, ib, pb, -n)
+        rim_b = None if rim_b is None else (rim_b[0] & ~curved_a & (True if rim_a is None else ~rim_a[0]),) + rim_b[1:]
         per_candidate = (depth, pa, pb, n, jnp.asarray(moves[body_a], pa.dtype), jnp.asarray(moves[body_b], pa.dtype),
-                         rho_a, rho_b, weight_b, turning, edge, rim, tuple(per_pair))
+                         rho_a, rho_b, weight_b, turning, edge, (rim_a, rim_b), tuple(per_pair))
         kept = max(MIN_STIFF_CANDIDATES, int(np.sum((body_a == 0) | (body_b == 0))))   # row 0: the world
         if kept < depth.shape[0]:
             deepest = jax.lax.top_k(jax.lax.stop_gradient(depth), kept)[1]
             per_candidate = jax.tree.map(lambda x: x[deepest], per_candidate)
-        depth, pa, pb, n, mask_a, mask_b, rho_a, rho_b, weight_b, turning, edge, rim, per_pair = per_candidate
+        depth, pa, pb, n, mask_a, mask_b, rho_a, rho_b, weight_b, turning, edge, rims, per_pair = per_candidate
         params = per_pair + (stiction_tolerance,)
         C = 0.5 * (pa + pb)
         w, u = motion.columns[:, :3], motion.columns[:, 3:]                             # (nv, 3) each
@@ -362,11 +364,15 @@ class ContactModel(eqx.Module):
         dC = (1.0 - weight_b)[:, None, None] * centre_a + weight_b[:, None, None] * centre_b
         along_edge = edge[:, :, None] * edge[:, None, :]
         dC = dC + (centre_a - centre_b) @ along_edge   # along an edge, C moves with A
-        if rim is not None:   # A rolling on a rim: C swings along it as A turns about its axis or its radius to C
-            rolls, axis, down, cot, radius = rim
-            turn_about = lambda d: jnp.einsum("jk,pk->pj", w, d)  # noqa: E731   (P, nv): each column's turn about d
-            swing = -radius[:, None] * (turn_about(axis) + cot[:, None] * turn_about(down))
-            dC = dC + jnp.where(rolls[:, None, None], (swing * mask_a)[:, :, None] * jnp.cross(axis, down)[:, None, :], 0.0)
+        # rolling on a rim: C moves with the rim's material point, and swings along the rim as its
+        # cylinder turns about its axis or about its radius to C
+        turn_about = lambda d: jnp.einsum("jk,pk->pj", w, d)  # noqa: E731   (P, nv): each column's turn about d
+        for rim, mask, witness in zip(rims, (mask_a, mask_b), (pa, pb)):
+            if rim is not None:
+                rolls, axis, down, cot, radius = rim
+                swing = -radius[:, None] * (turn_about(axis) + cot[:, None] * turn_about(down)) * mask
+                rolled = at(witness) * mask[:, :, None] + swing[:, :, None] * jnp.cross(axis, down)[:, None, :]
+                dC = jnp.where(rolls[:, None, None], rolled, dC)
         along = n[:, :, None] * n[:, None, :]   # and along n by half the centres' approach
         dC = dC - dC @ along + 0.5 * (centre_a + centre_b) @ along
         v_AcBc = jnp.sum(G * v[None, :, None], 1)
