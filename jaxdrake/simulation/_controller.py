@@ -47,43 +47,35 @@ def elapsed(t0, low0, t1, low1):
     return (t1 - t0) + (low1 - low0)
 
 
-def time_resolution(t):
-    """The spacing of time as the loop carries it (`carries_low_part`): eps |t| for one
-    number, eps^2 |t| for a pair (at least the smallest normal number)."""
+def time_resolution(t, low_part: bool = False):
+    """The spacing of time: eps |t|, or eps^2 |t| where the loop carries it as a pair
+    (`low_part` in float32, `carries_low_part`); at least the smallest normal number."""
     finfo = jnp.finfo(t.dtype)
-    spacing = finfo.eps * jnp.abs(t) * (finfo.eps if carries_low_part(t.dtype) else 1.0)
-    return jnp.maximum(spacing, finfo.tiny)
+    pair = low_part and carries_low_part(t.dtype)
+    return jnp.maximum(finfo.eps * jnp.abs(t) * (finfo.eps if pair else 1.0), finfo.tiny)
 
 
 def least_step(t, low_part: bool = False):
-    """The smallest step an adaptive simulation attempts: one unit of t's spacing (eps |t|,
-    at least the smallest normal number; with `low_part` (`simulate`'s loop) the spacing of
-    time as the loop carries it, `time_resolution`). A smaller one would not move t: a zero
-    step, accepted and grown from zero, on which the loop would spin until max_steps."""
-    if low_part:
-        return time_resolution(t)
-    finfo = jnp.finfo(t.dtype)
-    return jnp.maximum(finfo.eps * jnp.abs(t), finfo.tiny)
+    """The smallest step an adaptive simulation attempts: one unit of the spacing of time
+    (`time_resolution`; with `low_part`, `simulate`'s loop where steps may go below t's
+    spacing, time's as the loop carries it). A smaller one would not move t: a zero step,
+    accepted and grown from zero, on which the loop would spin until max_steps."""
+    return time_resolution(t, low_part)
 
 
 def smallest_step(t, finite, low_part: bool = False):
     """The step size at or below which a rejected step ends an adaptive simulation: for a
-    finite attempt 16 units of the spacing of time (MATLAB's `16*eps(t)`; SciPy's `solve_ivp`
-    likewise scales its floor with t), far below any physical step (in float64 a lower floor
-    let a finite-time blow-up step on past its pole instead of stopping there). With
-    `low_part` (`simulate`'s loop where steps may go below t's spacing) that spacing is
-    time's as the loop carries it (`time_resolution`: float32 carries a pair); where float32
-    time is one number (`simulate_ensemble`; a vector field that reads t) the floor is 2
-    units, since a touchdown needs steps of 3-5. For a
+    finite attempt 16 units of the spacing of time (`time_resolution`; MATLAB's `16*eps(t)`;
+    SciPy's `solve_ivp` likewise scales its floor with t), far below any physical step (in
+    float64 a lower floor let a finite-time blow-up step on past its pole instead of
+    stopping there). Where float32 time is one number (`simulate_ensemble`; a vector field
+    that reads t) the floor is 2 units, since a touchdown needs steps of 3-5. For a
     non-finite attempt 16 eps max(|t|, 1), then NONFINITE_STATE: a NaN or overflow that
     persists down to such steps is the vector field's, and near t = 0 the relative floor
     would take hundreds of rejections to say so."""
     finfo = jnp.finfo(t.dtype)
-    if low_part:
-        floor = 16 * time_resolution(t)
-    else:
-        floor = (16 if finfo.bits >= 64 else 2) * least_step(t)
-    return jnp.where(finite, floor, 16 * finfo.eps * jnp.maximum(jnp.abs(t), 1.0))
+    units = 16 if (finfo.bits >= 64 or (low_part and carries_low_part(t.dtype))) else 2
+    return jnp.where(finite, units * time_resolution(t, low_part), 16 * finfo.eps * jnp.maximum(jnp.abs(t), 1.0))
 
 
 class AbstractStepSizeController(eqx.Module):

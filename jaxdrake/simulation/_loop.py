@@ -315,8 +315,7 @@ class Loop(eqx.Module):
         t's spacing passed unseen, with SUCCESS); else steps end at one number's floor."""
         if not (carries_low_part(s.t.dtype) and self.num_continuous):
             return False
-        field = self.vector_field(s, self.source.on_step(s.t))
-        return not reads_argument(field, (s.t, s.x[self.num_discrete:]), 0)
+        return not reads_time(self.vector_field(s, self.source.on_step(s.t)), s.t, s.x[self.num_discrete:])
 
     def attempt_step(self, s: LoopState, ready: Ready, below_spacing: bool) -> Attempt:
         """(4) One step of the continuous state with the discrete state, the mode and each
@@ -542,12 +541,18 @@ def held_vector_field(system, mode, xd, saturation, inputs):
     return f
 
 
+def reads_time(field, t, xc) -> bool:
+    """Whether the vector field `field(t, xc)` reads t: where it does, float32 steps keep one
+    number's floor (`Loop.steps_below_spacing`)."""
+    return reads_argument(field, (t, xc), 0)
+
+
 def vector_field_reads_time(system, source, t0, x0) -> bool:
-    """Whether the system's vector field with its inputs reads t (at its initial mode and
-    saturation): where it does, float32 steps keep one number's floor (`Loop.steps_below_spacing`)."""
+    """`reads_time` of the system's vector field with its inputs, at its initial mode and
+    saturation (for the advice of a float32 run whose steps became too small)."""
     nd, inputs = system.num_discrete_states, source.on_step(t0)
     field = held_vector_field(system, system.initial_mode, x0[:nd], ev.initial_saturation(system, inputs(t0)), inputs)
-    return reads_argument(field, (t0, x0[nd:]), 0)
+    return reads_time(field, t0, x0[nd:])
 
 
 def initial_status(system, source, t0, tf, x0):
