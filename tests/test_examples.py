@@ -52,7 +52,10 @@ SLOW = {"swing_up.ipynb", "lqr.ipynb", "swing_up.py",  # lqr.ipynb: 45 s, extend
         # (tests/test_multibody.py), lcm_pendulum.py (tests/test_lcm_bridge.py, the two processes'
         # loop), rimless_wheel.py (tests/test_hybrid.py, the rolling fixed point)
         "dynamic_programming.py", "lyapunov.py", "feedback_cancellation.py", "lcm_pendulum.py",
-        "rimless_wheel.py"}
+        "rimless_wheel.py",
+        # linear_gaussian.py, 15 s of 10^4 paths: tests/test_stochastic.py checks the same variance
+        # over 10^4 paths (and the autocovariance), tests/test_batch.py run_batch's chunks
+        "linear_gaussian.py"}
 NOTEBOOKS = [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW else p
              for p in sorted((ROOT / "notebooks").glob("*.ipynb"))]
 NEEDS_ROS1 = {"ros_pendulum.py"}   # a real roscore
