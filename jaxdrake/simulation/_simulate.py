@@ -189,7 +189,7 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="a
         status = SimulationStatus(int(traj.status))
         if not SimulationStatus.is_success(status):
             raise SimulationError(status, _failure_message(system, status, t0, tf, traj)
-                                  + (_chatter_advice(system, solver, status, rtol) or _solver_advice(solver, status))
+                                  + (_held_slip_advice(system, solver, status, rtol) or _solver_advice(solver, status))
                                   + (_clock_advice(system, source, t0, x0, status)
                                      or _precision_advice(x0.dtype, status, rtol, atol)))
     return traj
@@ -269,17 +269,18 @@ def _solver_advice(solver, status) -> str:
             "solver=jd.simulation.Rosenbrock23(jacobian='stiff')")
 
 
-def _chatter_advice(system, solver, status, rtol) -> str:
+def _held_slip_advice(system, solver, status, rtol) -> str:
     """For contact that ran out of steps under a Rosenbrock method at a tolerance looser than
-    1e-6: a rolling or sticking contact can chatter across the stiction band, the slip flipping
-    sign each step, where the stiff matrix sees no friction slope (Drake's law is flat beyond
-    the band). A ball rolling on the floor at rtol 1e-4 took 29,000 steps of 3e-5 s for 1 s,
-    at rtol 1e-6 (the default) 1,500, and under dopri5 800 (`benchmarks/RESULTS.md`)."""
+    1e-6: a rolling or sticking contact can be held by the step at a slip just outside the
+    stiction band (Drake's law is flat there: no friction slope along the slip), with a
+    constant friction force the step nearly cancels and steps kept short. A ball rolling on
+    the floor at rtol 1e-4 took 29,000 steps of 3e-5 s for 1 s; at rtol 1e-6 (the default)
+    1,500, under dopri5 800 (`benchmarks/RESULTS.md`)."""
     if (status != SimulationStatus.MAX_STEPS_REACHED or not system.bounds_steps
             or not isinstance(solver, (Rosenbrock23, Ros34PW2)) or not _concrete(rtol) or float(rtol) <= 1e-6):
         return ""
-    return (f". At rtol {float(rtol):g} a rolling or sticking contact can chatter across the stiction band (its slip "
-            "changing sign every step); rtol=1e-6 (the default) or solver='dopri5' may take far fewer steps")
+    return (f". At rtol {float(rtol):g} a rolling or sticking contact can be held at a slip just outside the stiction "
+            "band in short steps; rtol=1e-6 (the default) or solver='dopri5' may take far fewer steps")
 
 
 def _precision_advice(dtype, status, rtol, atol) -> str:
