@@ -223,10 +223,10 @@ def test_a_ball_sliding_then_rolling_ends_at_five_sevenths_of_its_speed():
 
 def test_a_rolling_ball_held_outside_the_stiction_band_at_a_loose_tolerance_is_told_the_remedy():
     """Sliding at 1 m/s, the ball starts to roll; at rtol 1e-4 the W-method's steps then hold
-    it at a slip of 3.5 v_s, just outside the stiction band where Drake's law is flat, under a
-    constant friction force that they nearly cancel, in steps of 4e-5 s: ~23,000 steps for 1 s,
-    against ~1,700 at rtol 1e-6 and ~700 under dopri5. The error says so; both remedies end
-    at 5/7 of the speed."""
+    it at a slip of 3.5 v_s, just outside the stiction band where Drake's law is flat (each
+    step's midpoint lands at zero slip, where friction is ~0, so the step leaves the slip as
+    it was), in steps of 4e-5 s: ~23,000 steps for 1 s, against ~1,700 at rtol 1e-6 and ~700
+    under dopri5. The error says so; both remedies end at 5/7 of the speed."""
     ball = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True, contact=True).with_ground()
     x0 = jnp.array([0.0, 0.0, 0.1, 0, 0, 0, 1, 1.0, 0, 0, 0, 0, 0])
     run = functools.partial(jd.simulate, ball, (0.0, 1.0), x0, max_steps=4000, dense=False)

@@ -271,11 +271,12 @@ def _solver_advice(solver, status) -> str:
 
 def _held_slip_advice(system, solver, status, rtol) -> str:
     """For contact that ran out of steps under a Rosenbrock method at a tolerance looser than
-    1e-6: a rolling or sticking contact can be held by the step at a slip just outside the
-    stiction band (Drake's law is flat there: no friction slope along the slip), with a
-    constant friction force the step nearly cancels and steps kept short. A ball rolling on
-    the floor at rtol 1e-4 took 29,000 steps of 3e-5 s for 1 s; at rtol 1e-6 (the default)
-    1,500, under dopri5 800 (`benchmarks/RESULTS.md`)."""
+    1e-6: a rolling or sticking contact can be held by the step at a slip s just outside the
+    stiction band. Drake's law is flat there (no slope along the slip in the matrix), so stage
+    1 decelerates the slip explicitly, its midpoint lands at zero slip where the law's smooth
+    step gives ~no friction, and the step's slope k2 ~ 0 leaves s unchanged (a fixed point of
+    the step at h ~ 2 s / A). A ball rolling on the floor at rtol 1e-4 took 29,000 steps of
+    3e-5 s for 1 s; at rtol 1e-6 (the default) 1,500, under dopri5 800 (`benchmarks/RESULTS.md`)."""
     if (status != SimulationStatus.MAX_STEPS_REACHED or not system.bounds_steps
             or not isinstance(solver, (Rosenbrock23, Ros34PW2)) or not _concrete(rtol) or float(rtol) <= 1e-6):
         return ""
