@@ -77,7 +77,11 @@ def limit_cycle(system: System, x_guess, period_guess, *, events_per_period: int
     in float64, 1e-4 and 1e-6 in float32 (JAX's default; it cannot resolve more).
     `autodiff`: how the result is differentiated in the system's parameters (see the module
     doc): `"forward"` (`jax.jacfwd`, `jax.jvp`) or `"reverse"` (`jax.grad`; the monodromy
-    matrix and the multipliers stay forward-mode only). Raises `LimitCycleError` when Newton
+    matrix and the multipliers stay forward-mode only). Differentiate under `jax.jit` where you
+    need a few outputs: an eager `jax.jvp` runs this function's program differentiated as a
+    whole, with the tangents of every output, the monodromy's second derivatives through the
+    impacts included (the rimless wheel's period: 3.8 s of compiling eager, 1.3 s under
+    `jit`, where the unused tangents are dropped). Raises `LimitCycleError` when Newton
     does not converge (outside `jit`; inside, check `result.residual`); for a hybrid system
     called from Python, before Newton's program compiles when the flow from `x_guess` meets too
     few events within 3 x `period_guess` (naming them and when they do come)."""
