@@ -332,6 +332,10 @@ class ContactModel(eqx.Module):
         poses = self.geometry_poses(motion)
         (rho_a, curved_a), (rho_b, curved_b) = (self._curvature(poses[0], i, n) for i in (ia, ib))
         weight_b = jnp.where(curved_b, rho_a / jnp.where(curved_b, rho_a + rho_b, 1.0), 0.0)
+        # two polytopes: a corner of B on A's face is B's material point (A's flat face: rho_A
+        # infinite), a corner of A on B's face A's (a box sliding on a welded box: C held in A
+        # coupled its position to its turning, and the W-method took 12x the exact Jacobian's steps)
+        weight_b = jnp.where(self._at_a_vertex(poses, ib, pb) & ~self._at_a_vertex(poses, ia, pa), 1.0, weight_b)
         on_corner, edge = self._on_corner_or_edge(poses, ib, n, pb)
         on_corner = on_corner & curved_a
         edge = jnp.where(on_corner[:, None], edge, 0.0)
@@ -457,39 +461,60 @@ class ContactModel(eqx.Module):
                  & (jnp.sum(outward * down, -1) > 1.0 - 1e-4))
         return jax.lax.stop_gradient(rolls), axis, down, cos / jnp.where(rolls, sin, 1.0), radius
 
-    def _on_corner_or_edge(self, poses, ib, n, pb):
-        """(on_corner, edge): whether each candidate's normal n meets its geometry B (a box or
-        hull, world `poses`) off its faces' normals, at a corner or an edge, which stays put on
-        B as A rolls over it; and along an edge, its unit direction (0 elsewhere), along which
-        the contact point moves with A and the normal does not turn. The faces through B's
-        witness point pb tell them apart: two distinct ones, an edge; three, a corner."""
-        kinds_b = np.asarray(self.kinds)[np.asarray(ib, int)]
-        faceted = np.isin(kinds_b, _FACETED)
-        if not faceted.any():
-            return np.zeros(len(ib), bool), jnp.zeros_like(n)
-        b = np.asarray(ib, int)
-        R, p = poses[0][b], poses[1][b]
+    def _faces_through(self, poses, ids, point):
+        """Each candidate's faceted geometry (a box or hull; `faceted` marks them) at `point`:
+        its rotation R, its faces' outward normals in its frame (p, f, 3; a box's 6 or a
+        hull's, padded by repeats), and the point's signed distances to their planes (p, f)
+        with the tolerance within which a face passes through it."""
+        kinds = np.asarray(self.kinds)[np.asarray(ids, int)]
+        faceted = np.isin(kinds, _FACETED)
+        g = np.asarray(ids, int)
+        R, p = poses[0][g], poses[1][g]
         faces = self.planes.shape[1]
-        count = max(6, faces)   # a box's 6 faces or a hull's, in B's frame, padded by repeats
+        count = max(6, faces)
         box_normals = BOX_FACE_NORMALS[np.minimum(np.arange(count), 5)]
-        box_offsets = jnp.concatenate([self.size[b], self.size[b]], 1)[:, np.minimum(np.arange(count), 5)]
-        hull = self.planes[b][:, np.minimum(np.arange(count), faces - 1)].astype(n.dtype)
-        is_box = np.asarray(kinds_b == "box")
-        normals = jnp.where(is_box[:, None, None], jnp.asarray(box_normals, n.dtype)[None], hull[..., :3])
+        box_offsets = jnp.concatenate([self.size[g], self.size[g]], 1)[:, np.minimum(np.arange(count), 5)]
+        hull = self.planes[g][:, np.minimum(np.arange(count), faces - 1)].astype(point.dtype)
+        is_box = np.asarray(kinds == "box")
+        normals = jnp.where(is_box[:, None, None], jnp.asarray(box_normals, point.dtype)[None], hull[..., :3])
         offsets = jnp.where(is_box[:, None], box_offsets, hull[..., 3])
-        # n leaves B along a face's outward normal on that face (signed: the face opposite does not count)
-        alignment = jnp.max(jnp.einsum("pfk,pk->pf", normals, jnp.einsum("pji,pj->pi", R, n)), axis=1)
-        on_corner = faceted & (alignment < 1.0 - 1e-6)
-        # the faces through the witness, by distinct normals: the most active face, the most
-        # active of the others, and whether a third distinct one passes through it too
-        values = jnp.einsum("pfk,pk->pf", normals, jnp.einsum("pji,pj->pi", R, pb - p)) - offsets
-        tolerance = 64 * jnp.finfo(n.dtype).eps * (1.0 + jnp.max(jnp.abs(offsets), axis=1) + jnp.linalg.norm(p, axis=1))
+        values = jnp.einsum("pfk,pk->pf", normals, jnp.einsum("pji,pj->pi", R, point - p)) - offsets
+        tolerance = 64 * jnp.finfo(point.dtype).eps * (1.0 + jnp.max(jnp.abs(offsets), axis=1) + jnp.linalg.norm(p, axis=1))
+        return faceted, R, normals, values, tolerance
+
+    @staticmethod
+    def _two_faces_and_a_third(normals, values, tolerance):
+        """The most active face's normal, the most active of the faces not parallel to it, and
+        whether a third face, parallel to neither, passes through the point too (a corner)."""
         normal_of = lambda mask: jnp.take_along_axis(  # noqa: E731
             normals, jnp.argmax(jnp.where(mask, values, -jnp.inf), axis=1)[:, None, None], 1)[:, 0]
         distinct = lambda m: jnp.abs(jnp.einsum("pfk,pk->pf", normals, m)) < 1.0 - 1e-6  # noqa: E731
         first = normal_of(jnp.ones(values.shape, bool))
         second = normal_of(distinct(first))
         third_active = jnp.max(jnp.where(distinct(first) & distinct(second), values, -jnp.inf), axis=1) > -tolerance
+        return first, second, third_active
+
+    def _at_a_vertex(self, poses, ids, point):
+        """Whether each candidate's witness `point` is a corner of its faceted geometry (three
+        faces pass through it); False for other shapes."""
+        faceted, _, normals, values, tolerance = self._faces_through(poses, ids, point)
+        if not faceted.any():
+            return jnp.zeros(len(ids), bool)
+        return faceted & self._two_faces_and_a_third(normals, values, tolerance)[2]
+
+    def _on_corner_or_edge(self, poses, ib, n, pb):
+        """(on_corner, edge): whether each candidate's normal n meets its geometry B (a box or
+        hull, world `poses`) off its faces' normals, at a corner or an edge, which stays put on
+        B as A rolls over it; and along an edge, its unit direction (0 elsewhere), along which
+        the contact point moves with A and the normal does not turn. The faces through B's
+        witness point pb tell them apart: two distinct ones, an edge; three, a corner."""
+        faceted, R, normals, values, tolerance = self._faces_through(poses, ib, pb)
+        if not faceted.any():
+            return np.zeros(len(ib), bool), jnp.zeros_like(n)
+        # n leaves B along a face's outward normal on that face (signed: the face opposite does not count)
+        alignment = jnp.max(jnp.einsum("pfk,pk->pf", normals, jnp.einsum("pji,pj->pi", R, n)), axis=1)
+        on_corner = faceted & (alignment < 1.0 - 1e-6)
+        first, second, third_active = self._two_faces_and_a_third(normals, values, tolerance)
         direction = norm_and_direction(jnp.cross(first, second), jnp.zeros_like(first))[1]
         edge = jnp.where((on_corner & ~third_active)[:, None], jnp.einsum("pij,pj->pi", R, direction), 0.0)
         return on_corner, edge
