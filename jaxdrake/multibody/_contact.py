@@ -335,7 +335,8 @@ class ContactModel(eqx.Module):
         # two polytopes: a corner of B on A's face is B's material point (A's flat face: rho_A
         # infinite), a corner of A on B's face A's (a box sliding on a welded box: C held in A
         # coupled its position to its turning, and the W-method took 12x the exact Jacobian's steps)
-        weight_b = jnp.where(self._at_a_vertex(poses, ib, pb) & ~self._at_a_vertex(poses, ia, pa), 1.0, weight_b)
+        corner_of_b = self._at_a_vertex(poses, ib, pb) & ~self._at_a_vertex(poses, ia, pa)
+        weight_b = jnp.where(corner_of_b, 1.0, weight_b)
         on_corner, edge = self._on_corner_or_edge(poses, ib, n, pb)
         on_corner = on_corner & curved_a
         edge = jnp.where(on_corner[:, None], edge, 0.0)
@@ -351,12 +352,12 @@ class ContactModel(eqx.Module):
         rim_b = self._rolling_rim(poses, ib, pb, -n)
         rim_b = None if rim_b is None else (rim_b[0] & ~curved_a & (True if rim_a is None else ~rim_a[0]),) + rim_b[1:]
         per_candidate = (depth, pa, pb, n, jnp.asarray(moves[body_a], pa.dtype), jnp.asarray(moves[body_b], pa.dtype),
-                         rho_a, rho_b, weight_b, turning, edge, (rim_a, rim_b), tuple(per_pair))
+                         rho_a, rho_b, weight_b, turning, corner_of_b, edge, (rim_a, rim_b), tuple(per_pair))
         kept = max(MIN_STIFF_CANDIDATES, int(np.sum((body_a == 0) | (body_b == 0))))   # row 0: the world
         if kept < depth.shape[0]:
             deepest = jax.lax.top_k(jax.lax.stop_gradient(depth), kept)[1]
             per_candidate = jax.tree.map(lambda x: x[deepest], per_candidate)
-        depth, pa, pb, n, mask_a, mask_b, rho_a, rho_b, weight_b, turning, edge, rims, per_pair = per_candidate
+        depth, pa, pb, n, mask_a, mask_b, rho_a, rho_b, weight_b, turning, corner_of_b, edge, rims, per_pair = per_candidate
         params = per_pair + (stiction_tolerance,)
         C = 0.5 * (pa + pb)
         w, u = motion.columns[:, :3], motion.columns[:, 3:]                             # (nv, 3) each
@@ -366,6 +367,10 @@ class ContactModel(eqx.Module):
         centre_a = at(pa + rho_a[:, None] * n) * mask_a[:, :, None]                       # (P, nv_j, 3)
         centre_b = at(pb - rho_b[:, None] * n) * mask_b[:, :, None]
         dC = (1.0 - weight_b)[:, None, None] * centre_a + weight_b[:, None, None] * centre_b
+        # where n is a flat face's normal (B's; A's under a corner of B) it turns with that face's
+        # body, and C = O_A - rho_A n with it (a ball on a free box's face)
+        dn = jnp.cross(w[None], n[:, None, :]) * jnp.where(corner_of_b[:, None], mask_a, mask_b)[:, :, None]
+        dC = dC - jnp.where(turning, 0.0, rho_a)[:, None, None] * dn
         along_edge = edge[:, :, None] * edge[:, None, :]
         dC = dC + (centre_a - centre_b) @ along_edge   # along an edge, C moves with A
         # rolling on a rim: C moves with the rim's material point, and swings along the rim as its
@@ -412,11 +417,11 @@ class ContactModel(eqx.Module):
         FG = jnp.sum(G[:, :, :, None] * F_v[:, None, :, :], 2)                         # (P, nv_k, 3): G_p^T F_v,p
         spring = jnp.sum(G * F_x[:, None, :], -1).T @ jnp.sum(G * n[:, None, :], -1)    # sum_p G^T F_x n^T G
         K = -(spring + blocks(FG).T @ blocks(dv_AcBc) + turned.T + moved)
-        if may_turn:   # n = (O_a - O_b) / |O_a - O_b| between the centres of curvature
+        if may_turn:   # n = (O_a - O_b) / |O_a - O_b| between the centres of curvature, else a face's
             apart = jnp.where(turning, rho_a + rho_b, 1.0)
             across = jnp.eye(3, dtype=n.dtype) - n[:, :, None] * n[:, None, :] - along_edge   # not along an edge
-            dn = jnp.where(turning[:, None, None], (centre_a - centre_b) @ across / apart[:, None, None], 0.0)
-            K = K - blocks(jnp.sum(G[:, :, :, None] * F_n[:, None, :, :], 2)).T @ blocks(dn)
+            dn = jnp.where(turning[:, None, None], (centre_a - centre_b) @ across / apart[:, None, None], dn)
+        K = K - blocks(jnp.sum(G[:, :, :, None] * F_n[:, None, :, :], 2)).T @ blocks(dn)
         D = -(blocks(FG).T @ blocks(G))
         return K, D
 
