@@ -332,12 +332,12 @@ class ContactModel(eqx.Module):
         poses = self.geometry_poses(motion)
         (rho_a, curved_a), (rho_b, curved_b) = (self._curvature(poses[0], i, n) for i in (ia, ib))
         weight_b = jnp.where(curved_b, rho_a / jnp.where(curved_b, rho_a + rho_b, 1.0), 0.0)
+        on_corner, edge, vertex_b = self._on_corner_or_edge(poses, ib, n, pb)
         # two polytopes: a corner of B on A's face is B's material point (A's flat face: rho_A
         # infinite), a corner of A on B's face A's (a box sliding on a welded box: C held in A
         # coupled its position to its turning, and the W-method took 12x the exact Jacobian's steps)
-        corner_of_b = self._at_a_vertex(poses, ib, pb) & ~self._at_a_vertex(poses, ia, pa)
+        corner_of_b = vertex_b & ~self._at_a_vertex(poses, ia, pa)
         weight_b = jnp.where(corner_of_b, 1.0, weight_b)
-        on_corner, edge = self._on_corner_or_edge(poses, ib, n, pb)
         on_corner = on_corner & curved_a
         edge = jnp.where(on_corner[:, None], edge, 0.0)
         weight_b = jnp.where(on_corner, 1.0, weight_b)   # a ball rolling over a corner turns about it
@@ -368,9 +368,15 @@ class ContactModel(eqx.Module):
         centre_b = at(pb - rho_b[:, None] * n) * mask_b[:, :, None]
         dC = (1.0 - weight_b)[:, None, None] * centre_a + weight_b[:, None, None] * centre_b
         # where n is a flat face's normal (B's; A's under a corner of B) it turns with that face's
-        # body, and C = O_A - rho_A n with it (a ball on a free box's face)
-        dn = jnp.cross(w[None], n[:, None, :]) * jnp.where(corner_of_b[:, None], mask_a, mask_b)[:, :, None]
-        dC = dC - jnp.where(turning, 0.0, rho_a)[:, None, None] * dn
+        # body, and C = O_A - rho_A n with it (a ball on a free box's face); the world's faces,
+        # and spheres' and capsules' (none flat), never turn
+        kinds_a, kinds_b = kinds[np.asarray(ia, int)], kinds[np.asarray(ib, int)]
+        flat_b = np.isin(kinds_b, _FACETED + ("cylinder",))
+        face_may_turn = bool(np.any((body_b != 0) & flat_b) or np.any((body_a != 0) & flat_b & np.isin(kinds_a, _FACETED)))
+        dn = jnp.zeros_like(dC)
+        if face_may_turn:
+            dn = jnp.cross(w[None], n[:, None, :]) * jnp.where(corner_of_b[:, None], mask_a, mask_b)[:, :, None]
+            dC = dC - jnp.where(turning, 0.0, rho_a)[:, None, None] * dn
         along_edge = edge[:, :, None] * edge[:, None, :]
         dC = dC + (centre_a - centre_b) @ along_edge   # along an edge, C moves with A
         # rolling on a rim: C moves with the rim's material point, and swings along the rim as its
@@ -421,7 +427,8 @@ class ContactModel(eqx.Module):
             apart = jnp.where(turning, rho_a + rho_b, 1.0)
             across = jnp.eye(3, dtype=n.dtype) - n[:, :, None] * n[:, None, :] - along_edge   # not along an edge
             dn = jnp.where(turning[:, None, None], (centre_a - centre_b) @ across / apart[:, None, None], dn)
-        K = K - blocks(jnp.sum(G[:, :, :, None] * F_n[:, None, :, :], 2)).T @ blocks(dn)
+        if may_turn or face_may_turn:
+            K = K - blocks(jnp.sum(G[:, :, :, None] * F_n[:, None, :, :], 2)).T @ blocks(dn)
         D = -(blocks(FG).T @ blocks(G))
         return K, D
 
@@ -508,21 +515,22 @@ class ContactModel(eqx.Module):
         return faceted & self._two_faces_and_a_third(normals, values, tolerance)[2]
 
     def _on_corner_or_edge(self, poses, ib, n, pb):
-        """(on_corner, edge): whether each candidate's normal n meets its geometry B (a box or
+        """(on_corner, edge, vertex): whether each candidate's normal n meets its geometry B (a box or
         hull, world `poses`) off its faces' normals, at a corner or an edge, which stays put on
         B as A rolls over it; and along an edge, its unit direction (0 elsewhere), along which
         the contact point moves with A and the normal does not turn. The faces through B's
-        witness point pb tell them apart: two distinct ones, an edge; three, a corner."""
+        witness point pb tell them apart: two distinct ones, an edge; three, a corner; and
+        whether pb is one of B's corners (three faces through it), whatever n."""
         faceted, R, normals, values, tolerance = self._faces_through(poses, ib, pb)
         if not faceted.any():
-            return np.zeros(len(ib), bool), jnp.zeros_like(n)
+            return np.zeros(len(ib), bool), jnp.zeros_like(n), np.zeros(len(ib), bool)
         # n leaves B along a face's outward normal on that face (signed: the face opposite does not count)
         alignment = jnp.max(jnp.einsum("pfk,pk->pf", normals, jnp.einsum("pji,pj->pi", R, n)), axis=1)
         on_corner = faceted & (alignment < 1.0 - 1e-6)
         first, second, third_active = self._two_faces_and_a_third(normals, values, tolerance)
         direction = norm_and_direction(jnp.cross(first, second), jnp.zeros_like(first))[1]
         edge = jnp.where((on_corner & ~third_active)[:, None], jnp.einsum("pij,pj->pi", R, direction), 0.0)
-        return on_corner, edge
+        return on_corner, edge, faceted & third_active
 
     def generalized_forces(self, tree, q, v):
         r"""$\tau_c = \sum J^T f$ of all contact forces at (q, v), and the `ContactResults` (one
