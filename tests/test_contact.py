@@ -328,7 +328,7 @@ def test_box_on_a_half_space_touches_at_its_lowest_corners():
     tilt = _rotation_y(0.2)
     params = {"size": jnp.array([0.5, 0.3, 0.2])}
     ground = {"size": jnp.zeros(3)}
-    depth, pa, pb, n = penetration("box", params, (jnp.asarray(tilt), jnp.array([0.0, 0.0, 0.5])),
+    depth, pa, pb, n, _ = penetration("box", params, (jnp.asarray(tilt), jnp.array([0.0, 0.0, 0.5])),
                                    "halfspace", ground, (jnp.eye(3), jnp.zeros(3)))
     corners = np.asarray(Box(1.0, 0.6, 0.4).vertices()) @ tilt.T + [0, 0, 0.5]
     np.testing.assert_allclose(np.asarray(depth), -corners[:, 2], atol=1e-14)
@@ -401,7 +401,7 @@ def test_round_sides_that_cross_touch_at_the_closed_form_depth():
     gap = 0.23   # axes 0.23 apart, radii 0.1 + 0.15: 2 cm deep
     for kind_a in ("capsule", "cylinder"):
         def deepest(R_A, p_A, R_B, p_B):
-            depth, pa, pb, n = penetration(kind_a, {"size": jnp.array([0.1, 0.4, 0.0])}, (R_A, p_A),
+            depth, pa, pb, n, _ = penetration(kind_a, {"size": jnp.array([0.1, 0.4, 0.0])}, (R_A, p_A),
                                            "cylinder", {"size": jnp.array([0.15, 0.5, 0.0])}, (R_B, p_B))
             i = jnp.argmax(depth)
             return depth[i], pb[i], n[i]
@@ -427,7 +427,7 @@ def test_a_capsule_across_a_box_edge_touches_at_the_closed_form_depth():
     X_A = (R_A, jnp.asarray(np.array([0.2, 0.05, 0.1]) + (r - x) * up))
     for kind, params in shapes:
         across = jax.jit(lambda X: penetration("capsule", capsule, X, kind, params, (jnp.eye(3), jnp.zeros(3))))
-        depth, _, pb, n = across(X_A)
+        depth, _, pb, n, _ = across(X_A)
         i = int(jnp.argmax(depth))
         assert int(jnp.sum(depth > 0)) == 1
         np.testing.assert_allclose(float(depth[i]), x, atol=1e-12)
@@ -469,7 +469,7 @@ def test_two_polytopes_overlap_by_the_brute_force_separating_axes_least_depth():
         (params_a, local_a, edges_a), (params_b, local_b, edges_b) = shapes[kind_a], shapes[kind_b]
         R_A, R_B = jnp.stack([_random_rotation(rng) for _ in range(60)]), jnp.stack([_random_rotation(rng) for _ in range(60)])
         p_A = jnp.asarray(rng.normal(size=(60, 3)) * 0.2)
-        depth, pa, pb, n = jax.jit(jax.vmap(lambda Ra, pa, Rb: penetration(kind_a, params_a, (Ra, pa), kind_b, params_b,
+        depth, pa, pb, n, _ = jax.jit(jax.vmap(lambda Ra, pa, Rb: penetration(kind_a, params_a, (Ra, pa), kind_b, params_b,
                                                                             (Rb, jnp.zeros(3)))))(R_A, p_A, R_B)
         for k in range(60):
             Ra, Rb = np.asarray(R_A[k]), np.asarray(R_B[k])
@@ -500,26 +500,33 @@ def test_two_polytopes_overlap_by_the_brute_force_separating_axes_least_depth():
 
 def test_crossed_planks_and_crossed_edges_touch_at_their_closed_form_points():
     """Two planks crossed flat touch at the 4 corners of their overlap (no corner of either is
-    inside the other); two equal cubes stacked, aligned or turned a little, on 4 points; two
+    inside the other); two equal cubes stacked, aligned or turned, on the corners of their
+    overlap, weighted by its exterior angles (no jump as the turn grows from 0); two
     cubes standing on edges crossed at right angles touch once, at their edges' crossing,
     along the vertical, at depth 2 h - z (h: half a face's diagonal)."""
     x, I = 1e-3, jnp.eye(3)
     plank_a, plank_b = {"size": jnp.array([0.5, 0.05, 0.05])}, {"size": jnp.array([0.05, 0.5, 0.05])}
-    depth, pa, pb, n = penetration("box", plank_a, (I, jnp.array([0.0, 0.0, 0.1 - x])), "box", plank_b, (I, jnp.zeros(3)))
+    depth, pa, pb, n, _ = penetration("box", plank_a, (I, jnp.array([0.0, 0.0, 0.1 - x])), "box", plank_b, (I, jnp.zeros(3)))
     touching = np.asarray(depth) > 0
     np.testing.assert_allclose(np.asarray(depth)[touching], [x] * 4, atol=1e-15)
     corners = [[sx * 0.05, sy * 0.05, 0.05] for sx in (-1, 1) for sy in (-1, 1)]
     np.testing.assert_allclose(sorted(np.asarray(pb)[touching].tolist()), corners, atol=1e-15)
     np.testing.assert_allclose(np.asarray(n)[touching], [[0, 0, 1.0]] * 4, atol=1e-15)
     cube = {"size": jnp.array([0.1, 0.1, 0.1])}
-    for turn in (0.0, 1e-7, 1e-3):   # their overlap: a square, then an octagon of 8 corners, 4 of them in use
+    for turn in (0.0, 1e-7, 1e-3, 0.3, np.pi / 4):
+        # their overlap: a square (4 corners of weight 1), then an octagon of 4 corners turning by
+        # pi/2 - turn and 4 where the sides cross, turning by `turn` (weight 4 angle / 2 pi)
         c, s = np.cos(turn), np.sin(turn)
-        depth = penetration("box", cube, (jnp.asarray([[c, -s, 0], [s, c, 0], [0, 0, 1]]), jnp.array([0.0, 0.0, 0.2 - x])),
-                            "box", cube, (I, jnp.zeros(3)))[0]
-        np.testing.assert_allclose(np.asarray(depth)[np.asarray(depth) > 0], [x] * 4, atol=1e-15)
+        depth, _, _, _, weight = penetration("box", cube, (jnp.asarray([[c, -s, 0], [s, c, 0], [0, 0, 1]]),
+                                                           jnp.array([0.0, 0.0, 0.2 - x])), "box", cube, (I, jnp.zeros(3)))
+        touching = np.asarray(depth) > 0
+        np.testing.assert_allclose(np.asarray(depth)[touching], [x] * touching.sum(), atol=1e-15)
+        crossing = 2 * turn / np.pi
+        expected = [1.0] * 4 if turn == 0 else [crossing] * 4 + [1 - crossing] * 4
+        np.testing.assert_allclose(np.sort(np.asarray(weight)[touching]), np.sort(expected), atol=1e-9)
     h = 0.1 * np.sqrt(2)
     R_A, R_B = (jnp.asarray(np.asarray(jd.multibody.rpy(*angles))) for angles in ((np.pi / 4, 0, 0), (0, np.pi / 4, 0)))
-    depth, pa, pb, n = penetration("box", cube, (R_A, jnp.array([0.01, -0.02, 2 * h - x])), "box", cube, (R_B, jnp.zeros(3)))
+    depth, pa, pb, n, _ = penetration("box", cube, (R_A, jnp.array([0.01, -0.02, 2 * h - x])), "box", cube, (R_B, jnp.zeros(3)))
     touching = np.asarray(depth) > 0
     np.testing.assert_allclose(np.asarray(depth)[touching], [x], atol=1e-15)
     np.testing.assert_allclose(np.asarray(pb)[touching], [[0.0, -0.02, h]], atol=1e-15)   # on B's edge, under A's
@@ -577,20 +584,27 @@ def _turned_about_z(angle):
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
 
 
-def test_polytope_contact_keeps_four_points_of_a_larger_polygon_and_the_least_deep_face():
-    """(helper-13's review) A cube turned over a slab's corner has a 5-corner overlap: 4 points
-    are kept (the fourth once fell on the first two's line and was dropped). An upright cube on
-    one turned 0.01 rad rests along its own face's normal, the least deep axis (the face margin
+def test_polytope_contact_weighs_a_larger_polygons_corners_by_their_angles_and_takes_the_least_deep_face():
+    """(helper-13's review) A cube turned over a slab's corner has a 5-corner overlap, whose
+    corners weigh 4 in all, the slab's right-angled corner among them 1 (4 were once kept, and
+    the fourth once fell on the first two's line and was dropped). An upright cube on one
+    turned 0.01 rad rests along its own face's normal, the least deep axis (the face margin
     once chose the deeper one). Two float32 cubes stacked, turned by rounding (1e-7 rad), all
-    touch on 4 points (a near-parallel edge pair once passed as an axis through rounding and
-    reported them apart, in 69 of 2000 poses)."""
+    touch with weights of 4 in all (a near-parallel edge pair once passed as an axis through
+    rounding and reported them apart, in 69 of 2000 poses)."""
     cube, slab = {"size": jnp.array([0.1, 0.1, 0.1])}, {"size": jnp.array([1.0, 1.0, 0.1])}
     over_corner = jax.jit(jax.vmap(lambda R, p: penetration("box", cube, (R, p), "box", slab, (jnp.eye(3), jnp.zeros(3)))))
     angles = np.linspace(0.1, 0.7, 7)
-    depth = over_corner(jnp.asarray(np.stack([_turned_about_z(a) for a in angles])), jnp.tile(jnp.array([0.97, 0.97, 0.199]), (7, 1)))[0]
-    assert np.all(np.sum(np.asarray(depth) > 0, 1) == 4)
+    depth, _, pb, _, weight = (np.asarray(a) for a in over_corner(
+        jnp.asarray(np.stack([_turned_about_z(a) for a in angles])), jnp.tile(jnp.array([0.97, 0.97, 0.199]), (7, 1))))
+    touching = depth > 0
+    assert np.all(touching.sum(1) >= 4)
+    np.testing.assert_allclose(np.sum(np.where(touching, weight, 0.0), 1), 4.0, rtol=1e-12)
+    at_corner = touching & (np.linalg.norm(pb[..., :2] - 1.0, axis=-1) < 1e-12)
+    assert at_corner.sum() >= 3
+    np.testing.assert_allclose(weight[at_corner], 1.0, rtol=1e-12)
     # A's bottom face: 1.0010e-3 deep; B's turned top face: 1.0111e-3
-    depth, _, _, n = penetration("box", cube, (jnp.eye(3), jnp.array([0.0, 0.0, 0.2])), "box", cube,
+    depth, _, _, n, _ = penetration("box", cube, (jnp.eye(3), jnp.array([0.0, 0.0, 0.2])), "box", cube,
                                  (jnp.asarray(_rotation_y(0.01)), jnp.zeros(3)))
     np.testing.assert_allclose(np.asarray(n)[np.asarray(depth) > 0], [[0, 0, 1.0]] * 2, atol=1e-12)
     rng = np.random.default_rng(4)
@@ -598,9 +612,10 @@ def test_polytope_contact_keeps_four_points_of_a_larger_polygon_and_the_least_de
     rotations = np.stack([np.asarray(jax.scipy.linalg.expm(jnp.asarray(np.cross(np.eye(3), w)))) for w in turns[:50]])
     single = {"size": jnp.array([0.1, 0.1, 0.1], jnp.float32)}
     stacked = jax.jit(jax.vmap(lambda R: penetration("box", single, (R, jnp.array([0.0, 0.0, 0.199], jnp.float32)), "box",
-                                                     single, (jnp.eye(3, dtype=jnp.float32), jnp.zeros(3, jnp.float32)))[0]))
-    depth = stacked(jnp.asarray(rotations, jnp.float32))
-    assert depth.dtype == jnp.float32 and np.all(np.sum(np.asarray(depth) > 0, 1) == 4)
+                                                     single, (jnp.eye(3, dtype=jnp.float32), jnp.zeros(3, jnp.float32)))[::4]))
+    depth, weight = (np.asarray(a) for a in stacked(jnp.asarray(rotations, jnp.float32)))
+    assert depth.dtype == np.float32 and np.all(np.sum(depth > 0, 1) >= 4)
+    np.testing.assert_allclose(np.sum(np.where(depth > 0, weight, 0.0), 1), 4.0, rtol=1e-5)
 
 
 def test_a_hull_of_slightly_noisy_points_has_the_faces_of_the_exact_one():
@@ -618,8 +633,8 @@ def test_a_hull_of_slightly_noisy_points_has_the_faces_of_the_exact_one():
 
 
 def test_polytope_contact_gradients_equal_central_differences():
-    """The depths and witnesses of a box against a hull (face and edge contacts) as functions
-    of A's pose: their derivatives, forward and reverse, equal central differences."""
+    """The depths, witnesses and weights of a box against a hull (face and edge contacts) as
+    functions of A's pose: their derivatives, forward and reverse, equal central differences."""
     rng = np.random.default_rng(2)
     hull = _hull_params(Convex.from_points(rng.normal(size=(12, 3)) * 0.2))
     box = {"size": jnp.array([0.2, 0.15, 0.1])}
@@ -629,23 +644,25 @@ def test_polytope_contact_gradients_equal_central_differences():
         turn = jnp.eye(3) + jnp.sin(theta[3]) * K + (1 - jnp.cos(theta[3])) * K @ K
         out = penetration("box", box, (turn @ R, p + theta[:3]), "convex", hull, (jnp.eye(3), jnp.zeros(3)))
         touching = out[0] > 0
-        return jnp.concatenate([jnp.where(touching, out[0], 0.0)] + [jnp.where(touching[:, None], x, 0.0).ravel()
-                                                                     for x in out[1:]])
+        return jnp.concatenate([jnp.where(touching, out[0], 0.0)] + [
+            jnp.where(touching.reshape(touching.shape + (1,) * (x.ndim - 1)), x, 0.0).ravel() for x in out[1:]])
 
     f, forward, reverse = jax.jit(contacts), jax.jit(jax.jacfwd(contacts)), jax.jit(jax.jacrev(contacts))
+    k = jax.eval_shape(lambda: penetration("box", box, (jnp.eye(3), jnp.zeros(3)), "convex", hull,
+                                           (jnp.eye(3), jnp.zeros(3))))[0].shape[0]   # the last: an edge pair
     checked, edges = 0, 0
     for _ in range(16):
         R, w = _random_rotation(rng), rng.normal(size=3)
         args = (R, jnp.asarray(w / np.linalg.norm(w)), jnp.asarray(rng.normal(size=3) * 0.15))
         value = np.asarray(f(jnp.zeros(4), *args))
-        if not np.any(value[:9] > 0):
+        if not np.any(value[:k] > 0):
             continue
         step = 1e-6
         fd = np.stack([(np.asarray(f(step * e, *args)) - np.asarray(f(-step * e, *args))) / (2 * step)
                        for e in np.eye(4)], 1)
         for jacobian in (forward, reverse):
             np.testing.assert_allclose(np.asarray(jacobian(jnp.zeros(4), *args)), fd, atol=2e-6)
-        checked, edges = checked + 1, edges + (value[8] > 0)
+        checked, edges = checked + 1, edges + (value[k - 1] > 0)
     assert checked >= 4 and edges >= 1
 
 
@@ -670,7 +687,7 @@ def test_a_cylinder_lying_across_a_box_edge_touches_at_the_closed_form_depth():
     r, x, h = 0.05, 1e-3, 0.1 * np.sqrt(2)
     along_x = jnp.asarray(np.asarray(jd.multibody.rpy(0, np.pi / 2, 0)))
     ridge = jnp.asarray(np.asarray(jd.multibody.rpy(0, np.pi / 4, 0)))
-    depth, pa, pb, n = penetration("cylinder", {"size": jnp.array([r, 0.2, 0.0])}, (along_x, jnp.array([0.03, 0.02, h + r - x])),
+    depth, pa, pb, n, _ = penetration("cylinder", {"size": jnp.array([r, 0.2, 0.0])}, (along_x, jnp.array([0.03, 0.02, h + r - x])),
                                    "box", {"size": jnp.array([0.1, 0.1, 0.1])}, (ridge, jnp.zeros(3)))
     touching = np.asarray(depth) > 0
     np.testing.assert_allclose(np.asarray(depth)[touching], [x], atol=1e-12)

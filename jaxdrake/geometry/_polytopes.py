@@ -9,10 +9,12 @@ is the penetration's least depth.
 
 - **A face axis** (the common case: resting, sliding, crossed planks): the face of the other
   shape most opposed to the reference face is clipped by the reference face's side planes
-  (Sutherland-Hodgman, fixed-size arrays, one loop over the reference face's edges); of the
-  points left below the reference face, at most 4 that span them are candidates, at their
-  depth below it, along its normal. So a box on a larger box rests on its 4 corners, two
-  crossed planks on the corners of their overlap.
+  (Sutherland-Hodgman, fixed-size arrays, one loop over the reference face's edges); the
+  clipped polygon's corners below the reference face are candidates, at their depth below it,
+  along its normal, each weighted by its share of the polygon's turning (exterior angles, 4 in
+  all). So a box on a larger box rests on its 4 corners, two crossed planks on the corners of
+  their overlap, and two equal boxes twisted by 45 degrees on the 8 corners of theirs, of
+  weight 1/2 each, with no jump as the twist grows from 0.
 - **An edge axis**, at most half as deep as every face axis (`_EDGE_MARGIN`), or the only
   touching feature: one candidate at the closest points of the two edges (an edge crossing
   an edge), along their common normal.
@@ -128,8 +130,11 @@ def _clip(polygon, valid, reference, reference_valid, normal, tolerance):
         following = points[jnp.where(index + 1 < count, index + 1, 0)]
         values_next = (following - start) @ side
         present = index < count
-        inside, inside_next = values <= tolerance, values_next <= tolerance
-        keep, cut = present & inside, present & (inside != inside_next)
+        # a point within `tolerance` of the plane is on it: kept, and no crossing next to it (a
+        # corner repeated)
+        inside, beyond, beyond_next = values <= tolerance, values > tolerance, values_next > tolerance
+        within, within_next = values < -tolerance, values_next < -tolerance
+        keep, cut = present & inside, present & ((within & beyond_next) | (beyond & within_next))
         span = jnp.where(cut, values - values_next, 1.0)
         t = jnp.clip(jnp.where(cut, values / span, 0.0), 0.0, 1.0)
         crossing = points + t[:, None] * (following - points)
@@ -143,33 +148,34 @@ def _clip(polygon, valid, reference, reference_valid, normal, tolerance):
     return points, index < count
 
 
-def _four_of(points, depth, touching, normal, tolerance):
-    """At most four of the touching clipped points, spanning the contact polygon (the usual
-    reduction, as Bullet's or Box2D's): the deepest, the one farthest from it, the one
-    farthest from the line through those, and the one farthest outside the triangle of the
-    three. So the total force does not jump with the polygon's corner count (two equal
-    squares stacked, turned a little: 8 corners, 4 chosen, as when aligned). Points closer
-    than `tolerance` to those already chosen (a clipped corner repeated) are left out:
-    (points, depths, whether each is in use)."""
-    held, depth_held = jax.lax.stop_gradient((points, depth))   # a choice: nothing to differentiate
-    first = jnp.argmax(jnp.where(touching, depth_held, -jnp.inf))
-    apart = jnp.sqrt(jnp.sum((held - held[first]) ** 2, -1))
-    second = jnp.argmax(jnp.where(touching, apart, -jnp.inf))
-    n = jax.lax.stop_gradient(normal)
-
-    def outside(a, b):   # each point's signed distance from the line a -> b, positive to its left
-        return jnp.cross(norm_and_direction(held[b] - held[a], n)[1], held - held[a]) @ n
-
-    off_line = outside(first, second)
-    third = jnp.argmax(jnp.where(touching, jnp.abs(off_line), -jnp.inf))   # the farthest, either side
-    # the fourth: the farthest outside the triangle (its sides taken counter-clockwise)
-    a, b = jnp.where(off_line[third] > 0, first, second), jnp.where(off_line[third] > 0, second, first)
-    beyond = jnp.max(jnp.stack([-outside(a, b), -outside(b, third), -outside(third, a)]), axis=0)
-    fourth = jnp.argmax(jnp.where(touching, beyond, -jnp.inf))
-    chosen = jnp.stack([first, second, third, fourth])
-    distinct = jnp.stack([True, apart[second] > tolerance, jnp.abs(off_line[third]) > tolerance,
-                          beyond[fourth] > tolerance])
-    return points[chosen], depth[chosen], distinct & touching[chosen]
+def _corner_weights(points, in_polygon, normal):
+    r"""Each corner's share of the clipped polygon's turning, scaled to 4 in all: $w_i = 4
+    \theta_i / 2\pi$, $\theta_i$ its exterior angle (edges projected across the reference
+    face's `normal`). A rectangle's corners weigh 1 each (a box on a face rests on 4 corners of
+    weight 1, on an edge on 2); a square turned a little over an equal one clips to an octagon
+    of 4 corners of about 1 and 4 nearly straight ones of about 0 (where their sides cross), and
+    one turned by 45 degrees to 8 corners of 1/2. The exterior angles are a measure that moves
+    continuously with the polygon, so the force does not jump where corners appear, merge or
+    straighten (keeping 4 of the 8 corners made it jump with which 4: a twisted stack of boxes
+    stalled). A degenerate edge takes its predecessor's direction, so a corner repeated by the
+    clipping splits its angle with its twin."""
+    count = jnp.sum(in_polygon)
+    index = jnp.arange(points.shape[0])
+    following = jnp.where(index + 1 < count, index + 1, 0)
+    previous = jnp.where(index > 0, index - 1, jnp.maximum(count - 1, 0))
+    edges = points[following] - points
+    edges = edges - (edges @ normal)[:, None] * normal
+    length, direction = norm_and_direction(edges, jnp.zeros_like(edges))
+    proper = length > 0
+    for _ in range(2):   # a run of up to 3 repeated corners
+        direction = jnp.where(proper[:, None], direction, direction[previous])
+    before = direction[previous]
+    turning = jnp.arctan2(jnp.cross(before, direction) @ normal, jnp.sum(before * direction, -1))
+    turning = jnp.where(in_polygon, turning, 0.0)
+    total = jnp.sum(turning)   # +-2 pi (the clipped polygon runs either way about the normal)
+    closed = jnp.abs(total) > np.pi
+    shares = 4 * turning / jnp.where(closed, total, 1.0)
+    return jnp.where(in_polygon, jnp.where(closed, shares, 4.0 / jnp.maximum(count, 1)), 0.0)
 
 
 def _closest_points_of_segments(a0, a1, b0, b1):
@@ -191,9 +197,10 @@ def _pad_corners(polygons, valid, corners):
 
 
 def polytope_penetration(kind_a, params_a, X_A, kind_b, params_b, X_B):
-    """Candidate contacts (depth, C_a, C_b, n_BA) between two polytopes (box or hull): the
-    clipped contact polygon's touching corners (at most 4, spanning it), and one more for an
-    edge crossing an edge; those not in use have depth -inf."""
+    """Candidate contacts (depth, C_a, C_b, n_BA, weight) between two polytopes (box or hull):
+    the clipped contact polygon's touching corners, weighted by their shares of its turning
+    (`_corner_weights`), and one more (weight 1) for an edge crossing an edge; those not in
+    use have depth -inf."""
     Va, va, Na, da, Pa, pa_valid, Ea, ENa = _polytope(kind_a, params_a, X_A)
     Vb, vb, Nb, db, Pb, pb_valid, Eb, ENb = _polytope(kind_b, params_b, X_B)
     corners = max(Pa.shape[1], Pb.shape[1])
@@ -228,10 +235,11 @@ def polytope_penetration(kind_a, params_a, X_A, kind_b, params_b, X_B):
     incident_a, incident_b = jnp.argmin(Na @ normal), jnp.argmin(Nb @ normal)
     incident = jnp.where(a_refers, Pb[incident_b], Pa[incident_a])
     incident_valid = jnp.where(a_refers, pb_valid[incident_b], pa_valid[incident_a])
-    points, kept = _clip(incident, incident_valid, reference, reference_valid, normal, tolerance)
+    points, in_polygon = _clip(incident, incident_valid, reference, reference_valid, normal, tolerance)
+    weight = _corner_weights(points, in_polygon, normal)
     depth = offset - points @ normal
     depth = jnp.where(least_depth > 0, depth, jnp.minimum(depth, least_depth))   # apart along some axis: none touches
-    points, depth, kept = _four_of(points, depth, kept & (depth > 0), normal, tolerance)
+    kept = in_polygon & (depth > 0)
     # the edge also where the two overlap but no clipped point touches
     use_edge = jnp.isfinite(edge_separation) & (edge_shallower | (~jnp.any(kept) & (least_depth > 0)))
     on_reference = points + depth[:, None] * normal
@@ -243,5 +251,6 @@ def polytope_penetration(kind_a, params_a, X_A, kind_b, params_b, X_B):
     edge_a, edge_b = _closest_points_of_segments(Ea[i, 0], Ea[i, 1], Eb[j, 0], Eb[j, 1])
     edge_depth = jnp.where(use_edge, -edge_separation, -jnp.inf)
     return (jnp.concatenate([face_depth, edge_depth[None]]), jnp.concatenate([face_a, edge_a[None]]),
-            jnp.concatenate([face_b, edge_b[None]]), jnp.concatenate([face_n, -axis[None]]))
+            jnp.concatenate([face_b, edge_b[None]]), jnp.concatenate([face_n, -axis[None]]),
+            jnp.concatenate([weight, jnp.ones(1, weight.dtype)]))
 

@@ -23,8 +23,8 @@ all in the world:
   of the two segments against a capsule;
 - a box or a convex hull: each vertex inside the other shape (x = $-\varphi_B(v)$) against
   anything but a box or hull; between two of them, the separating-axis test and the clipped
-  contact polygon (`_polytopes.py`): at most 4 points spanning the overlap of two faces, or
-  one where an edge crosses an edge;
+  contact polygon (`_polytopes.py`): the corners of the overlap of two faces, weighted by
+  their exterior angles (4 in all), or one point where an edge crosses an edge;
 - a cylinder: four points of each rim, starting from the one deepest along the other
   shape's outward normal at the cylinder's centre (so that it stands on 4 points and lies on
   2); against a box or hull also their vertices inside it and, its round side lying across
@@ -157,13 +157,13 @@ def _points_against(kind_b, params_b, X_B, points_W, radii, valid):
         return r - d, c - r * n, R_B @ N + p_B, n
 
     depth, pa, pb, n = jax.vmap(one)(points_W, radii)
-    return jnp.where(valid, depth, -jnp.inf), pa, pb, n
+    return jnp.where(valid, depth, -jnp.inf), pa, pb, n, jnp.ones_like(depth)
 
 
 def _swap(candidates):
     """Candidates of (B, A) as candidates of (A, B)."""
-    depth, pa, pb, n = candidates
-    return depth, pb, pa, -n
+    depth, pa, pb, n, weight = candidates
+    return depth, pb, pa, -n, weight
 
 
 def _concat(*parts):
@@ -303,8 +303,10 @@ def _cylinder_side_against(params_a, X_A, kind_b, params_b, X_B):
 
 
 def penetration(kind_a: str, params_a, X_A, kind_b: str, params_b, X_B):
-    """Candidate contacts (depth (k,), C_a (k, 3), C_b (k, 3), n_BA (k, 3)) between shape A at
-    world pose X_A = (R, p) and shape B at X_B; a candidate touches where depth > 0. Each
+    """Candidate contacts (depth (k,), C_a (k, 3), C_b (k, 3), n_BA (k, 3), weight (k,)) between
+    shape A at world pose X_A = (R, p) and shape B at X_B; a candidate touches where depth > 0,
+    and its force is its weight times one point contact's (1 but at the corners of a contact
+    polygon, `_polytopes._corner_weights`). Each
     shape as (kind, params), which `shape_parameters(shape)` gives. The pair must be in the
     order `canonical_order` gives (any two shapes but two half-spaces)."""
     if kind_a == "sphere":

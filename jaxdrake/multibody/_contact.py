@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -154,6 +155,16 @@ _ROUNDED = ("sphere", "capsule")   # curved everywhere across their contacts
 _FACETED = ("box", "convex")       # flat faces meeting at edges and corners
 
 
+class _Features(NamedTuple):
+    """A faceted geometry's features at a candidate's witness point (`ContactModel._features`)."""
+    faceted: np.ndarray       # a box or hull (known at trace time)
+    along_a_face: jax.Array   # the outward normal there is one of its faces' normals
+    on_that_face: jax.Array   # ... of a face through the point
+    on_edge: jax.Array        # exactly two faces pass through the point
+    corner: jax.Array         # three do
+    direction: jax.Array      # (p, 3): the edge's direction in the world, where two do
+
+
 class ContactModel(eqx.Module):
     """The plant's collision geometry and its point-contact parameters.
 
@@ -244,8 +255,8 @@ class ContactModel(eqx.Module):
         return reach, jnp.min(jnp.where(paired, thickness, jnp.inf))
 
     def point_pairs(self, motion: alg.BodyMotion):
-        """Candidate contacts of every pair: depth, C_a, C_b, n_BA (arrays over candidates) and
-        the static geometry indices a, b of each."""
+        """Candidate contacts of every pair: depth, C_a, C_b, n_BA, weight (arrays over
+        candidates, `jd.geometry.penetration`'s) and the static geometry indices a, b of each."""
         R, p = self.geometry_poses(motion)
         params = {"size": self.size, "vertices": self.vertices, "vertex_valid": self.vertex_valid,
                   "planes": self.planes, "triangles": self.triangles, "polygons": self.polygons,
@@ -262,7 +273,7 @@ class ContactModel(eqx.Module):
             ib += np.repeat(b_idx, k).tolist()
         if not parts:
             z = jnp.zeros((0, 3), R.dtype)
-            return (jnp.zeros(0, R.dtype), z, z, z), (), ()
+            return (jnp.zeros(0, R.dtype), z, z, z, jnp.zeros(0, R.dtype)), (), ()
         return tuple(jnp.concatenate(x) for x in zip(*parts)), tuple(ia), tuple(ib)
 
     def results(self, tree, q, v) -> ContactResults:
@@ -270,13 +281,13 @@ class ContactModel(eqx.Module):
         return self._results(alg.body_motion(tree, q, v))
 
     def _results(self, motion: alg.BodyMotion) -> ContactResults:
-        (depth, pa, pb, n), ia, ib = self.point_pairs(motion)
+        (depth, pa, pb, n, weight), ia, ib = self.point_pairs(motion)
         C = 0.5 * (pa + pb)
         V, ps = _with_world(motion.velocity, jnp.zeros(6)), _with_world(motion.position, jnp.zeros(3))
         body_a, body_b = self._pair_bodies(ia, ib)
         point_velocity = lambda b: V[b, 3:] + jnp.cross(V[b, :3], C - ps[b])  # noqa: E731
         v_AcBc = point_velocity(body_b) - point_velocity(body_a)
-        f_A, (active, fn, slip, vn) = _force_on_a(depth, v_AcBc, n, *self._pair_parameters(ia, ib))
+        f_A, (active, fn, slip, vn) = _force_on_a(depth, v_AcBc, n, *self._pair_parameters(ia, ib, weight))
         return ContactResults(active=active, depth=depth, point=C, normal=n, force=-f_A, normal_force=fn, slip_speed=slip,
                               separation_speed=vn, geometry_a=ia, geometry_b=ib)
 
@@ -285,12 +296,13 @@ class ContactModel(eqx.Module):
         bodies = np.asarray(self.bodies)
         return bodies[np.asarray(ia, int)] + 1, bodies[np.asarray(ib, int)] + 1
 
-    def _pair_parameters(self, ia, ib):
-        """(k, d, mu_static, mu_dynamic, v_s) of every candidate, combined by Drake's rules."""
+    def _pair_parameters(self, ia, ib, weight):
+        """(k, d, mu_static, mu_dynamic, v_s) of every candidate, combined by Drake's rules; k
+        times the candidate's weight (a contact polygon's corner's share)."""
         ia_, ib_ = np.asarray(ia, int), np.asarray(ib, int)
         k, d = _combined_stiffness_dissipation(self.stiffness[ia_], self.stiffness[ib_],
                                                self.dissipation[ia_], self.dissipation[ib_])
-        return (k, d, _harmonic(self.mu_static[ia_], self.mu_static[ib_]),
+        return (weight * k, d, _harmonic(self.mu_static[ia_], self.mu_static[ib_]),
                 _harmonic(self.mu_dynamic[ia_], self.mu_dynamic[ib_]), self.stiction_tolerance)
 
     def force_derivatives(self, tree, q, v):
@@ -321,7 +333,7 @@ class ContactModel(eqx.Module):
         adds nothing, and a contact's damping and friction slope grow with its depth, so the
         shallowest are the least stiff (Solo-12: 16 of 68, which makes this 2-3x cheaper)."""
         motion = alg.body_motion(tree, q, v)
-        (depth, pa, pb, n), ia, ib = self.point_pairs(motion)
+        (depth, pa, pb, n, weight), ia, ib = self.point_pairs(motion)
         L = tree.layout
         moves = np.zeros((tree.num_bodies + 1, tree.nv))   # row 0: the world; else the ancestor mask
         moves[1 + np.arange(tree.num_bodies)] = L.subtree[L.dof_body][:, L.position].T
@@ -332,11 +344,19 @@ class ContactModel(eqx.Module):
         poses = self.geometry_poses(motion)
         (rho_a, curved_a), (rho_b, curved_b) = (self._curvature(poses[0], i, n) for i in (ia, ib))
         weight_b = jnp.where(curved_b, rho_a / jnp.where(curved_b, rho_a + rho_b, 1.0), 0.0)
-        on_corner, edge, vertex_b = self._on_corner_or_edge(poses, ib, n, pb)
+        at_b = self._features(poses, ib, pb, n)
+        # n meets B off its faces' normals: at a corner or an edge, which stays put on B as A rolls
+        # over it; along an edge C moves with A and the normal does not turn
+        on_corner = at_b.faceted & ~at_b.along_a_face
+        edge = jnp.where((on_corner & ~at_b.corner)[:, None], at_b.direction, 0.0)
         # two polytopes: a corner of B on A's face is B's material point (A's flat face: rho_A
         # infinite), a corner of A on B's face A's (a box sliding on a welded box: C held in A
         # coupled its position to its turning, and the W-method took 12x the exact Jacobian's steps)
-        corner_of_b = vertex_b & ~self._at_a_vertex(poses, ia, pa)
+        at_a = self._features(poses, ia, pa, -n)
+        corner_of_b = at_b.corner & ~at_a.corner
+        face_of_a = at_b.faceted & at_a.on_that_face   # n is A's face's (its polygon's reference face)
+        # two edges crossing (a corner of the clipped polygon, or an edge across an edge)
+        crossing = at_a.on_edge & at_b.on_edge
         weight_b = jnp.where(corner_of_b, 1.0, weight_b)
         on_corner = on_corner & curved_a
         edge = jnp.where(on_corner[:, None], edge, 0.0)
@@ -346,18 +366,20 @@ class ContactModel(eqx.Module):
         kinds = np.asarray(self.kinds)
         may_curve_a, may_curve_b = (np.isin(kinds[np.asarray(i, int)], _ROUNDED + ("cylinder",)) for i in (ia, ib))
         may_turn = bool(np.any(may_curve_a & (may_curve_b | np.isin(kinds[np.asarray(ib, int)], _FACETED))))
-        *per_pair, stiction_tolerance = self._pair_parameters(ia, ib)   # k, d, mu_s, mu_d per candidate; v_s
+        *per_pair, stiction_tolerance = self._pair_parameters(ia, ib, weight)   # k, d, mu_s, mu_d per candidate; v_s
         rim_a = self._rolling_rim(poses, ia, pa, n)   # A's rim on a flat B, or B's on a flat A
         rim_a = None if rim_a is None else (rim_a[0] & ~curved_b,) + rim_a[1:]
         rim_b = self._rolling_rim(poses, ib, pb, -n)
         rim_b = None if rim_b is None else (rim_b[0] & ~curved_a & (True if rim_a is None else ~rim_a[0]),) + rim_b[1:]
         per_candidate = (depth, pa, pb, n, jnp.asarray(moves[body_a], pa.dtype), jnp.asarray(moves[body_b], pa.dtype),
-                         rho_a, rho_b, weight_b, turning, corner_of_b, edge, (rim_a, rim_b), tuple(per_pair))
+                         rho_a, rho_b, weight_b, turning, face_of_a, edge, (rim_a, rim_b), tuple(per_pair),
+                         (crossing, at_a.direction, at_b.direction, at_a.on_that_face | at_b.on_that_face))
         kept = max(MIN_STIFF_CANDIDATES, int(np.sum((body_a == 0) | (body_b == 0))))   # row 0: the world
         if kept < depth.shape[0]:
             deepest = jax.lax.top_k(jax.lax.stop_gradient(depth), kept)[1]
             per_candidate = jax.tree.map(lambda x: x[deepest], per_candidate)
-        depth, pa, pb, n, mask_a, mask_b, rho_a, rho_b, weight_b, turning, corner_of_b, edge, rims, per_pair = per_candidate
+        (depth, pa, pb, n, mask_a, mask_b, rho_a, rho_b, weight_b, turning, face_of_a, edge, rims, per_pair,
+         crossings) = per_candidate
         params = per_pair + (stiction_tolerance,)
         C = 0.5 * (pa + pb)
         w, u = motion.columns[:, :3], motion.columns[:, 3:]                             # (nv, 3) each
@@ -375,10 +397,12 @@ class ContactModel(eqx.Module):
         face_may_turn = bool(np.any((body_b != 0) & flat_b) or np.any((body_a != 0) & flat_b & np.isin(kinds_a, _FACETED)))
         dn = jnp.zeros_like(dC)
         if face_may_turn:
-            dn = jnp.cross(w[None], n[:, None, :]) * jnp.where(corner_of_b[:, None], mask_a, mask_b)[:, :, None]
+            dn = jnp.cross(w[None], n[:, None, :]) * jnp.where(face_of_a[:, None], mask_a, mask_b)[:, :, None]
             dC = dC - jnp.where(turning, 0.0, rho_a)[:, None, None] * dn
         along_edge = edge[:, :, None] * edge[:, None, :]
         dC = dC + (centre_a - centre_b) @ along_edge   # along an edge, C moves with A
+        if np.any(np.isin(kinds_a, _FACETED) & np.isin(kinds_b, _FACETED)):
+            dC, dn = _at_crossing_edges(crossings, face_of_a, n, w, centre_a, centre_b, mask_a, mask_b, dC, dn)
         # rolling on a rim: C moves with the rim's material point, and swings along the rim as its
         # cylinder turns about its axis or about its radius to C
         turn_about = lambda d: jnp.einsum("jk,pk->pj", w, d)  # noqa: E731   (P, nv): each column's turn about d
@@ -494,43 +518,28 @@ class ContactModel(eqx.Module):
         tolerance = 64 * jnp.finfo(point.dtype).eps * (1.0 + jnp.max(jnp.abs(offsets), axis=1) + jnp.linalg.norm(p, axis=1))
         return faceted, R, normals, values, tolerance
 
-    @staticmethod
-    def _two_faces_and_a_third(normals, values, tolerance):
-        """The most active face's normal, the most active of the faces not parallel to it, and
-        whether a third face, parallel to neither, passes through the point too (a corner)."""
+    def _features(self, poses, ids, point, outward):
+        """Each candidate's faceted geometry (a box or hull) at its witness `point`, from the
+        faces through it (one: a face; two distinct ones: an edge; three: a corner), with n the
+        normal `outward` from the geometry there: `_Features`, all False / 0 for other shapes."""
+        faceted, R, normals, values, tolerance = self._faces_through(poses, ids, point)
+        if not faceted.any():
+            none = jnp.zeros(len(ids), bool)
+            return _Features(faceted, none, none, none, none, jnp.zeros_like(point))
+        local = jnp.einsum("pji,pj->pi", R, outward)
+        along = jnp.einsum("pfk,pk->pf", normals, local) > 1.0 - 1e-6
+        active = values > -tolerance[:, None]
         normal_of = lambda mask: jnp.take_along_axis(  # noqa: E731
             normals, jnp.argmax(jnp.where(mask, values, -jnp.inf), axis=1)[:, None, None], 1)[:, 0]
         distinct = lambda m: jnp.abs(jnp.einsum("pfk,pk->pf", normals, m)) < 1.0 - 1e-6  # noqa: E731
         first = normal_of(jnp.ones(values.shape, bool))
         second = normal_of(distinct(first))
-        third_active = jnp.max(jnp.where(distinct(first) & distinct(second), values, -jnp.inf), axis=1) > -tolerance
-        return first, second, third_active
-
-    def _at_a_vertex(self, poses, ids, point):
-        """Whether each candidate's witness `point` is a corner of its faceted geometry (three
-        faces pass through it); False for other shapes."""
-        faceted, _, normals, values, tolerance = self._faces_through(poses, ids, point)
-        if not faceted.any():
-            return jnp.zeros(len(ids), bool)
-        return faceted & self._two_faces_and_a_third(normals, values, tolerance)[2]
-
-    def _on_corner_or_edge(self, poses, ib, n, pb):
-        """(on_corner, edge, vertex): whether each candidate's normal n meets its geometry B (a box or
-        hull, world `poses`) off its faces' normals, at a corner or an edge, which stays put on
-        B as A rolls over it; and along an edge, its unit direction (0 elsewhere), along which
-        the contact point moves with A and the normal does not turn. The faces through B's
-        witness point pb tell them apart: two distinct ones, an edge; three, a corner; and
-        whether pb is one of B's corners (three faces through it), whatever n."""
-        faceted, R, normals, values, tolerance = self._faces_through(poses, ib, pb)
-        if not faceted.any():
-            return np.zeros(len(ib), bool), jnp.zeros_like(n), np.zeros(len(ib), bool)
-        # n leaves B along a face's outward normal on that face (signed: the face opposite does not count)
-        alignment = jnp.max(jnp.einsum("pfk,pk->pf", normals, jnp.einsum("pji,pj->pi", R, n)), axis=1)
-        on_corner = faceted & (alignment < 1.0 - 1e-6)
-        first, second, third_active = self._two_faces_and_a_third(normals, values, tolerance)
+        most = lambda mask: jnp.max(jnp.where(mask, values, -jnp.inf), axis=1) > -tolerance  # noqa: E731
+        second_active = most(distinct(first))
+        corner = faceted & most(distinct(first) & distinct(second))
         direction = norm_and_direction(jnp.cross(first, second), jnp.zeros_like(first))[1]
-        edge = jnp.where((on_corner & ~third_active)[:, None], jnp.einsum("pij,pj->pi", R, direction), 0.0)
-        return on_corner, edge, faceted & third_active
+        return _Features(faceted, faceted & jnp.any(along, 1), faceted & jnp.any(along & active, 1),
+                         faceted & second_active & ~corner, corner, jnp.einsum("pij,pj->pi", R, direction))
 
     def generalized_forces(self, tree, q, v):
         r"""$\tau_c = \sum J^T f$ of all contact forces at (q, v), and the `ContactResults` (one
@@ -543,6 +552,37 @@ class ContactModel(eqx.Module):
         for bodies, f in ((body_a, -res.force), (body_b, res.force)):
             F = F.at[bodies].add(jnp.concatenate([jnp.cross(res.point - ps[bodies], f), f], 1))
         return alg.external_forces(tree, motion, F[1:]), res
+
+
+def _at_crossing_edges(crossings, face_of_a, n, w, centre_a, centre_b, mask_a, mask_b, dC, dn):
+    r"""dC and dn of candidates where an edge of one polytope crosses an edge of the other: C
+    stays on the incident edge (direction $d_I$, moving as its body's point $\delta I$) and
+    on the plane through the reference edge $d_R$ and n, so $\delta C = \delta I + d_I\,
+    m \cdot (\delta R - \delta I) / (m \cdot d_I)$, $m = \hat n \times d_R$ (the corners of
+    two boxes' clipped polygon twisted against each other, held in A before: the W-method took
+    10x the exact Jacobian's steps); edges within 3 degrees of parallel move with the incident
+    body. Where neither face is n's (an edge crossing an edge), $\hat n \propto d_A \times
+    d_B$ turns with both edges."""
+    crossing, d_a, d_b, on_a_face = crossings
+    d_ref, d_inc = jnp.where(face_of_a[:, None], d_a, d_b), jnp.where(face_of_a[:, None], d_b, d_a)
+    moves_ref = jnp.where(face_of_a[:, None, None], centre_a, centre_b)
+    moves_inc = jnp.where(face_of_a[:, None, None], centre_b, centre_a)
+    across = jnp.cross(n, d_ref)
+    sine = jnp.sum(across * d_inc, -1)
+    slides = crossing & (jnp.abs(sine) > 0.05)
+    slide = across[:, :, None] * d_inc[:, None, :] / jnp.where(slides, sine, 1.0)[:, None, None]
+    dC = jnp.where(slides[:, None, None], moves_inc + (moves_ref - moves_inc) @ slide,
+                   jnp.where(crossing[:, None, None], moves_inc, dC))
+    # an edge across an edge: n = +-(d_a x d_b) / |d_a x d_b|, each d turning with its body
+    normal = jnp.cross(d_a, d_b)
+    size, direction = norm_and_direction(normal, n)
+    edges = crossing & ~on_a_face & (size > 0.05)
+    turned = (jnp.cross(jnp.cross(w[None], d_a[:, None, :]) * mask_a[:, :, None], d_b[:, None, :])
+              + jnp.cross(d_a[:, None, :], jnp.cross(w[None], d_b[:, None, :]) * mask_b[:, :, None]))
+    turned = turned - (turned @ n[:, :, None]) * n[:, None, :]
+    sign = jnp.sign(jnp.sum(direction * n, -1))
+    dn = jnp.where(edges[:, None, None], (sign / jnp.where(edges, size, 1.0))[:, None, None] * turned, dn)
+    return dC, dn
 
 
 def _force_on_a(depth, v_AcBc, n, k, d, mu_static, mu_dynamic, stiction_tolerance):
