@@ -4,8 +4,9 @@ For every candidate contact of a geometry pair (A, B) (`jaxdrake.geometry.penetr
 depth x > 0, witness points $C_a, C_b$, normal $\hat n_{BA}$ and contact point
 $C = (C_a + C_b)/2$:
 
-- normal force on A (Hunt & Crossley): $f_n = k x (1 + d\, v_n)$, $v_n = v_{A_cB_c} \cdot
-  \hat n_{BA}$ (> 0 approaching), applied where $f_n > 0$;
+- normal force on A (Hunt & Crossley): $f_n = w k x (1 + d\, v_n)$, $v_n = v_{A_cB_c} \cdot
+  \hat n_{BA}$ (> 0 approaching), applied where $f_n > 0$; w the candidate's weight, 1 but
+  at a corner of two polytopes' contact polygon (its exterior angle's share, 4 in all);
 - friction on A (Drake's regularised Stribeck law): $f_t = \mu(s)\, f_n\, \hat t$ along the
   slip $v_t = v_{A_cB_c} - v_n \hat n_{BA}$, $s = |v_t|$, $\hat t = v_t / s$, with
   $\mu(s) = \mu_s\,\mathrm{step5}(s/v_s)$ for $s < v_s$, $\mu_s - (\mu_s - \mu_d)
@@ -134,7 +135,7 @@ class ContactResults(eqx.Module):
     over candidates: `active` (touching with a positive normal force), `depth`, `point` (C,
     world), `normal` ($\\hat n_{BA}$, from B into A), `force` (on B at C, world: Drake's
     `f_Bc_W`; A receives -force), `normal_force` ($f_n \\ge 0$, the magnitude pushing the two
-    apart), `slip_speed`, `separation_speed` ($v_n$), and the geometry indices `geometry_a`,
+    apart, times the candidate's weight), `slip_speed`, `separation_speed` ($v_n$), and the geometry indices `geometry_a`,
     `geometry_b` (static, into `ContactModel.names`: `plant.contact.names[res.geometry_a[i]]`
     names candidate i's A; which of a pair is A follows the shape kinds' order: a sphere
     before a capsule, a cylinder, a box, a hull, a half-space)."""
