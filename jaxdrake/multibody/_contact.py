@@ -135,10 +135,11 @@ class ContactResults(eqx.Module):
     over candidates: `active` (touching with a positive normal force), `depth`, `point` (C,
     world), `normal` ($\\hat n_{BA}$, from B into A), `force` (on B at C, world: Drake's
     `f_Bc_W`; A receives -force), `normal_force` ($f_n \\ge 0$, the magnitude pushing the two
-    apart, times the candidate's weight), `slip_speed`, `separation_speed` ($v_n$), and the geometry indices `geometry_a`,
-    `geometry_b` (static, into `ContactModel.names`: `plant.contact.names[res.geometry_a[i]]`
-    names candidate i's A; which of a pair is A follows the shape kinds' order: a sphere
-    before a capsule, a cylinder, a box, a hull, a half-space)."""
+    apart, times the candidate's weight), `slip_speed`, `separation_speed` ($v_n$), and the
+    geometry indices `geometry_a`, `geometry_b` (static, into `ContactModel.names`:
+    `plant.contact.names[res.geometry_a[i]]` names candidate i's A; which of a pair is A
+    follows the shape kinds' order: a sphere before a capsule, a cylinder, a box, a hull, a
+    half-space)."""
 
     active: jax.Array
     depth: jax.Array
