@@ -1121,6 +1121,29 @@ def test_the_stiff_linearization_of_a_cube_twisted_on_a_free_cube_is_the_exact_j
     np.testing.assert_allclose(stiff, exact, atol=2e-4 * np.max(np.abs(exact)))
 
 
+def test_the_stiff_linearization_of_a_box_landing_nearly_flat_on_a_table_is_the_exact_jacobian(tmp_path):
+    """(helper-18's trial) A 0.7-kg box (0.15 x 0.1 x 0.05 m) landing spinning on a larger box
+    fixed to the world, tilted by 1.5e-4 rad: the table's face is the contact polygon's
+    reference (the box's face, turned, reaches the table's far corners), so n stays put,
+    though the box's face normal is within 1e-6 of it too. Turning n with the box made the
+    tilt columns wrong by their own size (0.98 of the largest entry), and such landings took
+    4.6x the exact Jacobian's steps."""
+    (tmp_path / "box.urdf").write_text("""<robot name="box"><link name="box"><inertial><mass value="0.7"/>
+      <inertia ixx="0.000729" iyy="0.001458" izz="0.001896" ixy="0" ixz="0" iyz="0"/></inertial>
+      <collision><geometry><box size="0.15 0.1 0.05"/></geometry></collision></link></robot>""")
+    box = jd.RigidBodySystem.from_urdf(tmp_path / "box.urdf", floating_base=True, contact=True)
+    plant = box.with_collision_geometry("world", Box(0.3, 0.3, 0.1), translation=(0.0, 0.0, -0.05), name="table")
+    turn = np.array([8.45e-5, -6.0e-5, 0.7712, 0.6366])
+    turn /= np.linalg.norm(turn)
+    x = jnp.asarray(np.concatenate([[0.0099, -0.0099, 0.025 - 7e-5], turn, [0.18, 0.06, -0.67, -2.5, 7.2, 0.0]]))
+    res = plant.contact_results(x)
+    assert int(np.sum(res.active)) == 4
+    np.testing.assert_allclose(np.asarray(res.normal)[np.asarray(res.active)], [[0.0, 0.0, 1.0]] * 4, atol=1e-15)
+    exact, stiff = _exact_and_stiff(plant, x, slice(0, 7))
+    assert np.max(np.abs(exact)) > 1e8
+    np.testing.assert_allclose(stiff, exact, atol=1e-6 * np.max(np.abs(exact)))   # 2e-8 measured
+
+
 def test_the_stiff_linearization_of_a_cylinder_rolling_on_its_side_is_the_exact_jacobian(tmp_path):
     """A cylinder lying on the ground, rolling and slipping at half the stiction tolerance:
     its side is curved across the axis, so C stays under the axis (as under a ball); as a

@@ -162,6 +162,7 @@ class _Features(NamedTuple):
     faceted: np.ndarray       # a box or hull (known at trace time)
     along_a_face: jax.Array   # the outward normal there is one of its faces' normals
     on_that_face: jax.Array   # ... of a face through the point
+    alignment: jax.Array      # the largest cosine between the outward normal and a face's through it
     on_edge: jax.Array        # exactly two faces pass through the point
     corner: jax.Array         # three do
     direction: jax.Array      # (p, 3): the edge's direction in the world, where two do
@@ -356,7 +357,12 @@ class ContactModel(eqx.Module):
         # coupled its position to its turning, and the W-method took 12x the exact Jacobian's steps)
         at_a = self._features(poses, ia, pa, -n)
         corner_of_b = at_b.corner & ~at_a.corner
-        face_of_a = at_b.faceted & at_a.on_that_face   # n is A's face's (its polygon's reference face)
+        # n is A's face's (the contact polygon's reference face): n is a face normal of A's to
+        # rounding, B's less closely (a box landing flat on a table: B's face is the reference
+        # when A is tilted by 1e-5 rad or more, and A's face normal is within 1e-6 of n there too;
+        # turning n with A made the matrix's tilt columns wrong by their own size); ties: A's
+        face_of_a = at_b.faceted & at_a.on_that_face & (
+            at_a.alignment >= at_b.alignment - 64 * jnp.finfo(n.dtype).eps)
         # two edges crossing (a corner of the clipped polygon, or an edge across an edge)
         crossing = at_a.on_edge & at_b.on_edge
         weight_b = jnp.where(corner_of_b, 1.0, weight_b)
@@ -527,9 +533,11 @@ class ContactModel(eqx.Module):
         faceted, R, normals, values, tolerance = self._faces_through(poses, ids, point)
         if not faceted.any():
             none = jnp.zeros(len(ids), bool)
-            return _Features(faceted, none, none, none, none, jnp.zeros_like(point))
+            return _Features(faceted, none, none, jnp.full(len(ids), -1.0, point.dtype), none, none,
+                             jnp.zeros_like(point))
         local = jnp.einsum("pji,pj->pi", R, outward)
-        along = jnp.einsum("pfk,pk->pf", normals, local) > 1.0 - 1e-6
+        cosines = jnp.einsum("pfk,pk->pf", normals, local)
+        along = cosines > 1.0 - 1e-6
         active = values > -tolerance[:, None]
         normal_of = lambda mask: jnp.take_along_axis(  # noqa: E731
             normals, jnp.argmax(jnp.where(mask, values, -jnp.inf), axis=1)[:, None, None], 1)[:, 0]
@@ -541,7 +549,8 @@ class ContactModel(eqx.Module):
         corner = faceted & most(distinct(first) & distinct(second))
         direction = norm_and_direction(jnp.cross(first, second), jnp.zeros_like(first))[1]
         return _Features(faceted, faceted & jnp.any(along, 1), faceted & jnp.any(along & active, 1),
-                         faceted & second_active & ~corner, corner, jnp.einsum("pij,pj->pi", R, direction))
+                         jnp.max(jnp.where(active, cosines, -1.0), axis=1), faceted & second_active & ~corner,
+                         corner, jnp.einsum("pij,pj->pi", R, direction))
 
     def generalized_forces(self, tree, q, v):
         r"""$\tau_c = \sum J^T f$ of all contact forces at (q, v), and the `ContactResults` (one
