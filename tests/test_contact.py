@@ -534,9 +534,27 @@ def test_crossed_planks_and_crossed_edges_touch_at_their_closed_form_points():
     np.testing.assert_allclose(np.asarray(n)[touching], [[0, 0, 1.0]], atol=1e-15)
 
 
-CUBE_URDF = """<robot name="cube"><link name="cube"><inertial><mass value="1"/>
+CUBE_LINK = """<link name="{}"><inertial><mass value="1"/>
   <inertia ixx="0.00667" iyy="0.00667" izz="0.00667" ixy="0" ixz="0" iyz="0"/></inertial>
-  <collision><geometry><box size="0.2 0.2 0.2"/></geometry></collision></link></robot>"""
+  <collision><geometry><box size="0.2 0.2 0.2"/></geometry></collision></link>"""
+
+
+def _free_cubes(tmp_path, names, **options):
+    """A plant of free 1-kg, 0.2-m cubes (links not joined: each floats)."""
+    (tmp_path / "cubes.urdf").write_text(f'<robot name="cubes">{"".join(CUBE_LINK.format(n) for n in names)}</robot>')
+    return jd.RigidBodySystem.from_urdf(tmp_path / "cubes.urdf", floating_base=True, contact=True, **options)
+
+
+def _cube_on_an_equal_cube(tmp_path):
+    """A free cube, and an equal one fixed to the world with its top face at z = 0."""
+    return _free_cubes(tmp_path, ["cube"]).with_collision_geometry("world", Box(0.2, 0.2, 0.2),
+                                                                    translation=(0.0, 0.0, -0.1), name="below")
+
+
+def _turned_then_tilted(yaw, tilt):
+    """The quaternion (x, y, z, w) of R_z(yaw) R_x(tilt)."""
+    return jnp.stack([jnp.sin(tilt / 2) * jnp.cos(yaw / 2), jnp.sin(tilt / 2) * jnp.sin(yaw / 2),
+                      jnp.cos(tilt / 2) * jnp.sin(yaw / 2), jnp.cos(tilt / 2) * jnp.cos(yaw / 2)])
 
 
 def test_a_cube_twisted_on_an_equal_cube_is_held_by_a_force_continuous_in_its_tilt(tmp_path):
@@ -546,15 +564,10 @@ def test_a_cube_twisted_on_an_equal_cube_is_held_by_a_force_continuous_in_its_ti
     delta and the torque 0; tilted by +-1e-7 rad, the torque is the closed-form rotational
     stiffness (k/2) sum w r^2 times the tilt. Keeping 4 of the 8 corners, the choice flipped
     with the tilt's sign and the torque jumped by tens of N m (a twisted stack stalled)."""
-    (tmp_path / "cube.urdf").write_text(CUBE_URDF)
-    cube = jd.RigidBodySystem.from_urdf(tmp_path / "cube.urdf", floating_base=True, contact=True)
-    plant = cube.with_collision_geometry("world", Box(0.2, 0.2, 0.2), translation=(0.0, 0.0, -0.1), name="below")
+    plant = _cube_on_an_equal_cube(tmp_path)
     h, delta, twist, k = 0.1, 1e-5, 0.3, 1e6 / 2   # k: two 1e6-N/m geometries in series
     force = jax.jit(lambda tilt: plant.contact_force(jnp.concatenate([
-        jnp.array([0.0, 0.0, h - delta]),
-        jnp.stack([jnp.sin(tilt / 2) * jnp.cos(twist / 2), jnp.sin(tilt / 2) * jnp.sin(twist / 2),
-                   jnp.cos(tilt / 2) * jnp.sin(twist / 2), jnp.cos(tilt / 2) * jnp.cos(twist / 2)])]),   # R_z(twist) R_x(tilt)
-        jnp.zeros(6)))
+        jnp.array([0.0, 0.0, h - delta]), _turned_then_tilted(twist, tilt)]), jnp.zeros(6)))
     level, up, down = (np.asarray(force(jnp.asarray(a))) for a in (0.0, 1e-7, -1e-7))
     np.testing.assert_allclose(level[:3], [0.0, 0.0, 4 * k * delta], atol=1e-9)
     np.testing.assert_allclose(level[3:], 0.0, atol=1e-10)
@@ -570,10 +583,8 @@ def test_a_cube_dropped_turned_onto_an_equal_cube_comes_to_rest(tmp_path):
     it lands on the octagon of their overlap and rests sunk m g / 4k within 0.5 s. Keeping 4
     of the octagon's 8 corners, which 4 flipped as it bounced, and the run ran out of 100000
     steps at t = 0.064 s."""
-    (tmp_path / "cube.urdf").write_text(CUBE_URDF)
-    cube = jd.RigidBodySystem.from_urdf(tmp_path / "cube.urdf", floating_base=True, contact=True)
-    plant = cube.with_collision_geometry("world", Box(0.2, 0.2, 0.2), translation=(0.0, 0.0, -0.1), name="below")
-    x0 = jnp.array([0.005, -0.003, 0.11, 0.0, 0.0, np.sin(0.15), np.cos(0.15)] + [0.0] * 6)
+    plant = _cube_on_an_equal_cube(tmp_path)
+    x0 = jnp.concatenate([jnp.array([0.005, -0.003, 0.11]), _turned_then_tilted(0.3, 0.0), jnp.zeros(6)])
     traj = jd.simulate(plant, (0.0, 0.5), x0, dense=False)   # within the default 4096 steps
     x = np.asarray(traj.final_state)
     np.testing.assert_allclose(x[2], 0.1 - 9.81 / (4 * 1e6 / 2), atol=1e-8)
@@ -586,15 +597,10 @@ def test_a_twisted_stack_of_three_cubes_comes_to_rest_at_its_closed_form_heights
     upper two tilted: after 1 s they rest sunk 3 m g / 4k, then 2 m g / 4k and m g / 4k more
     (4 weights in all under each). Keeping 4 of the 8 corners of each twisted overlap, the run
     ran out of 100000 steps at t = 0.48 (steps of 1e-10 s)."""
-    links = "".join(CUBE_URDF.split("<robot name=\"cube\">")[1].split("</robot>")[0].replace('"cube"', f'"cube{i}"')
-                    for i in range(3))
-    (tmp_path / "stack.urdf").write_text(f'<robot name="stack">{links}</robot>')
-    plant = jd.RigidBodySystem.from_urdf(tmp_path / "stack.urdf", floating_base=True, contact=True).with_ground()
-    q = []
-    for i, (yaw, tilt) in enumerate([(0.0, 0.0), (0.2, 0.01), (0.4, 0.02)]):   # R_z(yaw) R_x(tilt)
-        q += [0.0, 0.0, 0.1 + 0.25 * i, np.sin(tilt / 2) * np.cos(yaw / 2), np.sin(tilt / 2) * np.sin(yaw / 2),
-              np.cos(tilt / 2) * np.sin(yaw / 2), np.cos(tilt / 2) * np.cos(yaw / 2)]
-    traj = jd.simulate(plant, (0.0, 1.0), jnp.asarray(q + [0.0] * 18), dense=False, max_steps=60_000)
+    plant = _free_cubes(tmp_path, ["cube0", "cube1", "cube2"]).with_ground()
+    q = [jnp.concatenate([jnp.array([0.0, 0.0, 0.1 + 0.25 * i]), _turned_then_tilted(yaw, tilt)])
+         for i, (yaw, tilt) in enumerate([(0.0, 0.0), (0.2, 0.01), (0.4, 0.02)])]
+    traj = jd.simulate(plant, (0.0, 1.0), jnp.concatenate(q + [jnp.zeros(18)]), dense=False, max_steps=60_000)
     x = np.asarray(traj.final_state)
     sink = 9.81 / (4 * 1e6 / 2)   # m g / 4k, k: two 1e6-N/m geometries in series
     np.testing.assert_allclose(x[2:21:7], [0.1 - 3 * sink, 0.3 - 5 * sink, 0.5 - 6 * sink], atol=1e-7)
@@ -1103,13 +1109,9 @@ def test_the_stiff_linearization_of_a_cube_twisted_on_a_free_cube_is_the_exact_j
     reference face (the upper cube's). Held in A instead, the position columns were off by up
     to 0.46 of the largest entry where a twisted stack landed, and the W-method took 10x the
     exact Jacobian's steps there (`benchmarks/RESULTS.md`, "A twisted stack of boxes")."""
-    links = "".join(CUBE_URDF.split("<robot name=\"cube\">")[1].split("</robot>")[0].replace('"cube"', f'"{name}"')
-                    for name in ("lower", "upper"))
-    (tmp_path / "two.urdf").write_text(f'<robot name="two">{links}</robot>')
-    plant = jd.RigidBodySystem.from_urdf(tmp_path / "two.urdf", floating_base=True, contact=True, gravity=False)
+    plant = _free_cubes(tmp_path, ["lower", "upper"], gravity=False)
     twist, tilt = 0.3, 0.02
-    turn = np.array([np.sin(tilt / 2) * np.cos(twist / 2), np.sin(tilt / 2) * np.sin(twist / 2),
-                     np.cos(tilt / 2) * np.sin(twist / 2), np.cos(tilt / 2) * np.cos(twist / 2)])   # R_z R_x
+    turn = np.asarray(_turned_then_tilted(twist, tilt))
     lowest = 0.1 * (np.cos(tilt) + np.sin(tilt))   # the upper cube's lowest bottom edge, below its centre
     state = np.concatenate([[0.0, 0.0, 0.0, 0, 0, 0, 1], [0.01, -0.02, 0.1 + lowest - 3e-4], turn,
                             [0.1, -0.2, 0.05, 0.3, -0.2, 0.5], [-0.1, 0.3, -0.2, 0.4, 0.1, -0.6]])

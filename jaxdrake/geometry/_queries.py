@@ -306,9 +306,9 @@ def penetration(kind_a: str, params_a, X_A, kind_b: str, params_b, X_B):
     """Candidate contacts (depth (k,), C_a (k, 3), C_b (k, 3), n_BA (k, 3), weight (k,)) between
     shape A at world pose X_A = (R, p) and shape B at X_B; a candidate touches where depth > 0,
     and its force is its weight times one point contact's (1 but at the corners of a contact
-    polygon, `_polytopes._corner_weights`). Each
-    shape as (kind, params), which `shape_parameters(shape)` gives. The pair must be in the
-    order `canonical_order` gives (any two shapes but two half-spaces)."""
+    polygon, `_polytopes._corner_weights`). Each shape as (kind, params), which
+    `shape_parameters(shape)` gives. The pair must be in the order `canonical_order` gives
+    (any two shapes but two half-spaces)."""
     if kind_a == "sphere":
         return _points_against(kind_b, params_b, X_B, *_contact_points(kind_a, params_a, X_A))
     if kind_a == "capsule" and kind_b != "capsule":

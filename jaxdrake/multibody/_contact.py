@@ -402,9 +402,9 @@ class ContactModel(eqx.Module):
         centre_a = at(pa + rho_a[:, None] * n) * mask_a[:, :, None]                       # (P, nv_j, 3)
         centre_b = at(pb - rho_b[:, None] * n) * mask_b[:, :, None]
         dC = (1.0 - weight_b)[:, None, None] * centre_a + weight_b[:, None, None] * centre_b
-        # where n is a flat face's normal (B's; A's under a corner of B) it turns with that face's
-        # body, and C = O_A - rho_A n with it (a ball on a free box's face); the world's faces,
-        # and spheres' and capsules' (none flat), never turn
+        # where n is a flat face's normal (B's; A's where A's face is the reference) it turns with
+        # that face's body, and C = O_A - rho_A n with it (a ball on a free box's face); the
+        # world's faces, and spheres' and capsules' (none flat), never turn
         kinds_a, kinds_b = kinds[np.asarray(ia, int)], kinds[np.asarray(ib, int)]
         flat_b = np.isin(kinds_b, _FACETED + ("cylinder",))
         face_may_turn = bool(np.any((body_b != 0) & flat_b) or np.any((body_a != 0) & flat_b & np.isin(kinds_a, _FACETED)))
