@@ -657,6 +657,22 @@ def _turned_about_z(angle):
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
 
 
+def test_a_corner_repeated_in_a_contact_polygon_keeps_its_weight_and_a_finite_gradient():
+    """A unit square whose last corner comes 5 times (as clipping can repeat a corner): the
+    corners weigh 1, 1, 1 and, split among the repeats, 1 (its turning falls on the last
+    repeat); one point alone weighs 4. The gradients are finite (a repeated corner's edge has
+    no direction, where arctan2's derivative is NaN)."""
+    from jaxdrake.geometry._polytopes import _corner_weights
+    up = jnp.array([0.0, 0.0, 1.0])
+    square = jnp.array([[0, 0, 0], [1, 0, 0], [1, 1, 0]] + [[0, 1, 0]] * 5, float)
+    for points, count, expected in ((square, 8, [1, 1, 1, 0, 0, 0, 0, 1]), (jnp.zeros((8, 3)), 1, [4.0])):
+        used = jnp.arange(8) < count
+        weights = _corner_weights(points, used, up)
+        np.testing.assert_allclose(np.asarray(weights)[:count], expected, atol=1e-12)
+        gradient = jax.grad(lambda p: jnp.sum(_corner_weights(p, used, up) * jnp.arange(8.0)))(points)
+        assert np.all(np.isfinite(np.asarray(gradient)))
+
+
 def test_polytope_contact_weighs_a_larger_polygons_corners_by_their_angles_and_takes_the_least_deep_face():
     """(helper-13's review) A cube turned over a slab's corner has a 5-corner overlap, whose
     corners weigh 4 in all, the slab's right-angled corner among them 1 (4 were once kept, and

@@ -158,19 +158,23 @@ def _corner_weights(points, in_polygon, normal):
     continuously with the polygon, so the force does not jump where corners appear, merge or
     straighten (keeping 4 of the 8 corners made it jump with which 4: a twisted stack of boxes
     stalled). A degenerate edge takes its predecessor's direction, so a corner repeated by the
-    clipping splits its angle with its twin."""
+    clipping splits its angle with its twins."""
     count = jnp.sum(in_polygon)
     index = jnp.arange(points.shape[0])
     following = jnp.where(index + 1 < count, index + 1, 0)
     previous = jnp.where(index > 0, index - 1, jnp.maximum(count - 1, 0))
     edges = points[following] - points
     edges = edges - (edges @ normal)[:, None] * normal
-    length, direction = norm_and_direction(edges, jnp.zeros_like(edges))
-    proper = length > 0
-    for _ in range(2):   # a run of up to 3 repeated corners
-        direction = jnp.where(proper[:, None], direction, direction[previous])
+    length, direction = norm_and_direction(edges, jnp.broadcast_to(jnp.eye(3, dtype=edges.dtype)[0], edges.shape))
+    # a degenerate edge takes the direction of the last proper one before it (cyclically)
+    proper = in_polygon & (length > 0)
+    last = jax.lax.cummax(jnp.where(proper, index, -1))
+    last = jnp.where(last < 0, jnp.max(jnp.where(proper, index, -1)), last)
+    direction = jnp.where(proper[last][:, None], direction[jnp.maximum(last, 0)], 0.0)
     before = direction[previous]
-    turning = jnp.arctan2(jnp.cross(before, direction) @ normal, jnp.sum(before * direction, -1))
+    sine, cosine = jnp.cross(before, direction) @ normal, jnp.sum(before * direction, -1)
+    defined = proper[jnp.maximum(last, 0)]   # no proper edge (one point): arctan2's derivative is NaN at 0
+    turning = jnp.arctan2(jnp.where(defined, sine, 0.0), jnp.where(defined, cosine, 1.0))
     turning = jnp.where(in_polygon, turning, 0.0)
     total = jnp.sum(turning)   # +-2 pi (the clipped polygon runs either way about the normal)
     closed = jnp.abs(total) > np.pi
