@@ -591,6 +591,30 @@ def test_a_cube_dropped_turned_onto_an_equal_cube_comes_to_rest(tmp_path):
     assert np.max(np.abs(x[7:])) < 1e-3
 
 
+def test_the_gradient_of_a_slide_on_a_table_is_the_closed_form_one(tmp_path):
+    """A 2-kg plank (0.2 x 0.2 x 0.05 m), turned 20 degrees, sliding at v0 = 1.2 m/s on a box
+    fixed to the world (mu 0.45): it stops after d = v0^2 / (2 mu g), and jax.grad through the
+    box-box contact (the weighted corners of the clipped polygon) gives dd/dv0 = v0 / (mu g)
+    and dd/dmu = -v0^2 / (2 mu^2 g)."""
+    (tmp_path / "plank.urdf").write_text("""<robot name="plank"><link name="plank"><inertial><mass value="2"/>
+      <inertia ixx="0.00708" iyy="0.00708" izz="0.01333" ixy="0" ixz="0" iyz="0"/></inertial>
+      <collision><geometry><box size="0.2 0.2 0.05"/></geometry></collision></link></robot>""")
+    plank = jd.RigidBodySystem.from_urdf(tmp_path / "plank.urdf", floating_base=True, contact=True)
+    plant = plank.with_collision_geometry("world", Box(3.0, 3.0, 0.1), translation=(0.5, 0.0, -0.05), name="table")
+    g, yaw, v0, mu = 9.81, np.radians(20.0), 1.2, 0.45
+
+    def distance(v0, mu):
+        p = eqx.tree_at(lambda p: (p.contact.mu_static, p.contact.mu_dynamic), plant, (jnp.full(2, mu), jnp.full(2, mu)))
+        resting = 0.025 - 2 * g / (4 * 1e6 / 2)
+        x0 = jnp.concatenate([jnp.array([0.0, 0.0, resting]), _turned_then_tilted(yaw, 0.0),
+                              v0 * jnp.array([np.cos(yaw), -np.sin(yaw), 0.0]), jnp.zeros(3)])   # (v0, 0, 0) in the world
+        return jd.simulate(p, (0.0, 0.5), x0, dense=False, max_steps=20_000).final_state[0]
+
+    d, (d_v0, d_mu) = jax.jit(jax.value_and_grad(distance, argnums=(0, 1)))(v0, mu)
+    np.testing.assert_allclose(float(d), v0 ** 2 / (2 * mu * g), rtol=1e-4)
+    np.testing.assert_allclose([float(d_v0), float(d_mu)], [v0 / (mu * g), -v0 ** 2 / (2 * mu ** 2 * g)], rtol=1e-3)
+
+
 @pytest.mark.slow
 def test_a_twisted_stack_of_three_cubes_comes_to_rest_at_its_closed_form_heights(tmp_path):
     """Three 1-kg cubes dropped 5 cm apart onto the floor, turned by 0, 0.2 and 0.4 rad and the
