@@ -163,11 +163,15 @@ class _Features(NamedTuple):
     """A faceted geometry's features at a candidate's witness point (`ContactModel._features`)."""
     faceted: np.ndarray       # a box or hull (known at trace time)
     along_a_face: jax.Array   # the outward normal there is one of its faces' normals
-    on_that_face: jax.Array   # ... of a face through the point
-    alignment: jax.Array      # the largest cosine between the outward normal and a face's through it
+    alignment: jax.Array      # the largest cosine between the outward normal and a face's through the point
     on_edge: jax.Array        # exactly two faces pass through the point
     corner: jax.Array         # three do
-    direction: jax.Array      # (p, 3): the edge's direction in the world, where two do
+    direction: jax.Array      # (p, 3): the edge's direction in the world where two do, else 0
+
+    @property
+    def on_that_face(self):
+        """The outward normal is the normal of a face through the point."""
+        return self.alignment > 1.0 - 1e-6
 
 
 class ContactModel(eqx.Module):
@@ -538,8 +542,7 @@ class ContactModel(eqx.Module):
         faceted, R, normals, values, tolerance = self._faces_through(poses, ids, point)
         if not faceted.any():
             none = jnp.zeros(len(ids), bool)
-            return _Features(faceted, none, none, jnp.full(len(ids), -1.0, point.dtype), none, none,
-                             jnp.zeros_like(point))
+            return _Features(faceted, none, jnp.full(len(ids), -1.0, point.dtype), none, none, jnp.zeros_like(point))
         local = jnp.einsum("pji,pj->pi", R, outward)
         cosines = jnp.einsum("pfk,pk->pf", normals, local)
         along = cosines > 1.0 - 1e-6
@@ -552,10 +555,13 @@ class ContactModel(eqx.Module):
         most = lambda mask: jnp.max(jnp.where(mask, values, -jnp.inf), axis=1) > -tolerance  # noqa: E731
         second_active = most(distinct(first))
         corner = faceted & most(distinct(first) & distinct(second))
-        direction = norm_and_direction(jnp.cross(first, second), jnp.zeros_like(first))[1]
-        return _Features(faceted, faceted & jnp.any(along, 1), faceted & jnp.any(along & active, 1),
-                         jnp.max(jnp.where(active, cosines, -1.0), axis=1), faceted & second_active & ~corner,
-                         corner, jnp.einsum("pij,pj->pi", R, direction))
+        on_edge = faceted & second_active & ~corner
+        direction = norm_and_direction(jnp.cross(first, second), jnp.broadcast_to(jnp.eye(3, dtype=first.dtype)[0],
+                                                                                  first.shape))[1]
+        direction = jnp.where(on_edge[:, None], jnp.einsum("pij,pj->pi", R, direction), 0.0)
+        return _Features(faceted, faceted & jnp.any(along, 1),
+                         jnp.where(faceted, jnp.max(jnp.where(active, cosines, -1.0), axis=1), -1.0), on_edge, corner,
+                         direction)
 
     def generalized_forces(self, tree, q, v):
         r"""$\tau_c = \sum J^T f$ of all contact forces at (q, v), and the `ContactResults` (one
@@ -579,7 +585,7 @@ def _at_crossing_edges(crossings, face_of_a, n, w, centre_a, centre_b, mask_a, m
     10x the exact Jacobian's steps); edges within 3 degrees of parallel move with the incident
     body. Where neither face is n's (an edge crossing an edge), $\hat n \propto d_A \times
     d_B$ turns with both edges."""
-    crossing, d_a, d_b, on_a_face = crossings
+    crossing, d_a, d_b, either_face = crossings
     d_ref, d_inc = jnp.where(face_of_a[:, None], d_a, d_b), jnp.where(face_of_a[:, None], d_b, d_a)
     moves_ref = jnp.where(face_of_a[:, None, None], centre_a, centre_b)
     moves_inc = jnp.where(face_of_a[:, None, None], centre_b, centre_a)
@@ -592,7 +598,7 @@ def _at_crossing_edges(crossings, face_of_a, n, w, centre_a, centre_b, mask_a, m
     # an edge across an edge: n = +-(d_a x d_b) / |d_a x d_b|, each d turning with its body
     normal = jnp.cross(d_a, d_b)
     size, direction = norm_and_direction(normal, n)
-    edges = crossing & ~on_a_face & (size > 0.05)
+    edges = crossing & ~either_face & (size > 0.05)
     turned = (jnp.cross(jnp.cross(w[None], d_a[:, None, :]) * mask_a[:, :, None], d_b[:, None, :])
               + jnp.cross(d_a[:, None, :], jnp.cross(w[None], d_b[:, None, :]) * mask_b[:, :, None]))
     turned = turned - (turned @ n[:, :, None]) * n[:, None, :]
