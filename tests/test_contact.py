@@ -2,6 +2,7 @@
 closed forms, finite differences, and named errors for bad robot files."""
 
 import functools
+import os
 import pathlib
 import warnings
 
@@ -907,13 +908,90 @@ def test_two_detailed_hulls_that_may_touch_are_warned_of_with_the_remedy():
     trimesh = pytest.importorskip("trimesh")
     ball = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True)
     detailed = Convex.from_points(trimesh.creation.icosphere(3, radius=0.1).vertices)
-    with pytest.warns(UserWarning, match=r"'mesh' and 'rock' are hulls of 642 and 642 vertices.*3,686,400 edge pairs"
-                                         r".*Simplify the meshes"):
+    with pytest.warns(UserWarning, match=r"1 pair\(s\) of hulls may touch, each testing 3,686,400 pairs of edges.*'mesh', "
+                                         r"of 642 vertices.*max_hull_vertices=64"):
         ball.with_collision_geometry("ball", detailed, name="mesh").with_collision_geometry("world", detailed, name="rock")
     coarse = Convex.from_points(trimesh.creation.icosphere(1, radius=0.1).vertices)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         ball.with_collision_geometry("ball", coarse, name="mesh").with_collision_geometry("world", coarse, name="rock")
+
+
+def test_a_hull_simplified_to_fewer_vertices_keeps_the_extreme_ones_first():
+    """Cube corners (+-1) inside an octahedron of tips at +-2 on the axes: simplified to 6
+    vertices, the hull is the octahedron (the extreme points along the axes come first) and
+    the corners lie 1/sqrt(3) outside its faces |x| + |y| + |z| = 2; with room for all 14 the
+    hull is exact; fewer than 4 is refused."""
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+    tips = 2.0 * np.concatenate([np.eye(3), -np.eye(3)])
+    points = np.concatenate([corners, tips])
+    six = Convex.from_points(points, max_vertices=6)
+    np.testing.assert_allclose(np.sort(six.vertices, axis=0), np.sort(tips, axis=0))
+    outside = np.max(corners @ six.planes[:, :3].T - six.planes[:, 3], axis=1)
+    np.testing.assert_allclose(outside, 1 / np.sqrt(3), rtol=1e-12)
+    assert len(Convex.from_points(points, max_vertices=14).vertices) == 14
+    assert len(Convex.from_points(points, max_vertices=10).vertices) == 10
+    with pytest.raises(GeometryError, match="max_vertices must be an integer of at least 4"):
+        Convex.from_points(points, max_vertices=3)
+
+
+def test_solo12_with_its_own_meshes_is_refused_or_warned_of_and_loads_with_simplified_hulls():
+    """Solo-12's URDF with its own collision meshes (hulls of 273-672 vertices, 120 pairs that
+    may touch): the model names its cost (38 GB per evaluation in float64) and the remedy,
+    refused where the machine has less memory; with max_hull_vertices=32 every hull has 32
+    vertices, all of them the mesh's own, and nothing is warned of."""
+    import importlib.metadata
+    root = pathlib.Path(str(importlib.metadata.distribution("example-robot-data").locate_file(
+        "cmeel.prefix/share/example-robot-data/robots")))
+    urdf, packages = root / "solo_description/robots/solo12.urdf", {"example-robot-data": str(root.parent)}
+    load = functools.partial(jd.RigidBodySystem.from_urdf, urdf, floating_base=True, contact=True, mesh_hulls=True,
+                             package_map=packages)
+    message = r"120 pair\(s\) of hulls may touch.*about 38.5 GB in float64.*max_hull_vertices=64"
+    if os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") < 38.5e9:
+        with pytest.raises(GeometryError, match=message):
+            load()
+    else:
+        with pytest.warns(UserWarning, match=message):
+            load()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        plant = load(max_hull_vertices=32).with_ground()
+    hulls = np.asarray(plant.contact.kinds) == "convex"
+    assert plant.contact.vertices.shape[1] == 32 and bool(np.all(np.asarray(plant.contact.vertex_valid)[hulls]))
+    foot = Convex.from_mesh_file(root / "solo_description/meshes/stl/solo12/solo12_lower_leg_left_side.stl",
+                                 require_convex=False)
+    simplified = Convex.from_mesh_file(root / "solo_description/meshes/stl/solo12/solo12_lower_leg_left_side.stl",
+                                       require_convex=False, max_vertices=32)
+    assert {tuple(v) for v in simplified.vertices} <= {tuple(v) for v in foot.vertices}
+
+
+def test_detailed_hulls_are_tested_only_where_their_bounding_spheres_meet():
+    """Two 30-vertex hulls, their vertices on a sphere of radius 0.1 (84 edges, 7056 edge pairs:
+    past CULLED_EDGE_PAIRS, so tested one pair at a time where near): touching, the model's
+    candidates are `penetration`'s own; apart, they sit on the bounding spheres' gap (centres
+    0.5 m apart: depth -0.3) with no force, and the force's gradient is finite on both sides."""
+    from jaxdrake.geometry import shape_parameters
+    from jaxdrake.multibody._contact import CULLED_EDGE_PAIRS
+    points = np.random.default_rng(3).normal(size=(30, 3))
+    rock = Convex.from_points(0.1 * points / np.linalg.norm(points, axis=1, keepdims=True))
+    assert len(rock.edges[0]) ** 2 > CULLED_EDGE_PAIRS
+    ball = jd.RigidBodySystem.from_urdf(DATA / "contact_ball.urdf", floating_base=True)
+    plant = ball.with_collision_geometry("ball", rock, name="mesh").with_collision_geometry("world", rock, name="rock")
+    q_near = jnp.array([0.03, 0.01, 0.15, 0.0, 0.0, np.sin(0.1), np.cos(0.1)])
+    x_near = jnp.concatenate([q_near, jnp.zeros(6)])
+    near = plant.contact_results(x_near)
+    R_mesh = jd.multibody._algorithms.body_motion(plant.tree, q_near, jnp.zeros(6)).rotation[0]
+    assert plant.contact.groups[0][2:] == ((0,), (1,))   # A: the mesh on the ball, B: the rock
+    depth, *_ = penetration(*shape_parameters(rock), (R_mesh, q_near[:3]), *shape_parameters(rock), (jnp.eye(3), jnp.zeros(3)))
+    np.testing.assert_allclose(np.asarray(near.depth), np.asarray(depth), rtol=1e-12, atol=1e-15)
+    assert np.any(np.asarray(near.depth) > 0)
+    x_far = x_near.at[:3].set(jnp.array([0.0, 0.3, 0.4]))
+    far = plant.contact_results(x_far)
+    np.testing.assert_allclose(np.asarray(far.depth), 0.2 - 0.5, rtol=1e-12)
+    assert not np.any(np.asarray(far.active))
+    grad = jax.jit(jax.grad(lambda x: jnp.sum(plant.contact_force(x[:7], x[7:]) ** 2)))
+    for x in (x_near, x_far):
+        assert np.all(np.isfinite(np.asarray(grad(x))))
 
 
 def test_bad_shapes_and_materials_are_named_at_construction():

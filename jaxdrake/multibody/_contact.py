@@ -27,6 +27,7 @@ that collision filtering lets through); at run time a candidate acts only where 
 from __future__ import annotations
 
 import collections
+import os
 import dataclasses
 import warnings
 from typing import NamedTuple
@@ -275,7 +276,13 @@ class ContactModel(eqx.Module):
             a_idx, b_idx = np.asarray(a), np.asarray(b)
             pick = lambda idx: jax.tree.map(lambda x: x[idx], params)  # noqa: E731
             query = lambda pa, Ra, ta, pb, Rb, tb: penetration(kind_a, pa, (Ra, ta), kind_b, pb, (Rb, tb))  # noqa: E731
-            out = jax.vmap(query)(pick(a_idx), R[a_idx], p[a_idx], pick(b_idx), R[b_idx], p[b_idx])
+            pairs = (pick(a_idx), R[a_idx], p[a_idx], pick(b_idx), R[b_idx], p[b_idx])
+            if kind_a == kind_b == "convex" and self.edges.shape[1] ** 2 > CULLED_EDGE_PAIRS:
+                extent = _extents_and_thicknesses(self.kinds, self.size, self.vertices, self.vertex_valid,
+                                                  self.planes)[0]
+                out = _where_near(query, pairs, extent[a_idx], extent[b_idx])
+            else:
+                out = jax.vmap(query)(*pairs)
             k = out[0].shape[1]
             parts.append(tuple(x.reshape((-1,) + x.shape[2:]) for x in out))
             ia += np.repeat(a_idx, k).tolist()
@@ -576,6 +583,35 @@ class ContactModel(eqx.Module):
         return alg.external_forces(tree, motion, F[1:]), res
 
 
+CULLED_EDGE_PAIRS = 4096   # hulls testing more pairs of edges than this are tested only where near
+
+
+def _where_near(query, pairs, extent_a, extent_b):
+    """`query` over the pairs one at a time, each only where the two shapes' bounding spheres
+    (about their frames' origins, radius `extent`) meet; elsewhere its candidates (as many as
+    the query's) are those spheres' nearest points, at depth minus their gap (no force). A
+    broad phase for detailed hulls: Solo-12's 120 pairs of leg and body meshes (hulls of 32
+    vertices), of which a standing robot brings none near, cost a test each in `jax.vmap`.
+    Under `jax.vmap` of the caller every pair is tested, as before."""
+    shapes = jax.eval_shape(query, *jax.tree.map(lambda x: x[0], pairs))
+
+    def one(pair):
+        *arguments, r_a, r_b = pair
+        t_a, t_b = arguments[2], arguments[5]
+        gap, toward_b = norm_and_direction(t_b - t_a, jnp.eye(3, dtype=t_a.dtype)[0])
+        gap = gap - r_a - r_b
+
+        def apart():
+            k = shapes[0].shape[0]
+            return (jnp.full(k, -gap), jnp.broadcast_to(t_a + r_a * toward_b, (k, 3)),
+                    jnp.broadcast_to(t_b - r_b * toward_b, (k, 3)), jnp.broadcast_to(-toward_b, (k, 3)),
+                    jnp.ones(k, t_a.dtype))
+
+        return jax.lax.cond(gap <= 0, lambda: tuple(query(*arguments)), apart)
+
+    return jax.lax.map(one, (*pairs, extent_a, extent_b))
+
+
 def _at_crossing_edges(crossings, face_of_a, n, w, centre_a, centre_b, mask_a, mask_b, dC, dn):
     r"""dC and dn of candidates where an edge of one polytope crosses an edge of the other: C
     stays on the incident edge (direction $d_I$, moving as its body's point $\delta I$) and
@@ -707,7 +743,7 @@ def build_contact_model(tree, geometries, *, excluded_pairs=(), stiction_toleran
             groups.setdefault(key, ([], []))
             groups[key][0].append(a)
             groups[key][1].append(b)
-            _warn_of_costly_hull_pair(geometries[a], geometries[b], source)
+    _check_hull_pairs(geometries, groups.get(("convex", "convex"), ([], []))[0], source)
     floats = lambda x: device_array(np.asarray(x, float))  # noqa: E731
     convex = [g.shape for g in geometries if isinstance(g.shape, Convex)]
     nv = max((len(c.vertices) for c in convex), default=0)
@@ -747,21 +783,38 @@ def build_contact_model(tree, geometries, *, excluded_pairs=(), stiction_toleran
         stiction_tolerance=floats(stiction_tolerance))
 
 
-MANY_EDGE_PAIRS = 1_000_000   # above this, a pair of hulls is warned of at construction
+MANY_EDGE_PAIRS = 1_000_000   # above this per pair of hulls, they are warned of at construction
+# memory per edge pair in float64: Solo-12's own meshes (120 hull pairs, every hull padded to
+# 1398 edges) asked XLA for one buffer of 38.4 GB, 164 bytes per edge pair
+BYTES_PER_EDGE_PAIR = 164
 
 
-def _warn_of_costly_hull_pair(a, b, source):
-    """Two hulls touch through every pair of their edges (`geometry/_polytopes.py`): warn where
-    that passes `MANY_EDGE_PAIRS` per evaluation, with the remedy."""
-    if not (isinstance(a.shape, Convex) and isinstance(b.shape, Convex)):
+def _check_hull_pairs(geometries, hull_pairs, source):
+    """Two hulls touch through every pair of their edges (`geometry/_polytopes.py`), every hull
+    padded to the most edges of any: warn once where that passes `MANY_EDGE_PAIRS` per pair,
+    and refuse a model whose pairs would need more memory than this machine has, with the
+    remedies."""
+    if not hull_pairs:
         return
-    pairs = len(a.shape.edges[0]) * len(b.shape.edges[0])
-    if pairs > MANY_EDGE_PAIRS:
-        warnings.warn(f"{source + ': ' if source else ''}collisions {a.name!r} and {b.name!r} are hulls of "
-                      f"{len(a.shape.vertices)} and {len(b.shape.vertices)} vertices: their contact tests {pairs:,} edge "
-                      "pairs at every evaluation (a few milliseconds per million on a CPU core, and memory to match). "
-                      "Simplify the meshes (e.g. trimesh's simplify_quadric_decimation to a few hundred faces), "
-                      "or exclude the pair (a collision filter group)", stacklevel=4)
+    detailed = max((g for g in geometries if isinstance(g.shape, Convex)), key=lambda g: len(g.shape.edges[0]))
+    edges = len(detailed.shape.edges[0])
+    per_pair, total = edges * edges, len(hull_pairs) * edges * edges
+    if per_pair <= MANY_EDGE_PAIRS:
+        return
+    need = total * BYTES_PER_EDGE_PAIR
+    message = (f"{source + ': ' if source else ''}{len(hull_pairs)} pair(s) of hulls may touch, each testing {per_pair:,} "
+               f"pairs of edges at every evaluation (every hull is padded to the {edges} edges of the most detailed, "
+               f"{detailed.name!r}, of {len(detailed.shape.vertices)} vertices): {total:,} in all, about "
+               f"{need / 1e9:.1f} GB in float64 and a few milliseconds per million on a CPU core. Simplify the hulls "
+               "(from_urdf(..., max_hull_vertices=64), Convex.from_points(..., max_vertices=64), or the meshes "
+               "themselves), or exclude pairs that cannot touch (a collision filter group, without_collisions_between)")
+    try:
+        memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):   # no sysconf (Windows): warn only
+        memory = float("inf")
+    if need > memory:
+        raise GeometryError(f"{message}; this machine has {memory / 1e9:.1f} GB")
+    warnings.warn(message, stacklevel=4)
 
 
 def _poses_in_bodies(tree, geometries):

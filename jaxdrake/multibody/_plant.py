@@ -195,7 +195,7 @@ class RigidBodySystem(System):
                   welded=(), loops=(), mimic: bool = False, constraint_stiffness: float = 20.0,
                   effort_limits: bool = True, joint_limits: bool = True,
                   limit_period: float = 0.02, contact: bool = False, package_map=None,
-                  mesh_hulls: bool = False,
+                  mesh_hulls: bool = False, max_hull_vertices: int | None = None,
                   stiction_tolerance: float = DEFAULT_STICTION_TOLERANCE) -> "RigidBodySystem":
         r"""Load a URDF; joints named in `welded` are fixed at zero; `mimic=True` couples each
         `<mimic>` joint to its leader (a `CouplerConstraint`).
@@ -208,7 +208,12 @@ class RigidBodySystem(System):
         `with_ground`, SceneGraph's default; two shapes touch with $2\mu_A\mu_B/(\mu_A + \mu_B)$,
         so a URDF foot on the default ground slides with 2/3). A mesh collides through its
         convex hull; a non-convex mesh is refused unless `mesh_hulls=True` (Drake's point contact
-        uses the hull silently). Mesh files are read only from the
+        uses the hull silently); `max_hull_vertices` simplifies each mesh's hull to at most
+        that many vertices (greedily, farthest outside first: an inner approximation, as
+        MuJoCo's `maxhullvert`), for detailed meshes whose hulls touch each other (two hulls
+        test every pair of their edges: Solo-12's own meshes, 273-672 hull vertices, would need
+        tens of gigabytes per evaluation; at 64 vertices they lie within 0.7-2 mm of the full
+        hulls). Mesh files are read only from the
         URDF's folder, or for `package://NAME/...` from `package_map[NAME]` (kept on the plant:
         `MeshcatVisualizer` reads its visual meshes from the same folders)."""
         with jax.ensure_compile_time_eval():  # parsing is host work, also inside jit / vmap
@@ -223,7 +228,8 @@ class RigidBodySystem(System):
                                     "is fixed or welded; weld both, or neither")
             if actuated is None and transmitted:
                 actuated = list(transmitted)
-            collision = read_urdf_collisions(path, package_map=package_map, mesh_hulls=mesh_hulls) if contact else None
+            collision = read_urdf_collisions(path, package_map=package_map, mesh_hulls=mesh_hulls,
+                                             max_hull_vertices=max_hull_vertices) if contact else None
             return RigidBodySystem(tree, actuated, loops=loops, couplers=couplers,
                                    constraint_stiffness=constraint_stiffness, effort_limits=effort_limits,
                                    joint_limits=joint_limits, limit_period=limit_period, source=path.resolve(),

@@ -19,6 +19,7 @@ Mesh files are read only from inside the URDF's folder, or from the folders give
 from __future__ import annotations
 
 import dataclasses
+import functools
 import pathlib
 
 import numpy as np
@@ -51,16 +52,20 @@ def _children(element, name):
     return [c for c in element if _local(c.tag) == name]
 
 
-def read_urdf_collisions(path, *, package_map=None, mesh_hulls: bool = False) -> URDFCollisions:
+def read_urdf_collisions(path, *, package_map=None, mesh_hulls: bool = False,
+                         max_hull_vertices: int | None = None) -> URDFCollisions:
     """The URDF's collision geometry (module docstring); `mesh_hulls`: collide a non-convex mesh
-    through its convex hull (Drake's point contact does) instead of refusing it."""
+    through its convex hull (Drake's point contact does) instead of refusing it;
+    `max_hull_vertices`: a mesh's hull simplified to at most this many vertices
+    (`Convex.from_points`)."""
     path = pathlib.Path(path)
     root = read_urdf(path)
+    read_mesh = functools.partial(Convex.from_mesh_file, require_convex=not mesh_hulls, max_vertices=max_hull_vertices)
     geometries = []
     for link in root.findall("link"):
         name = link.get("name")
         for k, element in enumerate(link.findall("collision")):
-            geometries.append(_collision(element, name, k, path, package_map or {}, mesh_hulls))
+            geometries.append(_collision(element, name, k, path, package_map or {}, read_mesh))
     names = [g.name for g in geometries]
     seen = set()
     for i, n in enumerate(names):  # Drake makes repeated names unique per link the same way
@@ -79,7 +84,7 @@ def read_urdf_collisions(path, *, package_map=None, mesh_hulls: bool = False) ->
     return URDFCollisions(tuple(geometries), tuple(excluded))
 
 
-def _collision(element, link, index, path, package_map, mesh_hulls) -> CollisionGeometry:
+def _collision(element, link, index, path, package_map, read_mesh) -> CollisionGeometry:
     name = element.get("name") or f"{link}_collision_{index}"
     where = f"link {link!r}, <collision name={name!r}>"
     R, p = _origin(element.find("origin"), path, where)
@@ -88,7 +93,7 @@ def _collision(element, link, index, path, package_map, mesh_hulls) -> Collision
     if len(shapes) != 1:
         raise URDFError(f"{path}: {where}: a <geometry> needs exactly one shape element, found "
                         f"{[_local(s.tag) for s in shapes] or 'none'}")
-    shape = _shape(shapes[0], path, where, package_map, mesh_hulls)
+    shape = _shape(shapes[0], path, where, package_map, read_mesh)
     material = ContactMaterial()
     for properties in _children(element, "drake:proximity_properties"):
         values = {}
@@ -111,7 +116,7 @@ _REQUIRED = {"sphere": ("radius",), "box": ("size",), "cylinder": ("radius", "le
              "capsule": ("radius", "length"), "drake:capsule": ("radius", "length")}
 
 
-def _shape(element, path, where, package_map, mesh_hulls):
+def _shape(element, path, where, package_map, read_mesh):
     kind = _local(element.tag)
 
     def required(attribute, count=1):
@@ -136,7 +141,7 @@ def _shape(element, path, where, package_map, mesh_hulls):
                 np.broadcast_to(_numbers(element, "scale", len(scale.split()), None, path, where), 3))
             mesh = resolve_model_file(element.get("filename"), path, f"{where}: <mesh>", URDFError,
                                       package_map=package_map)
-            return Convex.from_mesh_file(mesh, scale, require_convex=not mesh_hulls)
+            return read_mesh(mesh, scale)
     except GeometryError as error:
         raise URDFError(f"{path}: {where}: {error}") from None
     raise URDFError(f"{path}: {where}: unsupported collision shape <{kind}>; use a sphere, box, cylinder, "
