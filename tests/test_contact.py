@@ -968,8 +968,9 @@ def test_solo12_with_its_own_meshes_is_refused_or_warned_of_and_loads_with_simpl
 def test_detailed_hulls_are_tested_only_where_their_bounding_spheres_meet():
     """Two 30-vertex hulls, their vertices on a sphere of radius 0.1 (84 edges, 7056 edge pairs:
     past CULLED_EDGE_PAIRS, so tested one pair at a time where near): touching, the model's
-    candidates are `penetration`'s own; apart, they sit on the bounding spheres' gap (centres
-    0.5 m apart: depth -0.3) with no force, and the force's gradient is finite on both sides."""
+    candidates are `penetration`'s own; apart, they sit at minus the gap of the bounding
+    spheres (about the vertices' mean m, radius max |v - m|) with no force, and the force's
+    gradient is finite on both sides."""
     from jaxdrake.geometry import shape_parameters
     from jaxdrake.multibody._contact import CULLED_EDGE_PAIRS
     points = np.random.default_rng(3).normal(size=(30, 3))
@@ -987,7 +988,11 @@ def test_detailed_hulls_are_tested_only_where_their_bounding_spheres_meet():
     assert np.any(np.asarray(near.depth) > 0)
     x_far = x_near.at[:3].set(jnp.array([0.0, 0.3, 0.4]))
     far = plant.contact_results(x_far)
-    np.testing.assert_allclose(np.asarray(far.depth), 0.2 - 0.5, rtol=1e-12)
+    m = rock.vertices.mean(0)
+    r = np.max(np.linalg.norm(rock.vertices - m, axis=1))
+    yaw = np.array([[np.cos(0.2), -np.sin(0.2), 0.0], [np.sin(0.2), np.cos(0.2), 0.0], [0.0, 0.0, 1.0]])
+    gap = np.linalg.norm(yaw @ m + np.array([0.0, 0.3, 0.4]) - m) - 2 * r
+    np.testing.assert_allclose(np.asarray(far.depth), -gap, rtol=1e-12)
     assert not np.any(np.asarray(far.active))
     grad = jax.jit(jax.grad(lambda x: jnp.sum(plant.contact_force(x[:7], x[7:]) ** 2)))
     for x in (x_near, x_far):

@@ -278,9 +278,8 @@ class ContactModel(eqx.Module):
             query = lambda pa, Ra, ta, pb, Rb, tb: penetration(kind_a, pa, (Ra, ta), kind_b, pb, (Rb, tb))  # noqa: E731
             pairs = (pick(a_idx), R[a_idx], p[a_idx], pick(b_idx), R[b_idx], p[b_idx])
             if kind_a == kind_b == "convex" and self.edges.shape[1] ** 2 > CULLED_EDGE_PAIRS:
-                extent = _extents_and_thicknesses(self.kinds, self.size, self.vertices, self.vertex_valid,
-                                                  self.planes)[0]
-                out = _where_near(query, pairs, extent[a_idx], extent[b_idx])
+                centre, radius = self._bounding_spheres(R, p)
+                out = _where_near(query, pairs, (centre[a_idx], radius[a_idx]), (centre[b_idx], radius[b_idx]))
             else:
                 out = jax.vmap(query)(*pairs)
             k = out[0].shape[1]
@@ -291,6 +290,14 @@ class ContactModel(eqx.Module):
             z = jnp.zeros((0, 3), R.dtype)
             return (jnp.zeros(0, R.dtype), z, z, z, jnp.zeros(0, R.dtype)), (), ()
         return tuple(jnp.concatenate(x) for x in zip(*parts)), tuple(ia), tuple(ib)
+
+    def _bounding_spheres(self, R, p):
+        """Each hull's bounding sphere about its vertices' mean: world centres (g, 3) (at the
+        geometries' world poses R, p) and radii (g,)."""
+        valid = self.vertex_valid[..., None]
+        mean = jnp.sum(jnp.where(valid, self.vertices, 0.0), 1) / jnp.maximum(jnp.sum(valid, 1), 1)
+        radius = jnp.max(jnp.where(valid[..., 0], jnp.linalg.norm(self.vertices - mean[:, None], axis=-1), 0.0), axis=1)
+        return jnp.einsum("gij,gj->gi", R, mean) + p, radius
 
     def results(self, tree, q, v) -> ContactResults:
         """The contact forces at (q, v) ("The contact model" on the API page)."""
@@ -586,30 +593,29 @@ class ContactModel(eqx.Module):
 CULLED_EDGE_PAIRS = 4096   # hulls testing more pairs of edges than this are tested only where near
 
 
-def _where_near(query, pairs, extent_a, extent_b):
+def _where_near(query, pairs, sphere_a, sphere_b):
     """`query` over the pairs one at a time, each only where the two shapes' bounding spheres
-    (about their frames' origins, radius `extent`) meet; elsewhere its candidates (as many as
-    the query's) are those spheres' nearest points, at depth minus their gap (no force). A
-    broad phase for detailed hulls: Solo-12's 120 pairs of leg and body meshes (hulls of 32
-    vertices), of which a standing robot brings none near, cost a test each in `jax.vmap`.
-    Under `jax.vmap` of the caller every pair is tested, as before."""
+    (world centres and radii) meet; elsewhere its candidates (as many as the query's) are
+    those spheres' nearest points, at depth minus their gap (no force). A broad phase for
+    detailed hulls: Solo-12's 120 pairs of leg and body meshes (hulls of 32 vertices), of
+    which a standing robot brings a few near, cost a test each in `jax.vmap`. Under `jax.vmap`
+    of the caller every pair is tested, as before."""
     shapes = jax.eval_shape(query, *jax.tree.map(lambda x: x[0], pairs))
 
     def one(pair):
-        *arguments, r_a, r_b = pair
-        t_a, t_b = arguments[2], arguments[5]
-        gap, toward_b = norm_and_direction(t_b - t_a, jnp.eye(3, dtype=t_a.dtype)[0])
+        arguments, (c_a, r_a), (c_b, r_b) = pair
+        gap, toward_b = norm_and_direction(c_b - c_a, jnp.eye(3, dtype=c_a.dtype)[0])
         gap = gap - r_a - r_b
 
         def apart():
             k = shapes[0].shape[0]
-            return (jnp.full(k, -gap), jnp.broadcast_to(t_a + r_a * toward_b, (k, 3)),
-                    jnp.broadcast_to(t_b - r_b * toward_b, (k, 3)), jnp.broadcast_to(-toward_b, (k, 3)),
-                    jnp.ones(k, t_a.dtype))
+            return (jnp.full(k, -gap), jnp.broadcast_to(c_a + r_a * toward_b, (k, 3)),
+                    jnp.broadcast_to(c_b - r_b * toward_b, (k, 3)), jnp.broadcast_to(-toward_b, (k, 3)),
+                    jnp.ones(k, c_a.dtype))
 
         return jax.lax.cond(gap <= 0, lambda: tuple(query(*arguments)), apart)
 
-    return jax.lax.map(one, (*pairs, extent_a, extent_b))
+    return jax.lax.map(one, (pairs, sphere_a, sphere_b))
 
 
 def _at_crossing_edges(crossings, face_of_a, n, w, centre_a, centre_b, mask_a, mask_b, dC, dn):
