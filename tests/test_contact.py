@@ -980,23 +980,25 @@ def test_detailed_hulls_are_tested_only_where_their_bounding_spheres_meet():
     plant = ball.with_collision_geometry("ball", rock, name="mesh").with_collision_geometry("world", rock, name="rock")
     q_near = jnp.array([0.03, 0.01, 0.15, 0.0, 0.0, np.sin(0.1), np.cos(0.1)])
     x_near = jnp.concatenate([q_near, jnp.zeros(6)])
-    near = plant.contact_results(x_near)
-    R_mesh = jd.multibody._algorithms.body_motion(plant.tree, q_near, jnp.zeros(6)).rotation[0]
+    # one program: the candidates and the force's gradient at both states
+    force = lambda x: jnp.sum(plant.contact_force(x[:7], x[7:]) ** 2)  # noqa: E731
+    results_and_gradient = jax.jit(lambda x: (plant.contact_results(x), jax.grad(force)(x)))
+    near, near_gradient = results_and_gradient(x_near)
     assert plant.contact.groups[0][2:] == ((0,), (1,))   # A: the mesh on the ball, B: the rock
-    depth, *_ = penetration(*shape_parameters(rock), (R_mesh, q_near[:3]), *shape_parameters(rock), (jnp.eye(3), jnp.zeros(3)))
+    kind, params = shape_parameters(rock)
+    yaw = np.array([[np.cos(0.2), -np.sin(0.2), 0.0], [np.sin(0.2), np.cos(0.2), 0.0], [0.0, 0.0, 1.0]])  # q_near's
+    depth = jax.jit(lambda R, p: penetration(kind, params, (R, p), kind, params, (jnp.eye(3), jnp.zeros(3)))[0])(
+        jnp.asarray(yaw), q_near[:3])
     np.testing.assert_allclose(np.asarray(near.depth), np.asarray(depth), rtol=1e-12, atol=1e-15)
     assert np.any(np.asarray(near.depth) > 0)
-    x_far = x_near.at[:3].set(jnp.array([0.0, 0.3, 0.4]))
-    far = plant.contact_results(x_far)
+    far, far_gradient = results_and_gradient(x_near.at[:3].set(jnp.array([0.0, 0.3, 0.4])))
     m = rock.vertices.mean(0)
     r = np.max(np.linalg.norm(rock.vertices - m, axis=1))
-    yaw = np.array([[np.cos(0.2), -np.sin(0.2), 0.0], [np.sin(0.2), np.cos(0.2), 0.0], [0.0, 0.0, 1.0]])
     gap = np.linalg.norm(yaw @ m + np.array([0.0, 0.3, 0.4]) - m) - 2 * r
     np.testing.assert_allclose(np.asarray(far.depth), -gap, rtol=1e-12)
     assert not np.any(np.asarray(far.active))
-    grad = jax.jit(jax.grad(lambda x: jnp.sum(plant.contact_force(x[:7], x[7:]) ** 2)))
-    for x in (x_near, x_far):
-        assert np.all(np.isfinite(np.asarray(grad(x))))
+    assert np.all(np.isfinite(np.asarray(near_gradient))) and np.any(np.asarray(near_gradient) != 0)
+    np.testing.assert_array_equal(np.asarray(far_gradient), 0.0)
 
 
 def test_bad_shapes_and_materials_are_named_at_construction():
