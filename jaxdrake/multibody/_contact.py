@@ -27,7 +27,9 @@ that collision filtering lets through); at run time a candidate acts only where 
 from __future__ import annotations
 
 import collections
+import functools
 import os
+import sys
 import dataclasses
 import warnings
 from typing import NamedTuple
@@ -821,7 +823,18 @@ def _check_hull_pairs(geometries, hull_pairs, source):
         memory = float("inf")
     if need > memory:
         raise GeometryError(f"{message}; this machine has {memory / 1e9:.1f} GB")
-    warnings.warn(message, stacklevel=4)
+    _warn_once(message)
+
+
+@functools.lru_cache(maxsize=None)
+def _warn_once(message):
+    """A warning said once per process (the model is built again by `with_ground` and each
+    `with_collision_geometry`), at the caller's line outside jaxdrake and equinox."""
+    frame, level = sys._getframe(1), 2
+    while frame is not None and any(f"{os.sep}{package}{os.sep}" in frame.f_code.co_filename
+                                    for package in ("jaxdrake", "equinox")):
+        frame, level = frame.f_back, level + 1
+    warnings.warn(message, stacklevel=level)
 
 
 def _poses_in_bodies(tree, geometries):
