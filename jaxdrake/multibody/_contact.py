@@ -27,10 +27,10 @@ that collision filtering lets through); at run time a candidate acts only where 
 from __future__ import annotations
 
 import collections
+import dataclasses
 import functools
 import os
 import sys
-import dataclasses
 import warnings
 from typing import NamedTuple
 
