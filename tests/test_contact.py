@@ -933,6 +933,12 @@ def test_a_hull_simplified_to_fewer_vertices_keeps_the_extreme_ones_first():
     assert len(Convex.from_points(points, max_vertices=10).vertices) == 10
     with pytest.raises(GeometryError, match="max_vertices must be an integer of at least 4"):
         Convex.from_points(points, max_vertices=3)
+    # every extreme along an axis on one plane z = (x + y) / 2, the fifth vertex below it: the
+    # 4 kept span a volume (the plane's farthest pair, the one farthest from their line, then
+    # the one off the plane)
+    wedge = np.array([[2, 0, 1], [-2, 0, -1], [0, 2, 1], [0, -2, -1], [0.5, 0.5, -0.5]], float)
+    four = Convex.from_points(wedge, max_vertices=4)
+    assert len(four.vertices) == 4 and any(np.allclose(v, [0.5, 0.5, -0.5]) for v in four.vertices)
 
 
 def test_solo12_with_its_own_meshes_is_refused_or_warned_of_and_loads_with_simplified_hulls():
