@@ -941,24 +941,27 @@ def test_a_hull_simplified_to_fewer_vertices_keeps_the_extreme_ones_first():
     assert len(four.vertices) == 4 and any(np.allclose(v, [0.5, 0.5, -0.5]) for v in four.vertices)
 
 
-def test_solo12_with_its_own_meshes_is_refused_or_warned_of_and_loads_with_simplified_hulls():
+def test_solo12_with_its_own_meshes_is_warned_of_or_refused_and_loads_with_simplified_hulls(monkeypatch):
     """Solo-12's URDF with its own collision meshes (hulls of 273-672 vertices, 120 pairs that
-    may touch): the model names its cost (38 GB per evaluation in float64) and the remedy,
-    refused where the machine has less memory; with max_hull_vertices=32 every hull has 32
-    vertices, all of them the mesh's own, and nothing is warned of."""
+    may touch, each padded to 1398 edges): the model names its cost (up to 235 million edge
+    pairs per evaluation, those of the near pairs, tested one pair at a time: 0.3 GB at once
+    in float64) and the remedy, refused on a machine with less memory than that; with
+    max_hull_vertices=32 every hull has 32 vertices, all of them the mesh's own, and nothing is
+    warned of."""
     import importlib.metadata
     root = pathlib.Path(str(importlib.metadata.distribution("example-robot-data").locate_file(
         "cmeel.prefix/share/example-robot-data/robots")))
     urdf, packages = root / "solo_description/robots/solo12.urdf", {"example-robot-data": str(root.parent)}
     load = functools.partial(jd.RigidBodySystem.from_urdf, urdf, floating_base=True, contact=True, mesh_hulls=True,
                              package_map=packages)
-    message = r"120 pair\(s\) of hulls may touch.*about 38.5 GB in float64.*max_hull_vertices=64"
-    if os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") < 38.5e9:
-        with pytest.raises(GeometryError, match=message):
+    message = (r"120 pair\(s\) of hulls may touch, each testing 1,954,404 pairs of edges.*up to 234,528,480 per "
+               r"evaluation.*0.3 GB at once in float64.*max_hull_vertices=64")
+    with monkeypatch.context() as patch:   # a machine of 0.2 GB
+        patch.setattr(os, "sysconf", lambda name: {"SC_PAGE_SIZE": 4096, "SC_PHYS_PAGES": 50_000}[name])
+        with pytest.raises(GeometryError, match=message + ".*this machine has 0.2 GB"):
             load()
-    else:
-        with pytest.warns(UserWarning, match=message):
-            load()
+    with pytest.warns(UserWarning, match=message):
+        load()
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         plant = load(max_hull_vertices=32).with_ground()

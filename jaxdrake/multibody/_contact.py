@@ -802,7 +802,8 @@ def _check_hull_pairs(geometries, hull_pairs, source):
     padded to the most edges of any: warn once where the pairs that may touch test more than
     `MANY_EDGE_PAIRS` in all (the Panda's own meshes: 28 pairs of hulls of up to 152 vertices,
     5.7 million, 17 ms per evaluation of the narrow phase), and refuse a model whose pairs
-    would need more memory than this machine has, with the remedies."""
+    tested at once (one at a time past `CULLED_EDGE_PAIRS`, `_where_near`) would need more
+    memory than this machine has, with the remedies."""
     if not hull_pairs:
         return
     detailed = max((g for g in geometries if isinstance(g.shape, Convex)), key=lambda g: len(g.shape.edges[0]))
@@ -810,12 +811,12 @@ def _check_hull_pairs(geometries, hull_pairs, source):
     per_pair, total = edges * edges, len(hull_pairs) * edges * edges
     if total <= MANY_EDGE_PAIRS:
         return
-    need = total * BYTES_PER_EDGE_PAIR
+    need = (per_pair if per_pair > CULLED_EDGE_PAIRS else total) * BYTES_PER_EDGE_PAIR
     message = (f"{source + ': ' if source else ''}{len(hull_pairs)} pair(s) of hulls may touch, each testing {per_pair:,} "
-               f"pairs of edges at every evaluation (every hull is padded to the {edges} edges of the most detailed, "
-               f"{detailed.name!r}, of {len(detailed.shape.vertices)} vertices): {total:,} in all, about "
-               f"{need / 1e9:.1f} GB in float64 and a few milliseconds per million on a CPU core. Simplify the hulls "
-               "(from_urdf(..., max_hull_vertices=64), Convex.from_points(..., max_vertices=64), or the meshes "
+               f"pairs of edges where near (every hull is padded to the {edges} edges of the most detailed, "
+               f"{detailed.name!r}, of {len(detailed.shape.vertices)} vertices): up to {total:,} per evaluation, a "
+               f"few milliseconds per million on a CPU core, {need / 1e9:.1f} GB at once in float64. Simplify the "
+               "hulls (from_urdf(..., max_hull_vertices=64), Convex.from_points(..., max_vertices=64), or the meshes "
                "themselves), or exclude pairs that cannot touch (a collision filter group, without_collisions_between)")
     try:
         memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
