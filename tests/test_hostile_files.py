@@ -384,7 +384,7 @@ PHYSICS = {  # urdf() fields -> what the error says
     "triangle inequality": (dict(inertial=inertial(ixx="0.01", iyy="0.01", izz="0.03")),
                             r"rigid body of link 'arm'.*break the triangle inequality.*I3 = 0.03.*fix the inertias"),
     "negative damping": (dict(joint_body='<axis xyz="0 0 1"/><dynamics damping="-0.5"/>'),
-                         r"joint 'j' has damping -0.5; it must be a finite number >= 0.*fix its <dynamics>"),
+                         r"joint 'j' has damping -0.5; it must be a finite number >= 0.*a URDF.s <dynamics>"),
     "negative friction": (dict(joint_body='<axis xyz="0 0 1"/><dynamics friction="-1"/>'),
                           r"joint 'j' has friction -1.0"),
     "NaN damping": (dict(joint_body='<axis xyz="0 0 1"/><dynamics damping="nan"/>'), r"joint 'j' has damping nan"),

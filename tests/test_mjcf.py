@@ -7,9 +7,11 @@ cannot represent."""
 import pathlib
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import jaxdrake as jd
 from jaxdrake.geometry import Box, Capsule, Convex, Cylinder, HalfSpace, Sphere
 from jaxdrake.multibody import MJCFError, RigidBodySystem, body_poses, frame_pose
 
@@ -215,16 +217,60 @@ def test_cartpole_accelerations_equal_mujoco():
     assert compare_accelerations(plant, model) < 1e-12
 
 
-def test_hopper_spring_is_refused_and_without_it_accelerations_equal_mujoco():
-    with pytest.raises(MJCFError, match=r"joint 'leg' .*spring .*stiffness 2000.*feedback"):
-        RigidBodySystem.from_mjcf(DATA / "mj_hopper.xml")
+def test_hopper_with_its_leg_spring_accelerations_equal_mujoco():
     model = mujoco.MjModel.from_xml_path(str(DATA / "mj_hopper.xml"))
-    model.jnt_stiffness[:] = 0.0  # a compiled model is accepted too
-    plant = RigidBodySystem.from_mjcf(model)
+    plant = RigidBodySystem.from_mjcf(DATA / "mj_hopper.xml")
+    np.testing.assert_allclose(plant.tree.spring_stiffness, [0.0, 2000.0])
     np.testing.assert_allclose(plant.tree.position_lower[1], -0.1)
     np.testing.assert_allclose(plant.tree.position_upper[1], 0.15)
     assert plant.input_frame.coordinates == ("leg",)
     assert compare_accelerations(plant, model) < 1e-12
+    model.jnt_stiffness[:] = 0.0  # a compiled model is accepted too
+    assert RigidBodySystem.from_mjcf(model).tree.spring_stiffness is None
+
+
+def test_the_stiff_linearization_holds_the_joint_springs():
+    """The hopper's two slides leave H, Coriolis and gravity terms constant, so the stiff
+    linearization (the applied forces' derivative alone) is the exact Jacobian, spring included."""
+    plant = RigidBodySystem.from_mjcf(DATA / "mj_hopper.xml")
+    x, u = jnp.array([0.1, 0.05, 0.3, -0.2]), jnp.array([5.0])
+    exact = jax.jacfwd(plant.dynamics, argnums=1)(0.0, x, u)
+    stiff = jax.jacfwd(plant.stiff_linearization().dynamics, argnums=1)(0.0, x, u)
+    np.testing.assert_allclose(stiff, exact, rtol=1e-12, atol=1e-12)
+    assert abs(float(exact[3, 1])) > 1000   # the leg's spring, 2000 N/m over its moving mass
+
+
+def test_mujocos_humanoid_with_armature_and_springs_accelerations_equal_mujoco():
+    """MuJoCo's own humanoid (MJX's test model): 21 hinges with armature 0.01 and springs of
+    stiffness 1-20 about their references, on a free body; contact-free accelerations equal
+    `mj_forward`'s."""
+    path = pathlib.Path(mujoco.__file__).parent / "mjx/test_data/humanoid/humanoid.xml"
+    if not path.exists():
+        pytest.skip("this mujoco wheel has no MJX test models")
+    model = mujoco.MjModel.from_xml_path(str(path))
+    plant = RigidBodySystem.from_mjcf(path)
+    np.testing.assert_allclose(plant.tree.armature, model.dof_armature)
+    assert np.count_nonzero(plant.tree.spring_stiffness) == np.count_nonzero(model.jnt_stiffness) == 19
+    assert compare_accelerations(plant, model, seeds=range(3)) < 1e-10
+
+
+def test_armature_and_springs_keep_the_energy_they_add():
+    """The hopper without damping, with armature on both slides: kinetic (rotors included),
+    gravity's and the leg spring's energy stay constant over a second of bouncing on the
+    spring (no contact, no limits)."""
+    model = mujoco.MjModel.from_xml_path(str(DATA / "mj_hopper.xml"))
+    model.dof_damping[:] = 0.0
+    model.dof_armature[:] = [0.3, 0.5]
+    plant = RigidBodySystem.from_mjcf(model, joint_limits=False)
+    x0 = jnp.array([0.0, 0.05, 0.4, -0.3])
+    traj = jd.simulate(plant, (0.0, 1.0), x0, rtol=1e-11, atol=1e-12)
+    states = traj.state(traj.breakpoints())   # the accepted steps' ends
+    energy = jax.vmap(plant.energy)(states)
+    kinetic = 0.5 * ((4.0 + 0.3 + 0.4) * x0[2] ** 2 + (0.4 + 0.5) * x0[3] ** 2
+                     + 2 * 0.4 * x0[2] * -x0[3])   # both bodies move with the height; the leg slides down
+    np.testing.assert_allclose(plant.energy(x0) - plant.energy(x0.at[2:].set(0.0)), kinetic, rtol=1e-12)
+    assert float(jnp.ptp(energy)) < 1e-8 * float(jnp.max(jnp.abs(energy)))
+    assert float(jnp.ptp(states[:, 1])) > 0.01   # the spring did work
 
 
 def test_floating_quadruped_accelerations_equal_mujoco():
@@ -359,7 +405,10 @@ def test_contype_conaffinity_filtering():
 
 @pytest.mark.parametrize("body, message", [
     ('<body><joint name="ball" type="ball"/><geom size=".1"/></body>', r"joint 'ball' .*ball joint.*three hinges"),
-    ('<body><joint name="j" armature="0.1"/><geom size=".1"/></body>', r"joint 'j' .*armature 0.1.*ignore_armature=True"),
+    ('<body><joint name="j" type="free" armature="0.1"/><geom size=".1"/></body>',
+     r"joint 'j' .*free joint with armature 0.1.*hinges and slides.*ignore_armature=True"),
+    ('<body><joint name="j" type="free" stiffness="2"/><geom size=".1"/></body>',
+     r"joint 'j' .*free joint with a spring \(stiffness 2\).*remove it"),
 ])
 def test_unsupported_models_are_named_errors(body, message):
     with pytest.raises(MJCFError, match=message):
@@ -372,7 +421,8 @@ def test_armature_can_be_ignored_and_actuators_chosen():
     with pytest.raises(MJCFError, match=r"actuator 'servo' is not a motor.*actuated=\[joint names\]"):
         RigidBodySystem.from_mjcf(compiled(xml), ignore_armature=True)
     plant = RigidBodySystem.from_mjcf(compiled(xml), ignore_armature=True, actuated=["j"])
-    assert plant.input_frame.coordinates == ("j",)
+    assert plant.input_frame.coordinates == ("j",) and plant.tree.armature is None
+    np.testing.assert_allclose(RigidBodySystem.from_mjcf(compiled(xml), actuated=["j"]).tree.armature, [0.1])
 
 
 def test_shapes_the_plant_cannot_collide_are_named_errors():

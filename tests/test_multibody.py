@@ -395,7 +395,6 @@ def test_vmap_over_states_and_parameters():
                                rtol=1e-13)
 
 
-
 @pytest.mark.parametrize("relative, floating", [("panda_description/urdf/panda.urdf", False),
                                                 pytest.param("solo_description/robots/solo12.urdf", True,
                                                              marks=pytest.mark.slow)])  # 42 s: the Panda's run checks the same
@@ -925,3 +924,73 @@ def test_free_bodies_a_kilometre_apart_keep_float32s_digits(tmp_path):
         rounded = np.asarray(single.dynamics(jnp.float32(0.0), jnp.asarray(x, jnp.float32), jnp.zeros(0, jnp.float32)))[14:]
         assert np.all(np.isfinite(rounded))
         np.testing.assert_allclose(rounded, exact, atol=3e-5 * np.max(np.abs(exact)))
+
+
+def test_armature_enters_the_algorithms_as_pinocchios_and_is_read_from_a_pinocchio_model():
+    """Rotor inertias (armature) on Solo-12's joints: H, RNEA and ABA, one at a time and in a
+    vmapped batch (lanes), equal Pinocchio's with the same `model.armature`; a Pinocchio model
+    brings its armature along; the derivative of ABA equals central differences."""
+    path = example_robot("solo_description/robots/solo12.urdf")
+    tree, _ = mb.tree_from_urdf(path, floating_base=True)
+    twin = PinocchioTwin(path, tree)
+    armature = np.where(np.arange(tree.nv) < 6, 0.0, np.linspace(0.01, 0.12, tree.nv))  # none on the base
+    tree = eqx.tree_at(lambda t: t.armature, tree, jnp.asarray(armature), is_leaf=lambda x: x is None)
+    twin.model.armature = twin.v(armature)
+    qs, vs, xs = random_states(tree, 3, seed=11)
+    batched = jax.jit(jax.vmap(lambda q, v, x: (mb.mass_matrix(tree, q), mb.rnea(tree, q, v, x), mb.aba(tree, q, v, x))))
+    for k, (H, tau, qdd) in enumerate(zip(*map(np.asarray, batched(qs, vs, xs)))):
+        q, v, x = twin.q(qs[k]), twin.v(vs[k]), twin.v(xs[k])
+        H_pin = pin.crba(twin.model, twin.data, q)
+        H_pin = np.triu(H_pin) + np.triu(H_pin, 1).T
+        np.testing.assert_allclose(H, H_pin[np.ix_(twin.v_perm, twin.v_perm)], rtol=0, atol=1e-10)
+        np.testing.assert_allclose(tau, twin.ours(pin.rnea(twin.model, twin.data, q, v, x)), rtol=0, atol=1e-9)
+        np.testing.assert_allclose(qdd, twin.ours(pin.aba(twin.model, twin.data, q, v, x)), rtol=1e-9, atol=1e-9)
+        one = np.asarray(mb.aba(tree, jnp.asarray(qs[k]), jnp.asarray(vs[k]), jnp.asarray(xs[k])))
+        np.testing.assert_allclose(one, qdd, rtol=1e-12, atol=1e-12)
+    # the same H without armature differs by diag(armature) exactly
+    H0 = np.asarray(mb.mass_matrix(eqx.tree_at(lambda t: t.armature, tree, None), jnp.asarray(qs[0])))
+    np.testing.assert_allclose(np.asarray(mb.mass_matrix(tree, jnp.asarray(qs[0]))) - H0, np.diag(armature), atol=1e-13)
+    from_pin = mb.tree_from_pinocchio(twin.model)
+    np.testing.assert_allclose(np.sort(np.asarray(from_pin.armature)), np.sort(armature))
+    # d qdd / d tau = H^{-1} (H with armature), against central differences of ABA
+    q, v, x = (jnp.asarray(a[0]) for a in (qs, vs, xs))
+    J = jax.jacfwd(lambda t: mb.aba(tree, q, v, t))(x)
+    step = 1e-6
+    J_fd = np.stack([(mb.aba(tree, q, v, x.at[i].add(step)) - mb.aba(tree, q, v, x.at[i].add(-step))) / (2 * step)
+                     for i in range(tree.nv)], 1)
+    np.testing.assert_allclose(J, J_fd, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(J, np.linalg.inv(np.asarray(mb.mass_matrix(tree, q))), rtol=1e-9, atol=1e-9)
+
+
+def test_a_rotor_inertia_through_a_gear_is_drakes_reflected_inertia(tmp_path):
+    """Drake's URDF extension `<drake:rotor_inertia>` / `<drake:gear_ratio>` in a transmission's
+    actuator: the joint's armature is I n^2, and H and the forward dynamics equal
+    MultibodyPlant's on the same file."""
+    pydrake = pytest.importorskip("pydrake")
+    from pydrake.multibody.parsing import Parser
+    from pydrake.multibody.plant import MultibodyPlant
+
+    text = (pathlib.Path(pydrake.__file__).parent / "share/drake/examples/acrobot/Acrobot.urdf").read_text()
+    text = text.replace('<robot name="Acrobot">', '<robot name="Acrobot" xmlns:drake="http://drake.mit.edu">')
+    text = text.replace('<actuator name="elbow"/>', '<actuator name="elbow"><drake:rotor_inertia value="0.02"/>'
+                                                    '<drake:gear_ratio value="3"/></actuator>')
+    path = tmp_path / "acrobot_geared.urdf"
+    path.write_text(text)
+    ours = jd.RigidBodySystem.from_urdf(path)
+    np.testing.assert_allclose(ours.tree.armature, [0.0, 0.02 * 3 ** 2])
+    drake_plant = MultibodyPlant(0.0)
+    Parser(drake_plant).AddModels(str(path))
+    drake_plant.Finalize()
+    context = drake_plant.CreateDefaultContext()
+    order = np.array([drake_plant.GetJointByName(n).velocity_start() for n in ours.tree.joint_names])
+    rng = np.random.default_rng(3)
+    for _ in range(3):
+        q, v, u = rng.uniform(-np.pi, np.pi, 2), rng.uniform(-3, 3, 2), rng.uniform(-2, 2, 1)
+        drake_plant.SetPositions(context, q[np.argsort(order)])
+        drake_plant.SetVelocities(context, v[np.argsort(order)])
+        drake_plant.get_actuation_input_port().FixValue(context, u)
+        H = np.asarray(ours.manipulator_dynamics(jnp.asarray(q), jnp.asarray(v))[0])
+        np.testing.assert_allclose(H, drake_plant.CalcMassMatrix(context)[np.ix_(order, order)], rtol=0, atol=1e-12)
+        xdot = drake_plant.EvalTimeDerivatives(context).CopyToVector()
+        qdd = np.asarray(ours.forward_dynamics(jnp.asarray(q), jnp.asarray(v), jnp.asarray(u)))
+        np.testing.assert_allclose(qdd, xdot[2:][order], rtol=0, atol=1e-10)

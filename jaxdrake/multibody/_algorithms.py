@@ -337,7 +337,10 @@ def _rnea(tree: KinematicTree, q, v=None, a=None, *, gravity: bool, unroll):
     F = _apply_inertia(inertia, A)
     if v is not None:
         F = F + _force_cross(V, _apply_inertia(inertia, V))
-    return _project_forces(L, S1, S0, _subtree_sum(L, F))
+    tau = _project_forces(L, S1, S0, _subtree_sum(L, F))
+    if a is not None and tree.armature is not None:
+        tau = tau + _lane(tree.armature.astype(tau.dtype)) * a
+    return tau
 
 
 def _contact_kinematics(tree: KinematicTree, q, v, *, unroll):
@@ -366,7 +369,10 @@ def _mass_matrix(tree: KinematicTree, q, *, unroll):
     M = _mm(F, jnp.moveaxis(columns, 0, 1))  # (a batched `dot` of these small matrices is slower on a CPU)
     ancestor = _lane(jnp.asarray(L.ancestor, M.dtype))
     same = _lane(jnp.asarray(L.ancestor * L.ancestor.T, M.dtype))
-    return ancestor * M + (_t(ancestor) - same) * _t(M)
+    H = ancestor * M + (_t(ancestor) - same) * _t(M)
+    if tree.armature is not None:
+        H = H + _lane(jnp.diag(tree.armature.astype(M.dtype)))
+    return H
 
 
 def _free_force(R, p, tau):
@@ -402,6 +408,8 @@ def _aba(tree: KinematicTree, q, v, tau, *, gravity: bool, unroll):
     I_A1, p_A1, S1p, c1, tau1 = (_with_fill(L, x, fill) for x, fill in (
         (I_A[f:], _lane(jnp.eye(6, dtype=dtype))), (p_A[f:], zero6), (S1, unit), (c[f:], zero6),
         (tau_level[6 * f:], zero6[0])))
+    armature = None if tree.armature is None else _with_fill(  # the one-dof joints' (none on a free body)
+        L, _lane(tree.armature[L.level_dofs[6 * f:]].astype(dtype)), 0.0)
 
     def backward(passed, depth):
         """One depth, deepest first: the articulated inertia and bias of its bodies (their
@@ -409,7 +417,7 @@ def _aba(tree: KinematicTree, q, v, tau, *, gravity: bool, unroll):
         (Ia_in, pa_in), (rows, parent, valid) = passed, depth
         IA, pA, s, c, t = I_A1[rows] + Ia_in, p_A1[rows] + pa_in, S1p[rows], c1[rows], tau1[rows]
         U = _mv(IA, s)
-        D_inv = 1.0 / _dot(s, U)
+        D_inv = 1.0 / (_dot(s, U) if armature is None else _dot(s, U) + armature[rows])
         u = t - _dot(s, pA)
         Ia = IA - D_inv[:, None, None] * U[:, :, None] * U[:, None, :]
         pa = pA + _mv(Ia, c) + U * (D_inv * u)[:, None]
@@ -707,7 +715,7 @@ def aba(tree: KinematicTree, q, v, tau, *, gravity: bool = True):
     r"""Forward dynamics $\dot v = H^{-1}(\tau - C v - G)$ by the articulated-body algorithm.
 
     Backward over the depths (deepest first), for the one-dof bodies of a depth at once:
-    $U = I^A s$, $D = s^T U$, $u = \tau - s^T p^A$, and the parent receives
+    $U = I^A s$, $D = s^T U + \rho$ (the joint's armature), $u = \tau - s^T p^A$, and the parent receives
     $I^A - U U^T / D$ and $p^A + I^a c + U u / D$ (no transforms: world coordinates).
     Forward: $A = A_{\lambda} + c$, $\ddot q = (u - U^T A) / D$, $A \mathrel{+}= s \ddot q$.
     A floating base's acceleration is $(I^A)^{-1}(S_0 \tau_0 - p^A)$. Derivatives come through
@@ -836,9 +844,10 @@ def _frame_index(tree, frame):
 
 @compiled_query
 def kinetic_energy(tree: KinematicTree, q, v):
-    r"""$\tfrac12 \sum_i V_i^T I_i V_i$."""
+    r"""$\tfrac12 \sum_i V_i^T I_i V_i$ (plus the rotors' $\tfrac12 \sum_k \rho_k v_k^2$ of an armature)."""
     R, p, _, _, _, V = _velocities(tree, q[:, None], v[:, None], unroll=_UNROLLED_DEPTHS)
-    return 0.5 * jnp.sum(V * _apply_inertia(_world_inertias(tree, R, p), V))
+    energy = 0.5 * jnp.sum(V * _apply_inertia(_world_inertias(tree, R, p), V))
+    return energy if tree.armature is None else energy + 0.5 * jnp.sum(tree.armature * v ** 2)
 
 
 @compiled_query

@@ -60,6 +60,19 @@ def parse_xml(data: bytes, source, error: type[Exception]) -> ET.Element:
     return builder.close()
 
 
+def local_tag(tag: str) -> str:
+    """A tag's name without its namespace ('{http://drake.mit.edu}capsule' -> 'drake:capsule')."""
+    if tag.startswith("{"):
+        uri, _, name = tag[1:].partition("}")
+        return f"drake:{name}" if "drake" in uri else name
+    return tag
+
+
+def children_named(element, name):
+    """The children of `element` whose `local_tag` is `name`."""
+    return [c for c in element if local_tag(c.tag) == name]
+
+
 def read_xml(path, error: type[Exception]) -> ET.Element:
     """`parse_xml` of the file at `path` (an unreadable file refused with `error`)."""
     path = pathlib.Path(path)

@@ -17,6 +17,10 @@ angles in degrees, meshes); the compiled arrays are read here:
   children and frames are placed accordingly.
 - **Inertia**: `body_mass`, `body_ipos`, `body_iquat`, `body_inertia`. **Gravity**:
   `opt.gravity` (zero when disabled). **Damping**: `dof_damping` (zero when disabled).
+  **Armature**: `dof_armature` of hinges and slides, added to the mass matrix's diagonal
+  (`KinematicTree.armature`; dropped with `ignore_armature=True`). **Springs**: a hinge's or
+  slide's `jnt_stiffness` about `qpos_spring` (`springref`), the torque $-k (q - q_s)$
+  (`KinematicTree.spring_stiffness`; none when springs are disabled).
   **Limits**: `jnt_range` of `jnt_limited` joints (the plant's compliant limits, not MuJoCo's
   soft constraints). `dof_frictionloss` is recorded on `tree.friction`, not applied (as a
   URDF's friction).
@@ -42,8 +46,8 @@ angles in degrees, meshes); the compiled arrays are read here:
   `<compiler meshdir assetdir texturedir>`) inside the model's folder; refused by name.
 
 Refused, each with a named error and its remedy: ball joints (MuJoCo's compiler itself
-refuses a free joint below the worldbody), armature (unless `ignore_armature=True`), joint springs,
-polynomial damping, gravity compensation, fluid forces (`density`, `viscosity`), equality
+refuses a free joint below the worldbody), armature or a spring on a free joint, an actuator's
+armature (unless `ignore_armature=True`), nonlinear springs (`stiffnesspoly`), polynomial damping, gravity compensation, fluid forces (`density`, `viscosity`), equality
 constraints, tendons, flexes, explicit contact `<pair>`s (with `contact=True`), and geoms of
 other shapes that can collide (ellipsoid, height field, SDF).
 """
@@ -85,7 +89,7 @@ def plant_parts_from_mjcf(source, *, contact: bool = False, actuated=None, ignor
     reader = _Reader(mujoco, model, where)
     reader.check_supported(contact, ignore_armature)
     joints = reader.actuated_joints() if actuated is None else list(actuated)
-    tree = reader.tree()
+    tree = reader.tree(ignore_armature)
     return tree, joints, (reader.collisions() if contact else None), reader.default_positions(tree)
 
 
@@ -196,6 +200,9 @@ class _Reader:
     def _name(self, kind, index, fallback):
         return self.mj.mj_id2name(self.m, kind, index) or fallback
 
+    def springs_on(self) -> bool:
+        return not self.disabled("mjDSBL_SPRING")
+
     def _joint(self, j):
         return f"{self.where}: joint {self.joint_name[j]!r} (body {self.body_name[self.m.jnt_bodyid[j]]!r})"
 
@@ -217,14 +224,16 @@ class _Reader:
                                 "(floating-base) joint. Replace it by three hinges with orthogonal axes in "
                                 "the same body (same pos)")
             dofs = slice(m.jnt_dofadr[j], m.jnt_dofadr[j] + self._joint_type(j).num_velocities)
-            if np.any(m.dof_armature[dofs] != 0) and not ignore_armature:
-                raise MJCFError(f"{self._joint(j)} has armature {m.dof_armature[dofs].max():g}, which the "
-                                "plant does not model (a rotor inertia added to H's diagonal). Remove it from "
-                                "the file, or pass ignore_armature=True to drop it")
-            if (m.jnt_stiffness[j] != 0 or np.any(m.jnt_stiffnesspoly[j] != 0)) and not self.disabled("mjDSBL_SPRING"):
-                raise MJCFError(f"{self._joint(j)} has a spring (stiffness {m.jnt_stiffness[j]:g}), which the "
-                                "plant does not model. Set stiffness=\"0\" and apply the spring as a feedback "
-                                "u = -k (q - springref) around the plant, or disable springs (<flag spring=\"disable\"/>)")
+            if self._joint_type(j) == JointType.FLOATING and np.any(m.dof_armature[dofs] != 0) and not ignore_armature:
+                raise MJCFError(f"{self._joint(j)} is a free joint with armature {m.dof_armature[dofs].max():g}; the "
+                                "plant models armature on hinges and slides alone. Remove it from the free joint, "
+                                "or pass ignore_armature=True to drop all armature")
+            if self.springs_on() and self._joint_type(j) == JointType.FLOATING and m.jnt_stiffness[j] != 0:
+                raise MJCFError(f"{self._joint(j)} is a free joint with a spring (stiffness {m.jnt_stiffness[j]:g}); "
+                                "the plant models springs on hinges and slides alone: remove it")
+            if self.springs_on() and np.any(m.jnt_stiffnesspoly[j] != 0):
+                raise MJCFError(f"{self._joint(j)} has a nonlinear spring (stiffnesspoly), which the plant does "
+                                "not model; keep only its linear stiffness")
             if np.any(m.dof_dampingpoly[dofs] != 0) and not self.disabled("mjDSBL_DAMPER"):
                 raise MJCFError(f"{self._joint(j)} has polynomial damping, which the plant does not model; "
                                 "keep only its linear damping")
@@ -249,12 +258,14 @@ class _Reader:
 
     # ----- bodies and joints ------------------------------------------------------------------
 
-    def tree(self) -> KinematicTree:
+    def tree(self, ignore_armature: bool = False) -> KinematicTree:
         m = self.m
         bodies, frames = [], [("world", -1, np.eye(3), np.zeros(3))]
         place = {0: (-1, np.eye(3), np.zeros(3))}  # MuJoCo body -> (tree body, R, p of it in the tree body)
         damping_on = not self.disabled("mjDSBL_DAMPER")
         effort = self._effort_limits()
+        armature = np.zeros(m.nv) if ignore_armature else m.dof_armature
+        stiffness = m.jnt_stiffness if self.springs_on() else np.zeros(m.njnt)
         for b in range(1, m.nbody):
             parent, R_p, p_p = place[m.body_parentid[b]]
             R_B = _quaternion_matrix(m.body_quat[b])
@@ -264,7 +275,8 @@ class _Reader:
                 dof = m.jnt_dofadr[j]
                 common = dict(joint=self.joint_name[j], inertial=(0.0, np.zeros(3), np.zeros((3, 3))),
                               damping=m.dof_damping[dof] if damping_on else 0.0, friction=m.dof_frictionloss[dof],
-                              effort=effort.get(j, np.inf), lower=-np.inf, upper=np.inf)
+                              effort=effort.get(j, np.inf), lower=-np.inf, upper=np.inf, armature=armature[dof],
+                              stiffness=stiffness[j], spring_reference=m.qpos_spring[m.jnt_qposadr[j]])
                 kind = self._joint_type(j)
                 if kind == JointType.FLOATING:   # a free body of the worldbody (MuJoCo allows no other)
                     bodies.append(dict(common, link=self.body_name[b], type=JointType.FLOATING, parent=-1, R=np.eye(3),

@@ -102,6 +102,11 @@ class RigidBodySystem(System):
       with `from_urdf(..., mimic=True)` (by default, as Pinocchio's `buildModelFromUrdf`, a
       mimic joint is an independent joint).
     - Damping acts in the dynamics; the URDF's Coulomb friction is recorded on `tree`, not applied.
+    - Rotor inertia: a joint's armature $\rho$ (`tree.armature`: Drake's URDF extension
+      `<drake:rotor_inertia>` times `<drake:gear_ratio>` squared in a `<transmission>`'s
+      actuator, MuJoCo's `armature`, Pinocchio's `model.armature`) adds to H's diagonal.
+      Joint springs (`tree.spring_stiffness`, `tree.spring_reference`: MuJoCo's `stiffness`,
+      `springref`) push by $-k(q - q_s)$; `energy` counts both.
     - Contact (`from_urdf(..., contact=True)`, `with_collision_geometry`, `with_ground`): the
       `<collision>` shapes touch each other and the world by Drake's compliant point contact
       (Hunt-Crossley normal force, regularised Stribeck friction; "The contact model" on the API page),
@@ -287,10 +292,11 @@ class RigidBodySystem(System):
 
     @compiled_query
     def inverse_dynamics(self, q, v, qdd):
-        """The generalized force H qdd + C v + G + b o v - tau_lim - tau_contact that produces
-        qdd (damping, joint-limit and contact forces included; constraint forces not)."""
+        """The generalized force H qdd + C v + G + b o v - tau_lim - tau_contact - tau_spring
+        that produces qdd (damping, joint-limit, contact and joint-spring forces included;
+        constraint forces not)."""
         return (alg.rnea(self.tree, q, v, qdd) + self.tree.damping * v - self.joint_limit_torque(q, v)
-                - self.contact_force(q, v))
+                - self.contact_force(q, v) - self._spring_torque(q))
 
     # ----- contact ---------------------------------------------------------------------------
 
@@ -427,8 +433,14 @@ class RigidBodySystem(System):
             return self
         return _replace_fields(self, linearization="stiff")
 
+    def _spring_torque(self, q):
+        """The joint springs' torque (`KinematicTree.spring_torque`), 0.0 without springs."""
+        spring = self.tree.spring_torque(q)
+        return 0.0 if spring is None else spring
+
     def _forward_dynamics(self, q, v, u):
-        tau = self.B @ u - self.tree.damping * v + self.joint_limit_torque(q, v) + self.contact_force(q, v)
+        tau = (self.B @ u - self.tree.damping * v + self.joint_limit_torque(q, v) + self.contact_force(q, v)
+               + self._spring_torque(q))
         if not (self.loops or self.couplers):
             return alg.aba(self.tree, q, v, tau)
         H = alg.mass_matrix(self.tree, q)
@@ -549,10 +561,11 @@ class RigidBodySystem(System):
 
     @compiled_query
     def energy(self, x):
-        """Kinetic plus gravity's potential energy. The contact springs' energy is not in it:
-        during an impact it rises by what they store, and it falls as their dissipation acts."""
+        """Kinetic plus gravity's and the joint springs' potential energy. The contact springs'
+        energy is not in it: during an impact it rises by what they store, and it falls as
+        their dissipation acts."""
         q, v = x[: self.tree.nq], x[self.tree.nq:]
-        return alg.kinetic_energy(self.tree, q, v) + alg.potential_energy(self.tree, q)
+        return alg.kinetic_energy(self.tree, q, v) + alg.potential_energy(self.tree, q) + self.tree.spring_energy(q)
 
     @compiled_query
     def frame_pose(self, q, frame: str):
@@ -655,7 +668,7 @@ def _neutral_joint_inertias(tree):
         else:
             arm = np.cross(a, centre[subtree] - p[i])
             H[tree.v_starts[i]] = np.einsum("i,nij,j->", a, inertia[subtree], a) + np.sum(mass[subtree] * np.sum(arm ** 2, 1))
-    return H
+    return H if tree.armature is None else H + np.asarray(tree.armature)
 
 
 def _stiffly_linearized_forward_dynamics(plant, q, v, u):
@@ -684,6 +697,8 @@ def _stiff_derivative(static, primals, tangents):
     plant = _exact(static, arrays)
     tree = plant.tree
     dtau = plant.B @ du - tree.damping * dv + jax.jvp(plant.joint_limit_torque, (q, v), (dq, dv))[1]
+    if tree.spring_stiffness is not None:
+        dtau = dtau - tree.spring_stiffness * dq[np.asarray(tree.position_of_velocity)]
     if plant.contact is not None:
         K, D = plant.contact.force_derivatives(tree, q, v)
         dtau = dtau + K @ alg.velocity_of_configuration_change(tree, q, dq) + D @ dv

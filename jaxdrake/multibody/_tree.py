@@ -14,7 +14,8 @@ qw] (position of the base in the world, unit quaternion of its orientation), v =
 omega_base], the linear and angular velocity of the base expressed in the base frame.
 
 Static: names, joint types, parent indices, index layout. Leaves (differentiable): joint
-axes and placements, masses, centres of mass, inertias, damping, friction, limits, gravity.
+axes and placements, masses, centres of mass, inertias, damping, friction, limits, gravity,
+and, where a file gives them, rotor inertias (armature) and joint springs.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._numbers import device_array
-from ._files import read_xml
+from ._files import children_named, read_xml
 from ._joints import JointType
 from ._spatial import rpy
 
@@ -66,6 +67,14 @@ class KinematicTree(eqx.Module):
     `frame_rotation[k]`, `frame_translation[k]` (frame k in its body's frame); `damping`,
     `friction`, `effort_limit` (per velocity coordinate); `position_lower`, `position_upper`
     (per position coordinate); `gravity` (3, world).
+
+    Optional leaves (None: none, and nothing computed for them), per velocity coordinate:
+    `armature`, a rotor's inertia reflected through its transmission onto the joint (MuJoCo's
+    `armature`, Drake's reflected inertia $\\rho = I_{rotor} n^2$, Pinocchio's
+    `model.armature`), added to the mass matrix's diagonal, $H + \\mathrm{diag}(\\rho)$;
+    `spring_stiffness` k and `spring_reference` $q_s$ of joint springs on one-dof joints
+    (MuJoCo's `stiffness` and `springref`), the torque $-k (q - q_s)$ (0 on a free body's
+    coordinates).
     """
 
     robot_name: str = eqx.field(static=True)
@@ -89,6 +98,9 @@ class KinematicTree(eqx.Module):
     position_upper: jnp.ndarray
     effort_limit: jnp.ndarray
     gravity: jnp.ndarray
+    armature: jnp.ndarray | None = None
+    spring_stiffness: jnp.ndarray | None = None
+    spring_reference: jnp.ndarray | None = None
 
     @property
     def num_bodies(self) -> int:
@@ -124,6 +136,27 @@ class KinematicTree(eqx.Module):
     def neutral_configuration(self):
         """q with every joint at zero (the identity quaternion for a floating base)."""
         return jnp.asarray(np.array([c for kind in self.joint_types for c in kind.neutral_position], float))
+
+    def spring_torque(self, q):
+        """$-k (q - q_s)$ of the joint springs (per velocity coordinate; None without springs)."""
+        if self.spring_stiffness is None:
+            return None
+        return -self.spring_stiffness * self._spring_stretch(q)
+
+    def spring_energy(self, q):
+        r"""$\tfrac12 \sum k (q - q_s)^2$ of the joint springs (0.0 without springs)."""
+        if self.spring_stiffness is None:
+            return 0.0
+        return 0.5 * jnp.sum(self.spring_stiffness * self._spring_stretch(q) ** 2)
+
+    def _spring_stretch(self, q):
+        return q[np.asarray(self.position_of_velocity)] - self.spring_reference
+
+    @property
+    def position_of_velocity(self) -> tuple:
+        """Each velocity coordinate's position coordinate: a one-dof joint's own; a free body's
+        (whose coordinates differ) its first."""
+        return tuple(int(q) for kind, q in zip(self.joint_types, self.q_starts) for _ in range(kind.num_velocities))
 
     @property
     def layout(self) -> "TreeLayout":
@@ -361,14 +394,32 @@ def tree_from_urdf(path, *, floating_base: bool = False, gravity=(0.0, 0.0, -9.8
             raise URDFError(f"{path}: cannot weld joint {name!r}: it is not defined")
     actuated = []
     for transmission in root.findall("transmission"):
+        reflected = _reflected_inertia(transmission, path)
         for joint in transmission.findall("joint"):
-            if joint.get("name") not in welded:
-                actuated.append(joint.get("name"))
-    for name in actuated:
-        if name not in known:
-            raise URDFError(f"{path}: a <transmission> actuates joint {name!r}, which is not defined")
+            name = joint.get("name")
+            if name not in known:
+                raise URDFError(f"{path}: a <transmission> actuates joint {name!r}, which is not defined")
+            if name not in welded:
+                actuated.append(name)
+                known[name]["armature"] = known[name].get("armature", 0.0) + reflected
     tree = _build_tree(root.get("name") or path.stem, fixed, free, links, joints, np.asarray(gravity, float), path)
     return tree, tuple(actuated)
+
+
+def _reflected_inertia(transmission, path) -> float:
+    r"""A transmission's reflected inertia $\rho = I_{rotor} n^2$ from its actuators'
+    `<drake:rotor_inertia value>` and `<drake:gear_ratio value>` (Drake's URDF extension;
+    0 and 1 where absent), the armature of the joint it drives."""
+    where = f"<transmission name={transmission.get('name')!r}>"
+    total = 0.0
+    for actuator in transmission.findall("actuator"):
+        value = lambda tag, default: [_numbers(e, "value", 1, default, path, where)  # noqa: E731
+                                      for e in children_named(actuator, tag)] or [default]
+        rotor, gear = value("drake:rotor_inertia", 0.0)[0], value("drake:gear_ratio", 1.0)[0]
+        if not rotor >= 0:
+            raise URDFError(f"{path}: {where}: <drake:rotor_inertia value={rotor}> must be >= 0")
+        total += rotor * gear ** 2
+    return total
 
 
 def urdf_mimic_joints(path, welded=()) -> tuple:
@@ -479,7 +530,7 @@ def _build_tree(robot_name, fixed, free, links, joints, gravity, path):
                 bodies.append(dict(link=j["child"], joint=j["name"], type=j["type"], parent=body, R=R, p=p,
                                    axis=j["axis"], inertial=links[j["child"]], lower=j["lower"],
                                    upper=j["upper"], effort=j["effort"], damping=j["damping"],
-                                   friction=j["friction"]))
+                                   friction=j["friction"], armature=j.get("armature", 0.0)))
                 link_body[j["child"]] = (len(bodies) - 1, np.eye(3), np.zeros(3))
             stack.extend(reversed(by_parent.get(j["child"], [])))
     if len(link_body) != len(links):
@@ -497,7 +548,8 @@ def _build_tree(robot_name, fixed, free, links, joints, gravity, path):
 
 def assemble_tree(robot_name, bodies, frames, gravity, path, error=URDFError) -> KinematicTree:
     """The `KinematicTree` of `bodies` (dicts: link, joint, type, parent, R, p, axis,
-    inertial = (mass, com, inertia), lower, upper, effort, damping, friction; parents first) and
+    inertial = (mass, com, inertia), lower, upper, effort, damping, friction; optionally
+    armature, stiffness and spring_reference, 0 where absent; parents first) and
     `frames` ((name, body, R, p), body -1 the world), shared by the URDF and MJCF readers.
     Physically impossible bodies and joints are refused here with `error` (`_check_bodies`)."""
     _check_bodies(bodies, path, error)
@@ -505,7 +557,10 @@ def assemble_tree(robot_name, bodies, frames, gravity, path, error=URDFError) ->
     floats = lambda values: device_array(values, float)  # converted on the host: nothing to compile
     arr = lambda key: floats([b[key] for b in bodies])
     per_q = lambda key: floats(np.concatenate([[b[key]] * JointType(b["type"]).num_positions for b in bodies]))
-    per_dof = lambda key: floats(np.concatenate([[b[key]] * JointType(b["type"]).num_velocities for b in bodies]))
+    per_dof = lambda key: floats(np.concatenate([[b.get(key, 0.0)] * JointType(b["type"]).num_velocities
+                                                 for b in bodies]))
+    given = lambda key: per_dof(key) if any(b.get(key, 0.0) != 0 for b in bodies) else None  # noqa: E731
+    springs = given("stiffness")
     return KinematicTree(
         robot_name=robot_name, body_names=tuple(b["link"] for b in bodies), joint_names=tuple(b["joint"] for b in bodies),
         joint_types=tuple(b["type"] for b in bodies), parents=tuple(b["parent"] for b in bodies),
@@ -518,7 +573,8 @@ def assemble_tree(robot_name, bodies, frames, gravity, path, error=URDFError) ->
         frame_translation=floats([f[3] for f in frames]),
         damping=per_dof("damping"), friction=per_dof("friction"),
         position_lower=per_q("lower"), position_upper=per_q("upper"), effort_limit=per_dof("effort"),
-        gravity=floats(gravity))
+        gravity=floats(gravity), armature=given("armature"), spring_stiffness=springs,
+        spring_reference=None if springs is None else per_dof("spring_reference"))
 
 
 def _check_bodies(bodies, path, error):
@@ -531,10 +587,13 @@ def _check_bodies(bodies, path, error):
             raise error(f"{path}: the rigid body of link {b['link']!r} (with the links welded to it) {problem}; "
                         "fix the inertias of its links")
         where = f"{path}: joint {b['joint']!r}"
-        for key in ("damping", "friction"):
-            if not (np.isfinite(b[key]) and b[key] >= 0):
+        for key in ("damping", "friction", "armature", "stiffness"):
+            if not (np.isfinite(b.get(key, 0.0)) and b.get(key, 0.0) >= 0):
                 raise error(f"{where} has {key} {b[key]}; it must be a finite number >= 0 (a negative {key} "
-                            "feeds energy into the motion): fix its <dynamics>")
+                            "feeds energy into the motion): fix it in the file (a URDF's <dynamics>)")
+        if JointType(b["type"]) == JointType.FLOATING and (b.get("armature", 0.0) or b.get("stiffness", 0.0)):
+            raise error(f"{where} frees a body and has armature or a spring, which the plant models on hinges and "
+                        "slides alone: remove them from the free joint")
         if not b["effort"] >= 0:
             raise error(f"{where} has effort limit {b['effort']}; it must be >= 0 (or absent: unlimited)")
         if not b["lower"] <= b["upper"]:
@@ -613,7 +672,20 @@ def tree_from_pinocchio(model) -> KinematicTree:
         position_lower=jnp.asarray(np.concatenate(q_lower), float),
         position_upper=jnp.asarray(np.concatenate(q_upper), float),
         effort_limit=jnp.asarray(np.asarray(model.effortLimit)[v_order], float),
-        gravity=jnp.asarray(np.asarray(model.gravity.linear), float))
+        gravity=jnp.asarray(np.asarray(model.gravity.linear), float),
+        armature=_pin_armature(model, q_index, v_order))
+
+
+def _pin_armature(model, q_index, v_order):
+    """Pinocchio's `model.armature` per velocity coordinate (None when all zero); refused on a
+    free flyer, where the plant does not model it."""
+    armature = np.asarray(model.armature, float)[v_order]
+    free = np.concatenate([np.arange(iv, iv + nv) for _, _, iv, nv, kind in q_index if kind == JointType.FLOATING]
+                          + [np.zeros(0, int)]).astype(int)
+    if np.any(np.asarray(model.armature, float)[free] != 0):
+        raise ValueError("Pinocchio model: armature on the free flyer's coordinates, which the plant models on "
+                         "revolute and prismatic joints alone: set it to zero there")
+    return jnp.asarray(armature) if np.any(armature != 0) else None
 
 
 def _pin_neutral(model):

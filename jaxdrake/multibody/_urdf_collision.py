@@ -26,7 +26,7 @@ import numpy as np
 
 from ..geometry import Box, Capsule, Convex, Cylinder, GeometryError, Sphere
 from ._contact import URDF_DEFAULT_FRICTION, CollisionGeometry, ContactMaterial
-from ._files import resolve_model_file
+from ._files import children_named, local_tag, resolve_model_file
 from ._joints import JointType
 from ._tree import URDF_JOINT_TYPES, URDFError, _numbers, _origin, read_urdf
 
@@ -38,18 +38,6 @@ class URDFCollisions:
 
     geometries: tuple
     excluded_link_pairs: tuple
-
-
-def _local(tag: str) -> str:
-    """A tag's name without its namespace ('{http://drake.mit.edu}capsule' -> 'drake:capsule')."""
-    if tag.startswith("{"):
-        uri, _, name = tag[1:].partition("}")
-        return f"drake:{name}" if "drake" in uri else name
-    return tag
-
-
-def _children(element, name):
-    return [c for c in element if _local(c.tag) == name]
 
 
 def read_urdf_collisions(path, *, package_map=None, mesh_hulls: bool = False,
@@ -92,13 +80,13 @@ def _collision(element, link, index, path, package_map, read_mesh) -> CollisionG
     shapes = [] if geometry is None else list(geometry)
     if len(shapes) != 1:
         raise URDFError(f"{path}: {where}: a <geometry> needs exactly one shape element, found "
-                        f"{[_local(s.tag) for s in shapes] or 'none'}")
+                        f"{[local_tag(s.tag) for s in shapes] or 'none'}")
     shape = _shape(shapes[0], path, where, package_map, read_mesh)
     material = ContactMaterial()
-    for properties in _children(element, "drake:proximity_properties"):
+    for properties in children_named(element, "drake:proximity_properties"):
         values = {}
         for item in properties:
-            key = _local(item.tag).removeprefix("drake:")
+            key = local_tag(item.tag).removeprefix("drake:")
             if key in ("point_contact_stiffness", "hunt_crossley_dissipation", "mu_static", "mu_dynamic"):
                 values[key] = float(_numbers(item, "value", 1, np.nan, path, where))
         material = ContactMaterial(**values)
@@ -117,7 +105,7 @@ _REQUIRED = {"sphere": ("radius",), "box": ("size",), "cylinder": ("radius", "le
 
 
 def _shape(element, path, where, package_map, read_mesh):
-    kind = _local(element.tag)
+    kind = local_tag(element.tag)
 
     def required(attribute, count=1):
         if element.get(attribute) is None and kind in _REQUIRED and attribute in _REQUIRED[kind]:
@@ -150,14 +138,14 @@ def _shape(element, path, where, package_map, read_mesh):
 
 def _filter_group_exclusions(root, path):
     groups, ignores = {}, {}
-    for group in _children(root, "drake:collision_filter_group"):
+    for group in children_named(root, "drake:collision_filter_group"):
         name = group.get("name")
         if not name:
             raise URDFError(f"{path}: a <drake:collision_filter_group> has no name")
         if group.get("ignore", "false").lower() in ("true", "1"):
             continue
-        groups[name] = [m.get("link") for m in _children(group, "drake:member")]
-        ignores[name] = [g.get("name") for g in _children(group, "drake:ignored_collision_filter_group")]
+        groups[name] = [m.get("link") for m in children_named(group, "drake:member")]
+        ignores[name] = [g.get("name") for g in children_named(group, "drake:ignored_collision_filter_group")]
     pairs = []
     for name, ignored in ignores.items():
         for other in ignored:
