@@ -403,6 +403,41 @@ def test_contype_conaffinity_filtering():
     np.testing.assert_allclose(np.abs(np.asarray(results.force)[np.asarray(results.active), 2]), 5e5 * 0.05, rtol=1e-9)
 
 
+def test_explicit_pairs_make_their_geoms_touch_whatever_the_filters_say():
+    """Visual-only geoms (contype = conaffinity = 0) named by a <pair> collide with each other
+    alone; a pair overrides an <exclude> too. MuJoCo's humanoid: its four foot capsules touch
+    the floor, and nothing else touches."""
+    xml = """<mujoco><worldbody>
+      <geom name="floor" type="plane" size="1 1 .1" contype="0" conaffinity="0"/>
+      <body name="a" pos="0 0 1"><joint type="slide" axis="0 0 1"/>
+        <geom name="a" type="sphere" size=".1" contype="0" conaffinity="0"/></body>
+      <body name="b" pos="1 0 1"><joint type="slide" axis="0 0 1"/>
+        <geom name="b" type="sphere" size=".1" contype="0" conaffinity="0"/>
+        <body name="c" pos="0 0 -0.15"><joint type="slide" axis="1 0 0"/>
+          <geom name="c" type="sphere" size=".1" contype="0" conaffinity="0"/></body></body>
+      <body name="d" pos="2 0 1"><joint type="slide" axis="0 0 1"/>
+        <geom name="d" type="sphere" size=".1" contype="0" conaffinity="0"/></body>
+    </worldbody><contact><exclude body1="b" body2="c"/><pair geom1="a" geom2="floor"/><pair geom1="b" geom2="c"/>
+      <pair geom1="floor" geom2="b"/></contact></mujoco>"""
+    plant = RigidBodySystem.from_mjcf(compiled(xml), contact=True)
+    assert set(plant.contact.names) == {"floor", "a", "b", "c"}   # d is in no pair: visual only
+    excluded = {frozenset(p) for p in plant.collision.excluded_link_pairs}
+    assert excluded == {frozenset(p) for p in [("world", "c"), ("a", "b"), ("a", "c")]}
+    # a and b 5 cm into the floor, c 5 cm into b (its parent, and excluded, yet paired): each pushed
+    # by Drake's default stiffness at rest (5e5 N/m combined)
+    results = jax.jit(plant.contact_results)(np.array([-0.95, -0.95, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    active = np.asarray(results.active)
+    names = plant.contact.names
+    touching = {frozenset((names[a], names[b])) for a, b, on in zip(results.geometry_a, results.geometry_b, active) if on}
+    assert touching == {frozenset(p) for p in [("floor", "a"), ("floor", "b"), ("b", "c")]}
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(results.force)[active], axis=1), 5e5 * 0.05, rtol=1e-9)
+    path = pathlib.Path(mujoco.__file__).parent / "mjx/test_data/humanoid/humanoid.xml"
+    if path.exists():
+        humanoid = RigidBodySystem.from_mjcf(path, contact=True)
+        assert set(humanoid.contact.names) == {"floor", "foot1_left", "foot2_left", "foot1_right", "foot2_right"}
+        assert {frozenset(p) for p in humanoid.collision.excluded_link_pairs} == {frozenset(("foot_left", "foot_right"))}
+
+
 @pytest.mark.parametrize("body, message", [
     ('<body><joint name="ball" type="ball"/><geom size=".1"/></body>', r"joint 'ball' .*ball joint.*three hinges"),
     ('<body><joint name="j" type="free" armature="0.1"/><geom size=".1"/></body>',

@@ -39,7 +39,9 @@ angles in degrees, meshes); the compiled arrays are read here:
   are not translated. Filtering as MuJoCo's: no contact between geoms of one rigid body, of a
   body and its parent (unless `filterparent` is disabled; bodies welded to the world
   excepted), of bodies named by `<exclude>`, nor where `contype_a & conaffinity_b` and
-  `contype_b & conaffinity_a` are both 0. The plant excludes pairs of bodies, so two bodies
+  `contype_b & conaffinity_a` are both 0; an explicit `<pair>` makes its two geoms touch
+  whatever the filters say (its own friction, `condim`, `solref`, margin are not read: the
+  geoms' friction combines by Drake's rule). The plant excludes pairs of bodies, so two bodies
   whose geoms pass MuJoCo's filter for some pairs and not others are refused by name.
 - **Files** (`check_model_files`, before MuJoCo opens anything): the XML of the model and of
   its includes without DTD or entities, and every file it names (includes, meshes, textures,
@@ -48,7 +50,7 @@ angles in degrees, meshes); the compiled arrays are read here:
 Refused, each with a named error and its remedy: ball joints (MuJoCo's compiler itself
 refuses a free joint below the worldbody), armature or a spring on a free joint, an actuator's
 armature (unless `ignore_armature=True`), nonlinear springs (`stiffnesspoly`), polynomial damping, gravity compensation, fluid forces (`density`, `viscosity`), equality
-constraints, tendons, flexes, explicit contact `<pair>`s (with `contact=True`), and geoms of
+constraints, tendons, flexes, and geoms of
 other shapes that can collide (ellipsoid, height field, SDF).
 """
 
@@ -87,7 +89,7 @@ def plant_parts_from_mjcf(source, *, contact: bool = False, actuated=None, ignor
     mujoco = _mujoco()
     model, where = _compile(mujoco, source)
     reader = _Reader(mujoco, model, where)
-    reader.check_supported(contact, ignore_armature)
+    reader.check_supported(ignore_armature)
     joints = reader.actuated_joints() if actuated is None else list(actuated)
     tree = reader.tree(ignore_armature)
     return tree, joints, (reader.collisions() if contact else None), reader.default_positions(tree)
@@ -215,7 +217,7 @@ class _Reader:
 
     # ----- what the plant cannot represent ------------------------------------------------------
 
-    def check_supported(self, contact, ignore_armature):
+    def check_supported(self, ignore_armature):
         m, where, J = self.m, self.where, self.mj.mjtJoint
         for j in range(m.njnt):
             kind = m.jnt_type[j]
@@ -247,9 +249,7 @@ class _Reader:
         for count, what, remedy in ((m.neq, "equality constraints", "close loops with RigidBodySystem(tree, "
                                      "loops=[LoopConstraint(...)]) or couplers=[CouplerConstraint(...)]"),
                                     (m.ntendon, "tendons", "remove them (actuate the joints instead)"),
-                                    (m.nflex, "flexes (deformable bodies)", "remove them"),
-                                    (m.npair if contact else 0, "explicit contact <pair>s",
-                                     "remove them; contype / conaffinity filtering and <exclude> are read")):
+                                    (m.nflex, "flexes (deformable bodies)", "remove them")):
             if count:
                 raise MJCFError(f"{where}: the model has {count} {what}, which the plant does not represent; {remedy}")
         if np.any(m.actuator_armature != 0) and not ignore_armature:
@@ -388,8 +388,9 @@ class _Reader:
     def collisions(self) -> URDFCollisions:
         m, G = self.m, self.mj.mjtGeom
         geometries, owners = [], []
+        paired = set(m.pair_geom1.tolist()) | set(m.pair_geom2.tolist())
         for g in range(m.ngeom):
-            if m.geom_contype[g] == 0 and m.geom_conaffinity[g] == 0:
+            if m.geom_contype[g] == 0 and m.geom_conaffinity[g] == 0 and g not in paired:
                 continue  # visual only: it can never collide
             b = m.geom_bodyid[g]
             link = self.body_name[b]
@@ -437,7 +438,11 @@ class _Reader:
         filter_parent = not self.disabled("mjDSBL_FILTERPARENT")
         tree_body = lambda b: self.place[b][0]  # noqa: E731
 
+        explicit = {frozenset(pair) for pair in zip(m.pair_geom1.tolist(), m.pair_geom2.tolist())}
+
         def passes(g1, g2):
+            if frozenset((g1, g2)) in explicit:   # a <pair> bypasses every filter
+                return True
             b1, b2 = m.geom_bodyid[g1], m.geom_bodyid[g2]
             w1, w2 = weld[b1], weld[b2]
             if filter_parent and w1 != 0 and w2 != 0 and (w1 == weld[m.body_parentid[w2]] or w2 == weld[m.body_parentid[w1]]):
