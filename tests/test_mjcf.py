@@ -501,3 +501,27 @@ def test_the_initial_state_is_the_files_configuration_as_mujocos_reset():
             R, p = frame_pose(plant.tree, x0[: plant.tree.nq], name)
             np.testing.assert_allclose(p, data.xpos[b], atol=1e-12)
             np.testing.assert_allclose(R, data.xmat[b].reshape(3, 3), atol=1e-12)
+
+
+def test_a_plant_from_mjcf_is_drawn_by_mujocos_renderer_at_its_states(tmp_path):
+    """`visualizer_for` a plant loaded from an MJCF file is MuJoCo's renderer of that file; a
+    frame at the plant's state equals the frame MuJoCo renders at the same qpos (the floating
+    quadruped's quaternion reordered); MeshCat names the remedy instead of misreading MJCF as URDF."""
+    path = tmp_path / "quadruped.xml"
+    path.write_text(quadruped_xml())
+    plant = RigidBodySystem.from_mjcf(path)
+    vis = jd.viz.visualizer_for(plant)
+    assert isinstance(vis, jd.viz.MujocoVisualizer)
+    model = mujoco.MjModel.from_xml_path(str(path))
+    rng = np.random.default_rng(4)
+    qposes = [random_state(model, rng)[0] for _ in range(2)]
+    for qpos in qposes:   # the base near the origin, where the free camera looks
+        qpos[:3] = rng.uniform(-0.1, 0.1, 3)
+    xs = np.stack([to_plant(model, qpos, np.zeros(model.nv)) for qpos in qposes])
+    theirs = jd.viz.MujocoVisualizer(jd.MujocoSystem.from_xml(path)).images(
+        np.stack([np.concatenate([qpos, np.zeros(model.nv)]) for qpos in qposes]))
+    ours = vis.images(xs)
+    np.testing.assert_array_equal(ours, theirs)
+    assert np.mean(np.any(ours[0] != ours[1], axis=-1)) > 0.01   # two different poses
+    with pytest.raises(ValueError, match=r"loaded from an MJCF file.*MujocoVisualizer\(plant\)"):
+        jd.viz.MeshcatVisualizer(plant)

@@ -95,6 +95,17 @@ def plant_parts_from_mjcf(source, *, contact: bool = False, actuated=None, ignor
     return tree, joints, (reader.collisions() if contact else None), reader.default_positions(tree)
 
 
+def mjcf_render_model(plant):
+    """(MuJoCo's compiled model of the MJCF file `plant` was loaded from, the qpos address of
+    each of the plant's position coordinates), for MuJoCo's renderer to draw the plant's states."""
+    if plant.source_format != "mjcf":
+        raise ValueError(f"{plant.name} was not loaded from an MJCF file (RigidBodySystem.from_mjcf(path))")
+    mujoco = _mujoco()
+    model, where = _compile(mujoco, plant.source)
+    addresses = _Reader(mujoco, model, where).qpos_addresses(plant.tree)
+    return model, addresses
+
+
 def _mujoco():
     return require("mujoco", "from_mjcf")
 
@@ -319,17 +330,21 @@ class _Reader:
         return assemble_tree(robot_name or "mjcf_model", bodies, frames, gravity, self.where, MJCFError)
 
     def default_positions(self, tree) -> np.ndarray:
-        """MuJoCo's `qpos0` in the tree's coordinates: a free joint's [x y z qw qx qy qz] as
-        [x y z qx qy qz qw], a hinge's or slide's value as it is (the tree's joint frames
-        take `ref` into account)."""
-        q = np.zeros(tree.nq)
+        """MuJoCo's `qpos0` in the tree's coordinates (`qpos_addresses`)."""
+        return np.asarray(self.m.qpos0, float)[self.qpos_addresses(tree)]
+
+    def qpos_addresses(self, tree) -> np.ndarray:
+        """Where each of the tree's position coordinates sits in MuJoCo's qpos: a free joint's
+        [x y z qx qy qz qw] at its [x y z qw qx qy qz], a hinge's or slide's value as it is
+        (the tree's joint frames take `ref` into account)."""
+        addresses = np.zeros(tree.nq, int)
         for name, kind, start in zip(tree.joint_names, tree.joint_types, tree.q_starts):
-            qpos = self.m.qpos0[self.m.jnt_qposadr[self.joint_name.index(name)]:]
+            a = self.m.jnt_qposadr[self.joint_name.index(name)]
             if kind == JointType.FLOATING:
-                q[start: start + 7] = np.concatenate([qpos[:3], qpos[4:7], qpos[3:4]])
+                addresses[start: start + 7] = [a, a + 1, a + 2, a + 4, a + 5, a + 6, a + 3]
             else:
-                q[start] = qpos[0]
-        return q
+                addresses[start] = a
+        return addresses
 
     # ----- actuators ----------------------------------------------------------------------------
 

@@ -132,7 +132,8 @@ class RigidBodySystem(System):
     couplers: tuple = eqx.field(static=True, default=())
     limited: tuple = eqx.field(static=True, default=())   # (q index, v index) of the joints with limits
     constraint_stiffness: float = 20.0
-    source: str | None = eqx.field(static=True, default=None)  # the URDF file, when loaded from one
+    source: str | None = eqx.field(static=True, default=None)  # the model file, when loaded from one
+    source_format: str | None = eqx.field(static=True, default=None)  # its format: "urdf" or "mjcf"
     package_map: tuple = eqx.field(static=True, default=())  # (package, folder) pairs for its package:// files
     contact: ContactModel | None = None
     collision: URDFCollisions | None = eqx.field(static=True, default=None)  # what `contact` was built from
@@ -144,7 +145,7 @@ class RigidBodySystem(System):
                  constraint_stiffness: float = 20.0, effort_limits: bool = True,
                  joint_limits: bool = True, limit_period: float = 0.02, source=None, collision=None,
                  stiction_tolerance: float = DEFAULT_STICTION_TOLERANCE, package_map=None,
-                 default_positions=None):
+                 default_positions=None, source_format: str | None = None):
         names = tree.joint_names
         if actuated_joints is None:
             actuated_joints = [n for n, k in zip(names, tree.joint_types) if k != JointType.FLOATING]
@@ -177,6 +178,9 @@ class RigidBodySystem(System):
         self.limit_stiffness, self.limit_damping = _limit_gains(tree, self.limited, limit_period)
         self.constraint_stiffness = constraint_stiffness
         self.source = None if source is None else str(source)
+        if source_format not in (None, "urdf", "mjcf"):
+            raise ValueError(f"source_format must be 'urdf', 'mjcf' or None, got {source_format!r}")
+        self.source_format = None if source is None else (source_format or "urdf")
         self.package_map = tuple(sorted((str(k), str(v)) for k, v in dict(package_map or {}).items()))
         self.collision = collision
         self.stiction_tolerance = float(stiction_tolerance)
@@ -237,7 +241,8 @@ class RigidBodySystem(System):
             return RigidBodySystem(tree, actuated, loops=loops, couplers=couplers,
                                    constraint_stiffness=constraint_stiffness, effort_limits=effort_limits,
                                    joint_limits=joint_limits, limit_period=limit_period, source=path.resolve(),
-                                   collision=collision, stiction_tolerance=stiction_tolerance, package_map=package_map)
+                                   collision=collision, stiction_tolerance=stiction_tolerance, package_map=package_map,
+                                   source_format="urdf")
 
     @staticmethod
     def from_pinocchio(model, *, actuated=None, loops=(),
@@ -256,7 +261,8 @@ class RigidBodySystem(System):
         in `actuated`; `contact=True` makes the geoms touch by Drake's point contact ("What an
         MJCF file becomes" on the API page: what is translated, what is refused by name;
         friction combines by Drake's rule, not MuJoCo's maximum; `solref` / `solimp` are not
-        read). `initial_state()` is the file's configuration, MuJoCo's `qpos0`.
+        read). `initial_state()` is the file's configuration, MuJoCo's `qpos0`;
+        `jd.viz.visualizer_for(plant)` draws its states with MuJoCo's renderer of the file.
         MuJoCo's free joint has q = [x, y, z, qw, qx, qy, qz] and a world-frame linear velocity;
         the plant's floating base has [x, y, z, qx, qy, qz, qw] and body-frame velocities."""
         from ._mjcf import plant_parts_from_mjcf
@@ -266,7 +272,7 @@ class RigidBodySystem(System):
                                                                    ignore_armature=ignore_armature)
             source = pathlib.Path(path).resolve() if isinstance(path, (str, pathlib.PurePath)) else None
             return RigidBodySystem(tree, inputs, effort_limits=effort_limits, joint_limits=joint_limits,
-                                   limit_period=limit_period, source=source, collision=collision,
+                                   limit_period=limit_period, source=source, source_format="mjcf", collision=collision,
                                    stiction_tolerance=stiction_tolerance, default_positions=qpos0)
 
     @property
@@ -388,10 +394,9 @@ class RigidBodySystem(System):
     def _warn_of_unread_collisions(self):
         """A ground under a plant whose file has collision elements that were not read (loaded
         without contact=True) would touch nothing: said once, with the remedy."""
-        if self.collision is not None or self.source is None:
+        if self.collision is not None or self.source_format != "urdf":   # an MJCF's geoms may be visual only
             return
-        path = pathlib.Path(self.source)   # a URDF's (an MJCF's geoms may be visual only)
-        count = path.read_text(errors="replace").count("<collision") if path.suffix.lower() == ".urdf" else 0
+        count = pathlib.Path(self.source).read_text(errors="replace").count("<collision")
         if count:
             warnings.warn(f"{self.name}: its file has {count} <collision> element(s), not read (the plant was loaded "
                           "without contact=True), so the ground touches nothing; load it with from_urdf(..., "

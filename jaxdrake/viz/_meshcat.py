@@ -63,7 +63,7 @@ class SceneRecorder:
 def _meshcat():
     try:
         import meshcat
-        import meshcat.geometry
+        import meshcat.geometry  # noqa: F401
         import yourdfpy  # noqa: F401
     except ImportError as error:
         raise MissingExtraError("a 3-D scene", "meshcat") from error
@@ -154,6 +154,9 @@ class MeshcatVisualizer(Visualizer):
         if not isinstance(plant, RigidBodySystem):
             raise TypeError(f"MeshcatVisualizer draws a RigidBodySystem (a URDF robot), not "
                             f"{type(plant).__name__}; use jaxdrake.viz.visualizer_for for the notes' plants")
+        if urdf is None and plant.source_format == "mjcf":
+            raise ValueError(f"{plant.name} was loaded from an MJCF file, whose visuals MeshCat does not read: draw it "
+                             "with jaxdrake.viz.MujocoVisualizer(plant) (MuJoCo's renderer), or pass urdf=PATH")
         urdf = plant.source if urdf is None else urdf
         if urdf is None:
             raise ValueError(f"{plant.name} was not loaded from a URDF file: pass urdf=PATH for its visuals")

@@ -42,6 +42,7 @@ def _ramp_marks(slope, travel, spacing=0.5, count=41):
     along = (np.arange(count) - count // 2) * spacing - np.linalg.norm(travel) % spacing
     return along[:, None] * _downhill(slope)
 
+
 RAMP_MARKS = dict(kind="points", marker="|", color="0.3", ms=10, mew=1.5)
 
 
@@ -206,7 +207,6 @@ class RimlessWheelVisualizer(_RampWalker):
         step = 2 * self.length * np.sin(np.pi / self.num_spokes)
         return steps[:, None] * step * _downhill(self.slope)
 
-
     def view(self):
         l = self.length
         return (-2.5 * l, 3.5 * l), (-2 * l, 2.5 * l)
@@ -248,7 +248,6 @@ class CompassGaitVisualizer(_RampWalker):
         travelled = np.concatenate([[0.0], np.cumsum(lengths)])[np.searchsorted(events["times"], times, side="right")]
         return travelled[:, None] * _downhill(self.slope)
 
-
     def view(self):
         l = self.length
         return (-1.5 * l, 2 * l), (-0.6 * l, 1.4 * l)
@@ -289,9 +288,9 @@ def visualizer_for(system: System, *, plane: str | None = None, draw_period=DRAW
     """The visualizer for a plant, chosen by its class: the planar one drawn from its own
     parameters for one of the notes' plants (the pendulum, bouncing ball, rimless wheel,
     compass gait, planar quadrotor, cart-pole, acrobot, double pendulum); for any other
-    `RigidBodySystem` a 3-D `MeshcatVisualizer` of its URDF's visuals, or its projection onto
-    `plane` ("xz", "yz", "xy") on request (also for one not loaded from a file); MuJoCo's
-    renderer for a `MujocoSystem`."""
+    `RigidBodySystem` a 3-D `MeshcatVisualizer` of its URDF's visuals (MuJoCo's renderer of its
+    file for one loaded by `from_mjcf`), or its projection onto `plane` ("xz", "yz", "xy") on
+    request (also for one not loaded from a file); MuJoCo's renderer for a `MujocoSystem`."""
     if isinstance(system, RigidBodySystem) and plane is not None:
         return PlanarRigidBodyVisualizer(system, plane, draw_period)
     for kind, make in _PLANAR_BY_CLASS.items():
@@ -300,6 +299,8 @@ def visualizer_for(system: System, *, plane: str | None = None, draw_period=DRAW
     if isinstance(system, RigidBodySystem):
         if system.source is None:
             return PlanarRigidBodyVisualizer(system, draw_period=draw_period)
+        if system.source_format == "mjcf":
+            return MujocoVisualizer(system, draw_period=draw_period)
         return MeshcatVisualizer(system, draw_period=draw_period)
     if isinstance(system, MujocoSystem):
         return MujocoVisualizer(system, draw_period=draw_period)

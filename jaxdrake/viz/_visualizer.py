@@ -29,7 +29,6 @@ from ..systems import HybridSystem, System
 DRAW_PERIOD = 1 / 32  # exact in binary
 
 
-
 def _fit_view(ax, shapes):
     """Widen the axes' limits (the visualizer's `view`) to hold every point the movie draws,
     with a 5% margin: a ball dropped from above the default view is not clipped at its apex."""
@@ -50,6 +49,7 @@ def gif_durations(count: int, fps: float) -> list[int]:
     constant 30 ms for a 31.25-ms period played it 4% fast)."""
     ends = 10 * np.round(100 * np.arange(1, count + 1) / fps)
     return np.diff(ends, prepend=0.0).astype(int).tolist()
+
 
 class Visualizer(System):
     """A stateless system drawing the plant whose state is its input.
