@@ -186,6 +186,24 @@ def compare_accelerations(plant, model, seeds=range(5)):
     return worst
 
 
+def compare_servo_accelerations(plant, model, seeds=range(4)):
+    """`compare_accelerations` for a plant whose inputs are MuJoCo's ctrl (servos), with
+    targets that saturate the force-limited actuators (odd seeds) and ones that do not."""
+    dynamics = jax.jit(plant.dynamics)
+    worst, saturated = 0.0, 0
+    for seed in seeds:
+        rng = np.random.default_rng(seed)
+        qpos, qvel = random_state(model, rng)
+        ctrl = rng.uniform(-1, 1, model.nu) * (2.0 if seed % 2 else 0.05)
+        data = mujoco_acceleration(model, qpos, qvel, ctrl)
+        ours = np.asarray(dynamics(0.0, to_plant(model, qpos, qvel), ctrl))[model.nq:]
+        theirs = plant_acceleration_from(model, qpos, qvel, data.qacc)
+        worst = max(worst, np.max(np.abs(ours - theirs) / (1 + np.abs(theirs))))
+        limited = model.actuator_forcelimited.astype(bool)
+        saturated += int(np.sum(np.abs(data.actuator_force[limited]) >= np.abs(model.actuator_forcerange[limited]).max(1) - 1e-12))
+    return worst, saturated
+
+
 def poses_in_world(tree, q, bodies, rotations, translations):
     """World poses of things fixed at (rotations, translations) in `bodies` (-1: the world)."""
     Rs, ps = (np.asarray(x) for x in _body_poses(tree, q))
@@ -227,6 +245,56 @@ def test_hopper_with_its_leg_spring_accelerations_equal_mujoco():
     assert compare_accelerations(plant, model) < 1e-12
     model.jnt_stiffness[:] = 0.0  # a compiled model is accepted too
     assert RigidBodySystem.from_mjcf(model).tree.spring_stiffness is None
+
+
+SERVOS = """<mujoco><option gravity="0 0 -9.81"/><worldbody>
+  <body name="cart"><joint name="slide" type="slide" axis="1 0 0" damping="0.3" actuatorfrclimited="true"
+      actuatorfrcrange="-4 5"/>
+    <geom type="box" size=".2 .1 .05" mass="2"/>
+    <body name="arm" pos="0 0 0.05"><joint name="hinge" axis="0 1 0" range="-2 2"/>
+      <geom type="capsule" fromto="0 0 0 0 0 .5" size=".03" mass="0.5"/>
+      <body name="tip" pos="0 0 .5"><joint name="wrist" axis="1 0 0"/>
+        <geom type="sphere" size=".05" mass="0.2"/></body></body></body></worldbody>
+  <actuator><position name="push" joint="slide" kp="40" kv="6" gear="1.5" ctrlrange="-1 1" forcerange="-3 3"/>
+    <velocity name="spin" joint="hinge" kv="2" gear="2"/>
+    <motor name="twist" joint="wrist" gear="0.5" ctrlrange="-3 3"/></actuator></mujoco>"""
+
+
+def test_position_and_velocity_servos_beside_a_motor_accelerations_equal_mujoco():
+    """With a servo in the file, the inputs are MuJoCo's ctrl for every actuator (a motor's
+    too), limited to ctrlrange: a position servo (kp, kv, gear 1.5, forcerange), a velocity servo
+    and a motor, the slide's total clamped to its actuatorfrcrange; accelerations equal
+    `mj_forward`'s, clamped or not."""
+    model = compiled(SERVOS)
+    plant = RigidBodySystem.from_mjcf(model)
+    assert plant.input_frame.coordinates == ("push", "spin", "twist")
+    np.testing.assert_allclose(np.asarray(plant.input_limits), [[-1, -np.inf, -3], [1, np.inf, 3]])
+    np.testing.assert_allclose(plant.B, [[1.5 * 40, 0, 0], [0, 2 * 2, 0], [0, 0, 0.5]])   # gear x gain
+    worst, saturated = compare_servo_accelerations(plant, model)
+    assert worst < 1e-12 and saturated > 0
+    # the slide's force, clamped by the servo and then the joint: kp (u - gear q) - kv gear v, times gear
+    x = jnp.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    tau = plant.actuation(x[:3], x[3:], jnp.array([0.5, 0.0, 0.0]))
+    np.testing.assert_allclose(tau[0], 1.5 * min(40 * 0.5, 3.0), rtol=1e-14)
+    np.testing.assert_allclose(plant.actuation(x[:3], x[3:], jnp.array([-0.9, 0.0, 0.0]))[0], max(1.5 * -3.0, -4.0))
+    # stiff linearization: the servo's stiffness and damping are in it
+    u = jnp.array([0.01, 0.0, 0.0])   # unsaturated
+    exact = jax.jacfwd(plant.dynamics, argnums=1)(0.0, x, u)
+    stiff = jax.jacfwd(plant.stiff_linearization().dynamics, argnums=1)(0.0, x, u)
+    np.testing.assert_allclose(stiff[3:, 3:], exact[3:, 3:], rtol=1e-12, atol=1e-12)   # at rest: d/dv exact
+    np.testing.assert_allclose(stiff[3, 0], exact[3, 0], rtol=1e-12)   # the cart's own spring
+
+
+def test_barkours_position_servos_accelerations_equal_mujoco():
+    """MJX's Barkour v0 quadruped: twelve position servos (kp 35, kv 0.65, forcerange +-18 N m)."""
+    path = pathlib.Path(mujoco.__file__).parent / "mjx/test_data/barkour_v0/assets/barkour_v0_mjx.xml"
+    if not path.exists():
+        pytest.skip("this mujoco wheel has no MJX test models")
+    model = mujoco.MjModel.from_xml_path(str(path))
+    plant = RigidBodySystem.from_mjcf(path)
+    assert plant.num_inputs == 12 and plant.input_frame.coordinates[0] == "abduction_front_left"
+    worst, saturated = compare_servo_accelerations(plant, model, seeds=range(2))
+    assert worst < 1e-10 and saturated > 0
 
 
 def test_the_stiff_linearization_holds_the_joint_springs():
@@ -452,8 +520,8 @@ def test_unsupported_models_are_named_errors(body, message):
 
 def test_armature_can_be_ignored_and_actuators_chosen():
     xml = """<mujoco><worldbody><body><joint name="j" armature="0.1"/><geom size=".1" mass="1"/></body></worldbody>
-      <actuator><position name="servo" joint="j" kp="10"/></actuator></mujoco>"""
-    with pytest.raises(MJCFError, match=r"actuator 'servo' is not a motor.*actuated=\[joint names\]"):
+      <actuator><general name="filtered" joint="j" dyntype="filter" dynprm="0.1"/></actuator></mujoco>"""
+    with pytest.raises(MJCFError, match=r"actuator 'filtered' has .*activation dynamics.*actuated=\[joint names\]"):
         RigidBodySystem.from_mjcf(compiled(xml), ignore_armature=True)
     plant = RigidBodySystem.from_mjcf(compiled(xml), ignore_armature=True, actuated=["j"])
     assert plant.input_frame.coordinates == ("j",) and plant.tree.armature is None

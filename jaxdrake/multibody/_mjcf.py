@@ -24,12 +24,16 @@ angles in degrees, meshes); the compiled arrays are read here:
   **Limits**: `jnt_range` of `jnt_limited` joints (the plant's compliant limits, not MuJoCo's
   soft constraints). `dof_frictionloss` is recorded on `tree.friction`, not applied (as a
   URDF's friction).
-- **Actuators**: each `<motor>` on a hinge or slide joint makes the joint an input; the input
-  is the joint's generalized force, MuJoCo's `ctrl * gear * gain`; its effort limit is
-  `|gear gain| max|ctrlrange|` (when `ctrllimited`), at most `|gear| max|forcerange|` and the
-  joint's `actuatorfrcrange`. Any other actuator (a position or velocity servo, activation
-  dynamics, a tendon, site or body transmission) is refused by name; pass `actuated=[joint
-  names]` to make joints torque inputs instead (the actuators are then not read).
+- **Actuators**: where every actuator is a `<motor>` on a hinge or slide joint, each makes
+  its joint an input; the input is the joint's generalized force, MuJoCo's `ctrl * gear *
+  gain`; its effort limit is `|gear gain| max|ctrlrange|` (when `ctrllimited`), at most
+  `|gear| max|forcerange|` and the joint's `actuatorfrcrange`. Where the file has a servo
+  (`<position>`, `<velocity>`, a `<general>` actuator with a fixed gain and an affine bias) the
+  inputs are MuJoCo's `ctrl`, one per actuator in the file's order, limited to `ctrlrange`, and
+  the plant applies MuJoCo's force law (`JointActuators`: gain, bias, gear, `forcerange`, the
+  joint's `actuatorfrcrange`). Any other actuator (activation dynamics, a gain that varies, a
+  tendon, site or body transmission) is refused by name; pass `actuated=[joint names]` to make
+  joints torque inputs instead (the actuators are then not read).
 - **Collision geometry** (`contact=True`): every geom whose `contype` or `conaffinity` is
   non-zero: sphere, capsule (radius, 2 x half-length), box (2 x half sizes), cylinder, a plane
   on the world (a `HalfSpace`), a mesh (the convex hull of its compiled vertices, as MuJoCo
@@ -62,6 +66,7 @@ import numpy as np
 
 from .._extras import require
 from ..geometry import Box, Capsule, Convex, Cylinder, GeometryError, HalfSpace, Sphere
+from ._actuators import JointActuators
 from ._contact import CollisionGeometry, ContactMaterial
 from ._files import parse_xml, read_xml, resolve_model_file
 from ._joints import JointType
@@ -83,16 +88,18 @@ def tree_from_mjcf(source, *, contact: bool = False, actuated=None, ignore_armat
 
 
 def plant_parts_from_mjcf(source, *, contact: bool = False, actuated=None, ignore_armature: bool = False):
-    """`tree_from_mjcf`'s `(tree, actuated_joints, collision)` and the file's configuration:
-    MuJoCo's `qpos0` (each free body where the file places it, each hinge and slide at its
-    `ref`, where `mj_resetData` starts) in the tree's coordinates."""
+    """`tree_from_mjcf`'s `(tree, actuated_joints, collision)`, the file's configuration
+    (MuJoCo's `qpos0`: each free body where the file places it, each hinge and slide at its
+    `ref`, where `mj_resetData` starts) in the tree's coordinates, and the `JointActuators`
+    where the file has servos (and `actuated` is None), else None."""
     mujoco = _mujoco()
     model, where = _compile(mujoco, source)
     reader = _Reader(mujoco, model, where)
     reader.check_supported(ignore_armature)
     joints = reader.actuated_joints() if actuated is None else list(actuated)
     tree = reader.tree(ignore_armature)
-    return tree, joints, (reader.collisions() if contact else None), reader.default_positions(tree)
+    actuators = reader.joint_actuators(tree) if actuated is None and reader.has_servos() else None
+    return tree, joints, (reader.collisions() if contact else None), reader.default_positions(tree), actuators
 
 
 def mjcf_render_model(plant):
@@ -350,7 +357,7 @@ class _Reader:
 
     def _actuators(self):
         """(actuator name, joint id, force bound on the joint or None, what is wrong or None) of
-        every actuator; only a motor on a hinge / slide joint is right."""
+        every actuator; only a motor on a hinge / slide joint is right (`servos`: also a servo)."""
         m, mj = self.m, self.mj
         actuators = []
         for a in range(m.nu):
@@ -358,15 +365,15 @@ class _Reader:
             j = int(m.actuator_trnid[a, 0])
             on_joint = (int(m.actuator_trntype[a]) in (int(mj.mjtTrn.mjTRN_JOINT), int(mj.mjtTrn.mjTRN_JOINTINPARENT))
                         and int(m.jnt_type[j]) in (int(mj.mjtJoint.mjJNT_HINGE), int(mj.mjtJoint.mjJNT_SLIDE)))
-            motor = (m.actuator_gaintype[a] == mj.mjtGain.mjGAIN_FIXED and m.actuator_biastype[a] == mj.mjtBias.mjBIAS_NONE
-                     and m.actuator_dyntype[a] == mj.mjtDyn.mjDYN_NONE and m.actuator_damping[a] == 0
-                     and m.actuator_delay[a] == 0)
             if not on_joint:
                 actuators.append((name, j, None, "does not act on a hinge or slide joint"))
                 continue
-            if not motor:
-                actuators.append((name, j, None, "is not a motor (its gain is not a constant, or it has a bias, "
-                                  "activation dynamics, damping or a delay: a position / velocity servo, a muscle, ...)"))
+            if not self._affine(a):
+                actuators.append((name, j, None, "has a gain that is not a constant, activation dynamics, "
+                                  "damping or a delay (a muscle, an integrated velocity, a filtered servo, ...)"))
+                continue
+            if m.actuator_biastype[a] != mj.mjtBias.mjBIAS_NONE:
+                actuators.append((name, j, None, "servo"))
                 continue
             gear = abs(m.actuator_gear[a, 0])
             bound = gear * abs(m.actuator_gainprm[a, 0]) * np.abs(m.actuator_ctrlrange[a]).max() \
@@ -376,15 +383,52 @@ class _Reader:
             actuators.append((name, j, bound, None))
         return actuators
 
+    def _affine(self, a) -> bool:
+        """Whether actuator a's force is affine in (ctrl, length, velocity): a fixed gain, an
+        affine bias or none, no activation dynamics, damping or delay."""
+        m, mj = self.m, self.mj
+        return (m.actuator_gaintype[a] == mj.mjtGain.mjGAIN_FIXED
+                and int(m.actuator_biastype[a]) in (int(mj.mjtBias.mjBIAS_NONE), int(mj.mjtBias.mjBIAS_AFFINE))
+                and m.actuator_dyntype[a] == mj.mjtDyn.mjDYN_NONE and m.actuator_damping[a] == 0
+                and m.actuator_delay[a] == 0)
+
+    def has_servos(self) -> bool:
+        return any(wrong == "servo" for *_, wrong in self._actuators())
+
     def actuated_joints(self) -> list:
         """The joints of the motors, in the order of their actuators (a named error for any other
         actuator)."""
         for name, _, _, wrong in self._actuators():
-            if wrong:
-                raise MJCFError(f"{self.where}: actuator {name!r} {wrong}; the plant's inputs are joint forces. "
-                                "Pass actuated=[joint names] to make joints inputs (and close a servo loop "
-                                "around the plant yourself), or make it a <motor> on a joint")
+            if wrong and wrong != "servo":
+                raise MJCFError(f"{self.where}: actuator {name!r} {wrong}, which the plant does not model. "
+                                "Pass actuated=[joint names] to make joints torque inputs (and close the actuator's "
+                                "loop around the plant yourself), or make it a <motor>, <position> or <velocity> "
+                                "on a joint")
         return list(dict.fromkeys(self.joint_name[j] for _, j, _, _ in self._actuators()))
+
+    def joint_actuators(self, tree) -> JointActuators:
+        """Every actuator (motors and servos, all on hinges and slides) as `JointActuators`:
+        the inputs are MuJoCo's ctrl."""
+        self.actuated_joints()   # the named error for an actuator the plant cannot model
+        m = self.m
+        dofs, positions = [], []
+        for a in range(m.nu):
+            i = tree.joint_names.index(self.joint_name[int(m.actuator_trnid[a, 0])])
+            dofs.append(tree.v_starts[i]), positions.append(tree.q_starts[i])
+        inf = np.array([-np.inf, np.inf])
+        force_range = [m.actuator_forcerange[a] if m.actuator_forcelimited[a] else inf for a in range(m.nu)]
+        joint_range = np.tile(inf, (tree.nv, 1))
+        for name, i in zip(tree.joint_names, tree.v_starts):
+            j = self.joint_name.index(name)
+            if self.m.jnt_actfrclimited[j]:
+                joint_range[i] = self.m.jnt_actfrcrange[j]
+        limited = np.asarray(m.actuator_ctrllimited, bool)
+        ctrl = np.where(limited[:, None], m.actuator_ctrlrange, inf)
+        return JointActuators(
+            names=[name for name, *_ in self._actuators()], dofs=dofs, positions=positions,
+            gain=m.actuator_gainprm[:, 0], bias=m.actuator_biasprm[:, :3], gear=m.actuator_gear[:, 0],
+            force_range=force_range, joint_force_range=joint_range,
+            ctrl_range=(ctrl[:, 0], ctrl[:, 1]) if limited.any() else None)
 
     def _effort_limits(self) -> dict:
         """Joint id -> the largest generalized force its motors together apply, at most the

@@ -27,6 +27,7 @@ from .._numbers import device_array
 from ..geometry import HalfSpace
 from ..systems import Frame, System
 from . import _algorithms as alg
+from ._actuators import JointActuators
 from ._contact import DEFAULT_STICTION_TOLERANCE, CollisionGeometry, ContactMaterial, ContactModel, build_contact_model
 from ._joints import JointType
 from ._tree import KinematicTree, URDFError, tree_from_pinocchio, tree_from_urdf, urdf_mimic_joints
@@ -71,7 +72,10 @@ class RigidBodySystem(System):
     keep the copy's class.
 
     - B: the joints named by the URDF's `<transmission>`s, or `actuated` (joint names), or
-      else every joint but a floating base; one input per actuated joint, in that order.
+      else every joint but a floating base; one input per actuated joint, in that order. An
+      MJCF file with servos gives `actuators` (`JointActuators`: the inputs are MuJoCo's
+      ctrl, the force law MuJoCo's; B is then its slope where no force limit binds);
+      `actuation(q, v, u)` is the inputs' generalized force either way.
     - State frame: joint positions then velocities (`<joint>`, `<joint>dot`; a free body's
       joint has x, y, z, qx, qy, qz, qw and vx, vy, vz, wx, wy, wz, in the body's own frame).
     - Free bodies: the robot's root link with `floating_base=True` (joint `floating_base`),
@@ -126,6 +130,7 @@ class RigidBodySystem(System):
 
     tree: KinematicTree
     B: jax.Array
+    actuators: JointActuators | None
     limit_stiffness: jax.Array
     limit_damping: jax.Array
     loops: tuple = eqx.field(static=True, default=())
@@ -145,21 +150,15 @@ class RigidBodySystem(System):
                  constraint_stiffness: float = 20.0, effort_limits: bool = True,
                  joint_limits: bool = True, limit_period: float = 0.02, source=None, collision=None,
                  stiction_tolerance: float = DEFAULT_STICTION_TOLERANCE, package_map=None,
-                 default_positions=None, source_format: str | None = None):
+                 default_positions=None, source_format: str | None = None,
+                 actuators: JointActuators | None = None):
         names = tree.joint_names
-        if actuated_joints is None:
-            actuated_joints = [n for n, k in zip(names, tree.joint_types) if k != JointType.FLOATING]
-        B = np.zeros((tree.nv, len(actuated_joints)))
-        for col, joint in enumerate(actuated_joints):
-            if joint not in names:
-                raise ValueError(f"{tree.robot_name}: no joint {joint!r} to actuate; the joints are {list(names)}")
-            i = names.index(joint)
-            if tree.joint_types[i] == JointType.FLOATING:
-                raise ValueError(f"{tree.robot_name}: the floating base cannot be actuated by a joint input")
-            B[tree.v_starts[i], col] = 1.0
-        self.tree, self.B = tree, device_array(B)
-        effort = np.asarray(tree.effort_limit)[np.argmax(B, axis=0)] if B.size else np.zeros(0)
-        limits = (-effort, effort) if effort_limits and np.any(np.isfinite(effort)) else None
+        if actuators is not None:   # MuJoCo's actuators: the inputs are their ctrl
+            inputs, B = actuators.names, actuators.input_matrix(tree.nv)
+            limits = actuators.ctrl_range if effort_limits else None
+        else:
+            inputs, B, limits = self._joint_force_inputs(tree, actuated_joints, effort_limits)
+        self.tree, self.B, self.actuators = tree, device_array(B), actuators
         self.loops = tuple(loops)
         for loop in self.loops:
             for frame in (loop.frame_a, loop.frame_b):
@@ -193,11 +192,30 @@ class RigidBodySystem(System):
             stiction_tolerance=stiction_tolerance, source=tree.robot_name)
         state = Frame(f"{tree.robot_name}State", tree.position_names() + tree.velocity_names())
         num_loop = sum(len(loop.axes) for loop in self.loops) + len(self.couplers)
-        super().__init__(num_continuous_states=tree.nq + tree.nv, num_inputs=len(actuated_joints),
+        super().__init__(num_continuous_states=tree.nq + tree.nv, num_inputs=len(inputs),
                          direct_feedthrough=False, time_invariant=True, input_limits=limits,
                          num_state_constraints=2 * num_loop + tree.layout.num_floating,
-                         input_frame=Frame(f"{tree.robot_name}Input", tuple(actuated_joints)),
+                         input_frame=Frame(f"{tree.robot_name}Input", tuple(inputs)),
                          state_frame=state, output_frame=state)
+
+    @staticmethod
+    def _joint_force_inputs(tree, actuated_joints, effort_limits):
+        """(input names, B, input limits) of joint-force inputs on `actuated_joints` (default:
+        every joint but a floating base), limited by the joints' effort limits."""
+        names = tree.joint_names
+        if actuated_joints is None:
+            actuated_joints = [n for n, k in zip(names, tree.joint_types) if k != JointType.FLOATING]
+        B = np.zeros((tree.nv, len(actuated_joints)))
+        for col, joint in enumerate(actuated_joints):
+            if joint not in names:
+                raise ValueError(f"{tree.robot_name}: no joint {joint!r} to actuate; the joints are {list(names)}")
+            i = names.index(joint)
+            if tree.joint_types[i] == JointType.FLOATING:
+                raise ValueError(f"{tree.robot_name}: the floating base cannot be actuated by a joint input")
+            B[tree.v_starts[i], col] = 1.0
+        effort = np.asarray(tree.effort_limit)[np.argmax(B, axis=0)] if B.size else np.zeros(0)
+        limits = (-effort, effort) if effort_limits and np.any(np.isfinite(effort)) else None
+        return tuple(actuated_joints), B, limits
 
     @staticmethod
     def from_urdf(path, *, floating_base: bool = False, actuated=None, gravity: bool = True,
@@ -257,8 +275,9 @@ class RigidBodySystem(System):
                   stiction_tolerance: float = DEFAULT_STICTION_TOLERANCE) -> "RigidBodySystem":
         """Load an MJCF file (or a compiled `mujoco.MjModel`), compiled by MuJoCo: bodies, hinge /
         slide joints and a free root (the floating base), inertias, damping, gravity, ranges as
-        compliant limits, `<motor>`s on joints as the inputs (joint forces) or the joints named
-        in `actuated`; `contact=True` makes the geoms touch by Drake's point contact ("What an
+        compliant limits, `<motor>`s on joints as the inputs (joint forces), or, where the file
+        has position / velocity servos, every actuator's `ctrl` under MuJoCo's force law
+        (`plant.actuators`), or the joints named in `actuated`; `contact=True` makes the geoms touch by Drake's point contact ("What an
         MJCF file becomes" on the API page: what is translated, what is refused by name;
         friction combines by Drake's rule, not MuJoCo's maximum; `solref` / `solimp` are not
         read). `initial_state()` is the file's configuration, MuJoCo's `qpos0`;
@@ -268,12 +287,13 @@ class RigidBodySystem(System):
         from ._mjcf import plant_parts_from_mjcf
 
         with jax.ensure_compile_time_eval():  # parsing is host work, also inside jit / vmap
-            tree, inputs, collision, qpos0 = plant_parts_from_mjcf(path, contact=contact, actuated=actuated,
-                                                                   ignore_armature=ignore_armature)
+            tree, inputs, collision, qpos0, actuators = plant_parts_from_mjcf(
+                path, contact=contact, actuated=actuated, ignore_armature=ignore_armature)
             source = pathlib.Path(path).resolve() if isinstance(path, (str, pathlib.PurePath)) else None
             return RigidBodySystem(tree, inputs, effort_limits=effort_limits, joint_limits=joint_limits,
                                    limit_period=limit_period, source=source, source_format="mjcf", collision=collision,
-                                   stiction_tolerance=stiction_tolerance, default_positions=qpos0)
+                                   stiction_tolerance=stiction_tolerance, default_positions=qpos0,
+                                   actuators=actuators)
 
     @property
     def name(self) -> str:
@@ -438,14 +458,18 @@ class RigidBodySystem(System):
             return self
         return _replace_fields(self, linearization="stiff")
 
+    def actuation(self, q, v, u):
+        """The generalized force of the inputs: B u, or the `JointActuators`' (MuJoCo's servos)."""
+        return self.B @ u if self.actuators is None else self.actuators.joint_forces(q, v, u)
+
     def _spring_torque(self, q):
         """The joint springs' torque (`KinematicTree.spring_torque`), 0.0 without springs."""
         spring = self.tree.spring_torque(q)
         return 0.0 if spring is None else spring
 
     def _forward_dynamics(self, q, v, u):
-        tau = (self.B @ u - self.tree.damping * v + self.joint_limit_torque(q, v) + self.contact_force(q, v)
-               + self._spring_torque(q))
+        tau = (self.actuation(q, v, u) - self.tree.damping * v + self.joint_limit_torque(q, v)
+               + self.contact_force(q, v) + self._spring_torque(q))
         if not (self.loops or self.couplers):
             return alg.aba(self.tree, q, v, tau)
         H = alg.mass_matrix(self.tree, q)
@@ -701,7 +725,8 @@ def _stiff_derivative(static, primals, tangents):
     dq, dv, du = zero(dq, q), zero(dv, v), zero(du, u)
     plant = _exact(static, arrays)
     tree = plant.tree
-    dtau = plant.B @ du - tree.damping * dv + jax.jvp(plant.joint_limit_torque, (q, v), (dq, dv))[1]
+    dtau = (jax.jvp(plant.actuation, (q, v, u), (dq, dv, du))[1] - tree.damping * dv
+            + jax.jvp(plant.joint_limit_torque, (q, v), (dq, dv))[1])
     if tree.spring_stiffness is not None:
         dtau = dtau - tree.spring_stiffness * dq[np.asarray(tree.position_of_velocity)]
     if plant.contact is not None:
