@@ -194,7 +194,9 @@ def compare_servo_accelerations(plant, model, seeds=range(4)):
     for seed in seeds:
         rng = np.random.default_rng(seed)
         qpos, qvel = random_state(model, rng)
-        ctrl = rng.uniform(-1, 1, model.nu) * (2.0 if seed % 2 else 0.05)
+        lower, upper = np.where(model.actuator_ctrllimited[:, None], model.actuator_ctrlrange, [-2.0, 2.0]).T
+        middle, half = (lower + upper) / 2, (upper - lower) / 2   # within ctrlrange (the plant's input limits)
+        ctrl = middle + half * rng.uniform(-1, 1, model.nu) * (1.0 if seed % 2 else 0.05)
         data = mujoco_acceleration(model, qpos, qvel, ctrl)
         ours = np.asarray(dynamics(0.0, to_plant(model, qpos, qvel), ctrl))[model.nq:]
         theirs = plant_acceleration_from(model, qpos, qvel, data.qacc)
@@ -285,14 +287,17 @@ def test_position_and_velocity_servos_beside_a_motor_accelerations_equal_mujoco(
     np.testing.assert_allclose(stiff[3, 0], exact[3, 0], rtol=1e-12)   # the cart's own spring
 
 
-def test_barkours_position_servos_accelerations_equal_mujoco():
-    """MJX's Barkour v0 quadruped: twelve position servos (kp 35, kv 0.65, forcerange +-18 N m)."""
-    path = pathlib.Path(mujoco.__file__).parent / "mjx/test_data/barkour_v0/assets/barkour_v0_mjx.xml"
+@pytest.mark.parametrize("relative, first_input", [("barkour_v0/assets/barkour_v0_mjx.xml", "abduction_front_left"),
+                                                   ("shadow_hand/right_hand.xml", "rh_A_WRJ2")])
+def test_mjx_robots_with_position_servos_accelerations_equal_mujoco(relative, first_input):
+    """MJX's Barkour v0 quadruped (twelve position servos, kp 35, kv 0.65, forcerange +-18 N m)
+    and Shadow hand (24 position servos with armature and damping on 24 hinges)."""
+    path = pathlib.Path(mujoco.__file__).parent / "mjx/test_data" / relative
     if not path.exists():
         pytest.skip("this mujoco wheel has no MJX test models")
     model = mujoco.MjModel.from_xml_path(str(path))
     plant = RigidBodySystem.from_mjcf(path)
-    assert plant.num_inputs == 12 and plant.input_frame.coordinates[0] == "abduction_front_left"
+    assert plant.num_inputs == model.nu and plant.input_frame.coordinates[0] == first_input
     worst, saturated = compare_servo_accelerations(plant, model, seeds=range(2))
     assert worst < 1e-10 and saturated > 0
 
