@@ -1,7 +1,9 @@
 """`RigidBodySystem.from_mjcf`: MuJoCo's compiler as the parser. Contact-free, the plant's
 accelerations equal `mj_forward`'s on the same model at random states (a cart-pole, the
-hopper, a floating quadruped, a chain of offset slide and hinge joints in rotated bodies);
-body frames and collision shapes sit where MuJoCo puts them; named errors for what the plant
+hopper with its leg spring, a floating quadruped, a chain of offset slide and hinge joints in
+rotated bodies, MJX's humanoid with armature and springs, position servos on Barkour and the
+Shadow hand); body frames and collision shapes sit where MuJoCo puts them, explicit contact
+pairs touch; MuJoCo's renderer draws the plant's states; named errors for what the plant
 cannot represent."""
 
 import pathlib
