@@ -55,7 +55,10 @@ SLOW = {"swing_up.ipynb", "lqr.ipynb", "swing_up.py",  # lqr.ipynb: 45 s, extend
         "rimless_wheel.py",
         # linear_gaussian.py, 15 s of 10^4 paths: tests/test_stochastic.py checks the same variance
         # over 10^4 paths (and the autocovariance), tests/test_batch.py run_batch's chunks
-        "linear_gaussian.py"}
+        "linear_gaussian.py",
+        # mjcf_plant.py, 35 s (the Shadow hand's contact simulation compiles for ~15 s): its pieces
+        # are tests/test_mjcf.py's (the hand's servos against mj_forward, MuJoCo's renderer of a plant)
+        "mjcf_plant.py"}
 NOTEBOOKS = [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW else p
              for p in sorted((ROOT / "notebooks").glob("*.ipynb"))]
 NEEDS_ROS1 = {"ros_pendulum.py"}   # a real roscore
