@@ -289,6 +289,37 @@ def test_position_and_velocity_servos_beside_a_motor_accelerations_equal_mujoco(
     np.testing.assert_allclose(stiff[3, 0], exact[3, 0], rtol=1e-12)   # the cart's own spring
 
 
+TENDON = """<mujoco><worldbody><body><joint name="a" axis="0 1 0" damping="0.1"/>
+    <geom type="capsule" fromto="0 0 0 .4 0 0" size=".03" mass="1"/>
+  <body pos=".4 0 0"><joint name="b" axis="0 1 0"/><geom type="capsule" fromto="0 0 0 .3 0 0" size=".03" mass=".5"/>
+  <body pos=".3 0 0"><joint name="c" axis="0 1 0"/><geom type="sphere" size=".05" mass=".2"/></body></body></body>
+  </worldbody><tendon><fixed name="curl"><joint joint="b" coef="1"/><joint joint="c" coef="0.5"/></fixed>
+    <fixed name="idle"><joint joint="a" coef="0.1"/></fixed></tendon>
+  <actuator><position name="curl_servo" tendon="curl" kp="3" kv="0.2" gear="2" ctrlrange="-1 1" forcerange="-0.8 0.8"/>
+    <motor name="shoulder" joint="a" gear="3" ctrlrange="-1 1"/></actuator></mujoco>"""
+
+
+def test_a_servo_on_a_fixed_tendon_accelerations_equal_mujoco():
+    """A position servo pulling a fixed tendon that couples two hinges (length b + c/2, gear 2)
+    beside a motor: the moment arms are gear x coefficients, accelerations equal `mj_forward`'s
+    (the servo saturating or not); a fixed tendon without an actuator changes nothing; a spatial
+    tendon, or a tendon with a spring, is refused by name."""
+    model = compiled(TENDON)
+    plant = RigidBodySystem.from_mjcf(model)
+    assert plant.input_frame.coordinates == ("curl_servo", "shoulder")
+    np.testing.assert_allclose(plant.B, [[0.0, 3.0], [2.0 * 3.0, 0.0], [2.0 * 0.5 * 3.0, 0.0]])
+    worst, saturated = compare_servo_accelerations(plant, model)
+    assert worst < 1e-12 and saturated > 0
+    with pytest.raises(MJCFError, match=r"tendon 'curl' has a spring.*remove it from the tendon"):
+        RigidBodySystem.from_mjcf(compiled(TENDON.replace('<fixed name="curl">', '<fixed name="curl" stiffness="5">')))
+    spatial = TENDON.replace('<fixed name="idle"><joint joint="a" coef="0.1"/></fixed>',
+                             '<spatial name="rope"><site site="s1"/><site site="s2"/></spatial>').replace(
+        '<geom type="sphere" size=".05" mass=".2"/>', '<geom type="sphere" size=".05" mass=".2"/><site name="s2"/>').replace(
+        '<joint name="a" axis="0 1 0" damping="0.1"/>', '<joint name="a" axis="0 1 0" damping="0.1"/><site name="s1"/>')
+    with pytest.raises(MJCFError, match=r"tendon 'rope' is a spatial tendon.*fixed tendons"):
+        RigidBodySystem.from_mjcf(compiled(spatial))
+
+
 @pytest.mark.parametrize("relative, first_input", [("barkour_v0/assets/barkour_v0_mjx.xml", "abduction_front_left"),
                                                    ("shadow_hand/right_hand.xml", "rh_A_WRJ2")])
 def test_mjx_robots_with_position_servos_accelerations_equal_mujoco(relative, first_input):

@@ -28,11 +28,12 @@ angles in degrees, meshes); the compiled arrays are read here:
   its joint an input; the input is the joint's generalized force, MuJoCo's `ctrl * gear *
   gain`; its effort limit is `|gear gain| max|ctrlrange|` (when `ctrllimited`), at most
   `|gear| max|forcerange|` and the joint's `actuatorfrcrange`. Where the file has a servo
-  (`<position>`, `<velocity>`, a `<general>` actuator with a fixed gain and an affine bias) the
+  (`<position>`, `<velocity>`, a `<general>` actuator with a fixed gain and an affine bias) or
+  an actuator on a fixed tendon (`<fixed>`: joints and coefficients, its moment arms) the
   inputs are MuJoCo's `ctrl`, one per actuator in the file's order, limited to `ctrlrange`, and
-  the plant applies MuJoCo's force law (`JointActuators`: gain, bias, gear, `forcerange`, the
-  joint's `actuatorfrcrange`). Any other actuator (activation dynamics, a gain that varies, a
-  tendon, site or body transmission) is refused by name; pass `actuated=[joint names]` to make
+  the plant applies MuJoCo's force law (`JointActuators`: gain, bias, moment arms, `forcerange`,
+  the joint's `actuatorfrcrange`). Any other actuator (activation dynamics, a gain that varies,
+  a spatial tendon, site or body transmission) is refused by name; pass `actuated=[joint names]` to make
   joints torque inputs instead (the actuators are then not read).
 - **Collision geometry** (`contact=True`): every geom whose `contype` or `conaffinity` is
   non-zero: sphere, capsule (radius, 2 x half-length), box (2 x half sizes), cylinder, a plane
@@ -54,7 +55,8 @@ angles in degrees, meshes); the compiled arrays are read here:
 Refused, each with a named error and its remedy: ball joints (MuJoCo's compiler itself
 refuses a free joint below the worldbody), armature or a spring on a free joint, an actuator's
 armature (unless `ignore_armature=True`), nonlinear springs (`stiffnesspoly`), polynomial damping, gravity compensation, fluid forces (`density`, `viscosity`), equality
-constraints, tendons, flexes, and geoms of
+constraints, spatial tendons and fixed tendons with springs, damping, limits or friction,
+flexes, and geoms of
 other shapes that can collide (ellipsoid, height field, SDF).
 """
 
@@ -257,6 +259,8 @@ class _Reader:
             if np.any(m.dof_dampingpoly[dofs] != 0) and not self.disabled("mjDSBL_DAMPER"):
                 raise MJCFError(f"{self._joint(j)} has polynomial damping, which the plant does not model; "
                                 "keep only its linear damping")
+        for t in range(m.ntendon):
+            self._check_tendon(t)
         if np.any(m.body_gravcomp != 0):
             b = int(np.flatnonzero(m.body_gravcomp)[0])
             raise MJCFError(f"{where}: body {self.body_name[b]!r} has gravcomp {m.body_gravcomp[b]:g}; the plant "
@@ -266,13 +270,47 @@ class _Reader:
                             "for fluid forces, which the plant does not model; set both to 0")
         for count, what, remedy in ((m.neq, "equality constraints", "close loops with RigidBodySystem(tree, "
                                      "loops=[LoopConstraint(...)]) or couplers=[CouplerConstraint(...)]"),
-                                    (m.ntendon, "tendons", "remove them (actuate the joints instead)"),
                                     (m.nflex, "flexes (deformable bodies)", "remove them")):
             if count:
                 raise MJCFError(f"{where}: the model has {count} {what}, which the plant does not represent; {remedy}")
         if np.any(m.actuator_armature != 0) and not ignore_armature:
             raise MJCFError(f"{where}: an actuator has armature, which the plant does not model; remove it, or "
                             "pass ignore_armature=True")
+
+    def _check_tendon(self, t):
+        """A fixed tendon (a linear combination of joint positions) is read as an actuator's
+        transmission; a spatial tendon, or one with a spring, damping, limits, friction,
+        armature or an actuator force range, is refused by name."""
+        m, mj = self.m, self.mj
+        where = f"{self.where}: tendon {self._name(mj.mjtObj.mjOBJ_TENDON, t, f'tendon{t}')!r}"
+        wraps = range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t])
+        if any(int(m.wrap_type[w]) != int(mj.mjtWrap.mjWRAP_JOINT) for w in wraps):
+            raise MJCFError(f"{where} is a spatial tendon (through sites or around geoms), which the plant does not "
+                            "model; the plant reads fixed tendons (<fixed>, joints and coefficients) as actuator "
+                            "transmissions: remove it, or actuate the joints instead")
+        passive = {"a spring": m.tendon_stiffness[t] != 0 or np.any(m.tendon_stiffnesspoly[t] != 0),
+                   "damping": m.tendon_damping[t] != 0 or np.any(m.tendon_dampingpoly[t] != 0),
+                   "limits": bool(m.tendon_limited[t]), "friction": m.tendon_frictionloss[t] != 0,
+                   "armature": m.tendon_armature[t] != 0, "an actuator force range": bool(m.tendon_actfrclimited[t])}
+        for what, present in passive.items():
+            if present:
+                raise MJCFError(f"{where} has {what}, which the plant does not model on a tendon (fixed tendons are "
+                                "read as actuator transmissions alone): remove it from the tendon")
+
+    def _moment(self, a, tree) -> np.ndarray:
+        """Actuator a's moment arms over the tree's velocity coordinates: its gear at its
+        joint's, or its gear times its fixed tendon's coefficients."""
+        m, mj = self.m, self.mj
+        moment, gear = np.zeros(tree.nv), m.actuator_gear[a, 0]
+        target = int(m.actuator_trnid[a, 0])
+        if int(m.actuator_trntype[a]) == int(mj.mjtTrn.mjTRN_TENDON):
+            wraps = range(m.tendon_adr[target], m.tendon_adr[target] + m.tendon_num[target])
+            joints_coefs = [(int(m.wrap_objid[w]), m.wrap_prm[w]) for w in wraps]
+        else:
+            joints_coefs = [(target, 1.0)]
+        for j, coef in joints_coefs:
+            moment[tree.v_starts[tree.joint_names.index(self.joint_name[j])]] += gear * coef
+        return moment
 
     # ----- bodies and joints ------------------------------------------------------------------
 
@@ -357,23 +395,25 @@ class _Reader:
 
     def _actuators(self):
         """(actuator name, joint id, force bound on the joint or None, what is wrong or None) of
-        every actuator; only a motor on a hinge / slide joint is right (`servos`: also a servo)."""
+        every actuator; a motor on a hinge / slide joint is right, a servo or an actuator on a fixed
+        tendon is "servo" (`joint_actuators`), anything else is wrong (the reason)."""
         m, mj = self.m, self.mj
         actuators = []
         for a in range(m.nu):
             name = self._name(mj.mjtObj.mjOBJ_ACTUATOR, a, f"actuator{a}")
             j = int(m.actuator_trnid[a, 0])
+            on_tendon = int(m.actuator_trntype[a]) == int(mj.mjtTrn.mjTRN_TENDON)   # fixed: `_check_tendon`
             on_joint = (int(m.actuator_trntype[a]) in (int(mj.mjtTrn.mjTRN_JOINT), int(mj.mjtTrn.mjTRN_JOINTINPARENT))
                         and int(m.jnt_type[j]) in (int(mj.mjtJoint.mjJNT_HINGE), int(mj.mjtJoint.mjJNT_SLIDE)))
-            if not on_joint:
-                actuators.append((name, j, None, "does not act on a hinge or slide joint"))
+            if not (on_joint or on_tendon):
+                actuators.append((name, j, None, "does not act on a hinge, a slide or a fixed tendon"))
                 continue
             if not self._affine(a):
                 actuators.append((name, j, None, "has a gain that is not a constant, activation dynamics, "
                                   "damping or a delay (a muscle, an integrated velocity, a filtered servo, ...)"))
                 continue
-            if m.actuator_biastype[a] != mj.mjtBias.mjBIAS_NONE:
-                actuators.append((name, j, None, "servo"))
+            if m.actuator_biastype[a] != mj.mjtBias.mjBIAS_NONE or on_tendon:
+                actuators.append((name, j, None, "servo"))   # MuJoCo's force law: `joint_actuators`
                 continue
             gear = abs(m.actuator_gear[a, 0])
             bound = gear * abs(m.actuator_gainprm[a, 0]) * np.abs(m.actuator_ctrlrange[a]).max() \
@@ -393,6 +433,8 @@ class _Reader:
                 and m.actuator_delay[a] == 0)
 
     def has_servos(self) -> bool:
+        """Whether an actuator needs MuJoCo's force law (`JointActuators`): a servo, or any
+        actuator on a fixed tendon."""
         return any(wrong == "servo" for *_, wrong in self._actuators())
 
     def actuated_joints(self) -> list:
@@ -404,17 +446,13 @@ class _Reader:
                                 "Pass actuated=[joint names] to make joints torque inputs (and close the actuator's "
                                 "loop around the plant yourself), or make it a <motor>, <position> or <velocity> "
                                 "on a joint")
-        return list(dict.fromkeys(self.joint_name[j] for _, j, _, _ in self._actuators()))
+        return list(dict.fromkeys(self.joint_name[j] for _, j, _, wrong in self._actuators() if wrong is None))
 
     def joint_actuators(self, tree) -> JointActuators:
-        """Every actuator (motors and servos, all on hinges and slides) as `JointActuators`:
+        """Every actuator (motors and servos on hinges, slides and fixed tendons) as `JointActuators`:
         the inputs are MuJoCo's ctrl."""
         self.actuated_joints()   # the named error for an actuator the plant cannot model
         m = self.m
-        dofs, positions = [], []
-        for a in range(m.nu):
-            i = tree.joint_names.index(self.joint_name[int(m.actuator_trnid[a, 0])])
-            dofs.append(tree.v_starts[i]), positions.append(tree.q_starts[i])
         inf = np.array([-np.inf, np.inf])
         force_range = [m.actuator_forcerange[a] if m.actuator_forcelimited[a] else inf for a in range(m.nu)]
         joint_range = np.tile(inf, (tree.nv, 1))
@@ -425,8 +463,9 @@ class _Reader:
         limited = np.asarray(m.actuator_ctrllimited, bool)
         ctrl = np.where(limited[:, None], m.actuator_ctrlrange, inf)
         return JointActuators(
-            names=[name for name, *_ in self._actuators()], dofs=dofs, positions=positions,
-            gain=m.actuator_gainprm[:, 0], bias=m.actuator_biasprm[:, :3], gear=m.actuator_gear[:, 0],
+            names=[name for name, *_ in self._actuators()], positions=tree.position_of_velocity,
+            gain=m.actuator_gainprm[:, 0], bias=m.actuator_biasprm[:, :3],
+            moment=np.stack([self._moment(a, tree) for a in range(m.nu)]).reshape(m.nu, tree.nv),
             force_range=force_range, joint_force_range=joint_range,
             ctrl_range=(ctrl[:, 0], ctrl[:, 1]) if limited.any() else None)
 

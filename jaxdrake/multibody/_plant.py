@@ -154,7 +154,7 @@ class RigidBodySystem(System):
                  actuators: JointActuators | None = None):
         names = tree.joint_names
         if actuators is not None:   # MuJoCo's actuators: the inputs are their ctrl
-            inputs, B = actuators.names, actuators.input_matrix(tree.nv)
+            inputs, B = actuators.names, actuators.input_matrix()
             limits = actuators.ctrl_range if effort_limits else None
         else:
             inputs, B, limits = self._joint_force_inputs(tree, actuated_joints, effort_limits)
