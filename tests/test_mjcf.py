@@ -320,6 +320,41 @@ def test_a_servo_on_a_fixed_tendon_accelerations_equal_mujoco():
         RigidBodySystem.from_mjcf(compiled(spatial))
 
 
+COUPLED = """<mujoco><worldbody><body name="upper"><joint name="a" axis="0 1 0" ref="0.2"/>
+    <geom type="capsule" fromto="0 0 0 .4 0 0" size=".03" mass="1"/>
+  <body pos=".4 0 0"><joint name="b" axis="0 1 0" ref="-0.1"/><geom type="capsule" fromto="0 0 0 .3 0 0" size=".03" mass=".5"/>
+  <body pos=".3 0 0"><joint name="c" axis="0 1 0"/><geom type="sphere" size=".05" mass=".2"/></body></body></body>
+  </worldbody><equality><joint name="tie" joint1="c" joint2="b" polycoef="0.1 -0.5 0 0 0" solref="0.0002 1"
+    solimp="0.9999 0.9999 0.001"/></equality><actuator><motor joint="a"/></actuator></mujoco>"""
+
+
+def test_a_joint_equality_is_a_coupler_constraint_whose_accelerations_equal_mujocos_hard_equality():
+    """MuJoCo's joint equality c - c0 = a0 + a1 (b - b0) (about qpos0; refs in degrees) is the
+    coupler c = a1 b + (c0 + a0 - a1 b0); the initial state satisfies it; at a state that does,
+    the accelerations equal `mj_forward`'s under a nearly hard equality (solref 2e-4, solimp
+    0.9999) to its softness; other equalities are refused by name."""
+    model = compiled(COUPLED)
+    plant = RigidBodySystem.from_mjcf(model)
+    b0, c0 = model.qpos0[1], model.qpos0[2]
+    (coupler,) = plant.couplers
+    assert (coupler.joint, coupler.leader, coupler.gear_ratio) == ("c", "b", -0.5)
+    np.testing.assert_allclose(coupler.offset, c0 + 0.1 + 0.5 * b0, rtol=1e-15)
+    np.testing.assert_allclose(plant.constraint_residual(plant.initial_state()[:3]), 0.0, atol=1e-15)
+    data = mujoco.MjData(model)
+    data.qpos[:2], data.qvel[:] = [0.7, 0.4], [0.3, -1.0, 0.5]
+    data.qpos[2] = c0 + 0.1 - 0.5 * (0.4 - b0)
+    data.ctrl[:] = 0.4
+    mujoco.mj_forward(model, data)
+    ours = np.asarray(plant.dynamics(0.0, jnp.asarray(np.concatenate([data.qpos, data.qvel])), jnp.array([0.4])))[3:]
+    np.testing.assert_allclose(ours, data.qacc, rtol=1e-4)
+    for equality, message in [('<connect body1="upper" anchor="0 0 0"/>', r"equality 'equality0' is a connect constraint"),
+                              ('<joint joint1="c"/>', r"holds one joint alone"),
+                              ('<joint joint1="c" joint2="b" polycoef="0 1 0.3 0 0"/>', r"polynomial of degree > 1")]:
+        with pytest.raises(MJCFError, match=message):
+            RigidBodySystem.from_mjcf(compiled(COUPLED.replace(COUPLED[COUPLED.index("<equality>") + 10:
+                                                                       COUPLED.index("</equality>")], equality)))
+
+
 @pytest.mark.parametrize("relative, first_input", [("barkour_v0/assets/barkour_v0_mjx.xml", "abduction_front_left"),
                                                    ("shadow_hand/right_hand.xml", "rh_A_WRJ2")])
 def test_mjx_robots_with_position_servos_accelerations_equal_mujoco(relative, first_input):

@@ -35,6 +35,11 @@ angles in degrees, meshes); the compiled arrays are read here:
   the joint's `actuatorfrcrange`). Any other actuator (activation dynamics, a gain that varies,
   a spatial tendon, site or body transmission) is refused by name; pass `actuated=[joint names]` to make
   joints torque inputs instead (the actuators are then not read).
+- **Joint equalities**: an active `<equality><joint joint1 joint2 polycoef="a0 a1 0 0 0">`
+  between hinges or slides is the `CouplerConstraint` $q_1 = a_1 q_2 + (q_{1,0} + a_0 - a_1
+  q_{2,0})$ (MuJoCo's relation holds about qpos0), enforced as the plant's constraints are
+  (exactly in the accelerations, drift held by `constraint_stiffness`; MuJoCo's is soft, by its
+  `solref` / `solimp`); `initial_state()` places the coupled joint on it.
 - **Collision geometry** (`contact=True`): every geom whose `contype` or `conaffinity` is
   non-zero: sphere, capsule (radius, 2 x half-length), box (2 x half sizes), cylinder, a plane
   on the world (a `HalfSpace`), a mesh (the convex hull of its compiled vertices, as MuJoCo
@@ -54,9 +59,10 @@ angles in degrees, meshes); the compiled arrays are read here:
 
 Refused, each with a named error and its remedy: ball joints (MuJoCo's compiler itself
 refuses a free joint below the worldbody), armature or a spring on a free joint, an actuator's
-armature (unless `ignore_armature=True`), nonlinear springs (`stiffnesspoly`), polynomial damping, gravity compensation, fluid forces (`density`, `viscosity`), equality
-constraints, spatial tendons and fixed tendons with springs, damping, limits or friction,
-flexes, and geoms of
+armature (unless `ignore_armature=True`), nonlinear springs (`stiffnesspoly`), polynomial
+damping, gravity compensation, fluid forces (`density`, `viscosity`), equality constraints
+other than those joint equalities (connect, weld, tendon, distance, a polynomial), spatial
+tendons and fixed tendons with springs, damping, limits or friction, flexes, and geoms of
 other shapes that can collide (ellipsoid, height field, SDF).
 """
 
@@ -93,7 +99,8 @@ def plant_parts_from_mjcf(source, *, contact: bool = False, actuated=None, ignor
     """`tree_from_mjcf`'s `(tree, actuated_joints, collision)`, the file's configuration
     (MuJoCo's `qpos0`: each free body where the file places it, each hinge and slide at its
     `ref`, where `mj_resetData` starts) in the tree's coordinates, and the `JointActuators`
-    where the file has servos (and `actuated` is None), else None."""
+    where the file has servos (and `actuated` is None), else None, and its joint equalities'
+    coupler constraints as (joint, leader, gear ratio, offset)."""
     mujoco = _mujoco()
     model, where = _compile(mujoco, source)
     reader = _Reader(mujoco, model, where)
@@ -101,7 +108,8 @@ def plant_parts_from_mjcf(source, *, contact: bool = False, actuated=None, ignor
     joints = reader.actuated_joints() if actuated is None else list(actuated)
     tree = reader.tree(ignore_armature)
     actuators = reader.joint_actuators(tree) if actuated is None and reader.has_servos() else None
-    return tree, joints, (reader.collisions() if contact else None), reader.default_positions(tree), actuators
+    return (tree, joints, (reader.collisions() if contact else None), reader.default_positions(tree), actuators,
+            reader.couplers())
 
 
 def mjcf_render_model(plant):
@@ -268,14 +276,50 @@ class _Reader:
         if m.opt.density != 0 or m.opt.viscosity != 0:
             raise MJCFError(f"{where}: <option density={m.opt.density:g} viscosity={m.opt.viscosity:g}> asks "
                             "for fluid forces, which the plant does not model; set both to 0")
-        for count, what, remedy in ((m.neq, "equality constraints", "close loops with RigidBodySystem(tree, "
-                                     "loops=[LoopConstraint(...)]) or couplers=[CouplerConstraint(...)]"),
-                                    (m.nflex, "flexes (deformable bodies)", "remove them")):
-            if count:
-                raise MJCFError(f"{where}: the model has {count} {what}, which the plant does not represent; {remedy}")
+        for e in range(m.neq):
+            self._check_equality(e)
+        if m.nflex:
+            raise MJCFError(f"{where}: the model has {m.nflex} flexes (deformable bodies), which the plant does not "
+                            "represent; remove them")
         if np.any(m.actuator_armature != 0) and not ignore_armature:
             raise MJCFError(f"{where}: an actuator has armature, which the plant does not model; remove it, or "
                             "pass ignore_armature=True")
+
+    def _check_equality(self, e):
+        """A joint equality between two hinges or slides, linear in the second (polycoef
+        a0, a1, 0, 0, 0), active from the start, is read as a `CouplerConstraint`; any other
+        equality (connect, weld, tendon, distance, one joint alone, a polynomial) is refused by name."""
+        m, mj = self.m, self.mj
+        where = f"{self.where}: equality {self._name(mj.mjtObj.mjOBJ_EQUALITY, e, f'equality{e}')!r}"
+        kind = int(m.eq_type[e])
+        if kind != int(mj.mjtEq.mjEQ_JOINT):
+            raise MJCFError(f"{where} is a {mj.mjtEq(kind).name.removeprefix('mjEQ_').lower()} constraint, which the "
+                            "plant does not read; it reads joint equalities (couplers). Close loops with "
+                            "RigidBodySystem(tree, loops=[LoopConstraint(...)]) instead")
+        problem = None
+        if m.eq_obj2id[e] < 0:
+            problem = "holds one joint alone (weld the joint in the file instead)"
+        elif np.any(m.eq_data[e, 2:5] != 0):
+            problem = f"is a polynomial of degree > 1 (polycoef {m.eq_data[e, :5].tolist()})"
+        elif not m.eq_active0[e]:
+            problem = "starts inactive"
+        elif any(self._joint_type(int(j)) == JointType.FLOATING for j in (m.eq_obj1id[e], m.eq_obj2id[e])):
+            problem = "involves a free joint"
+        if problem:
+            raise MJCFError(f"{where} {problem}; the plant reads an active joint equality between two hinges or "
+                            "slides, linear in the second (polycoef a0 a1 0 0 0), as a coupler constraint")
+
+    def couplers(self) -> list:
+        """Every joint equality as (joint, leader, gear ratio, offset), a `CouplerConstraint`'s
+        fields: MuJoCo's $q_1 - q_{1,0} = a_0 + a_1 (q_2 - q_{2,0})$ about qpos0, so the offset
+        is $q_{1,0} + a_0 - a_1 q_{2,0}$."""
+        m, couplers = self.m, []
+        for e in range(m.neq):
+            j1, j2 = int(m.eq_obj1id[e]), int(m.eq_obj2id[e])
+            q1, q2 = (m.qpos0[m.jnt_qposadr[j]] for j in (j1, j2))
+            a0, a1 = m.eq_data[e, 0], m.eq_data[e, 1]
+            couplers.append((self.joint_name[j1], self.joint_name[j2], float(a1), float(q1 + a0 - a1 * q2)))
+        return couplers
 
     def _check_tendon(self, t):
         """A fixed tendon (a linear combination of joint positions) is read as an actuator's

@@ -277,7 +277,8 @@ class RigidBodySystem(System):
         slide joints and a free root (the floating base), inertias, damping, gravity, ranges as
         compliant limits, `<motor>`s on joints as the inputs (joint forces), or, where the file
         has position / velocity servos, every actuator's `ctrl` under MuJoCo's force law
-        (`plant.actuators`), or the joints named in `actuated`; `contact=True` makes the geoms touch by Drake's point contact ("What an
+        (`plant.actuators`), or the joints named in `actuated`; joint equalities as coupler
+        constraints; `contact=True` makes the geoms touch by Drake's point contact ("What an
         MJCF file becomes" on the API page: what is translated, what is refused by name;
         friction combines by Drake's rule, not MuJoCo's maximum; `solref` / `solimp` are not
         read). `initial_state()` is the file's configuration, MuJoCo's `qpos0`;
@@ -287,13 +288,13 @@ class RigidBodySystem(System):
         from ._mjcf import plant_parts_from_mjcf
 
         with jax.ensure_compile_time_eval():  # parsing is host work, also inside jit / vmap
-            tree, inputs, collision, qpos0, actuators = plant_parts_from_mjcf(
+            tree, inputs, collision, qpos0, actuators, couplers = plant_parts_from_mjcf(
                 path, contact=contact, actuated=actuated, ignore_armature=ignore_armature)
             source = pathlib.Path(path).resolve() if isinstance(path, (str, pathlib.PurePath)) else None
             return RigidBodySystem(tree, inputs, effort_limits=effort_limits, joint_limits=joint_limits,
                                    limit_period=limit_period, source=source, source_format="mjcf", collision=collision,
                                    stiction_tolerance=stiction_tolerance, default_positions=qpos0,
-                                   actuators=actuators)
+                                   actuators=actuators, couplers=[CouplerConstraint(*c) for c in couplers])
 
     @property
     def name(self) -> str:
