@@ -4,6 +4,7 @@ user meets where one is missing (`pip install jaxdrake` is the core; the rest ar
 from __future__ import annotations
 
 import importlib
+import warnings
 
 EXTRAS = {  # import name -> (what the user needs, the extra that installs it)
     "cyipopt": ("IPOPT", "solvers"),
@@ -35,3 +36,16 @@ def require(module: str, user: str):
         return importlib.import_module(module)
     except ImportError as error:
         raise MissingExtraError(user, module.split(".")[0]) from error
+
+
+def require_mujoco(user: str):
+    """mujoco (`require`), with MuJoCo's warnings sent to Python's `warnings` unless the user
+    set a handler: MuJoCo's own handler writes MUJOCO_LOG.TXT into the working folder."""
+    mujoco = require("mujoco", user)
+    if mujoco.get_mju_user_warning() is None:
+        mujoco.set_mju_user_warning(_mujoco_warning)
+    return mujoco
+
+
+def _mujoco_warning(message: str):
+    warnings.warn(f"MuJoCo: {message}", RuntimeWarning, stacklevel=2)

@@ -25,9 +25,16 @@ SCRIPT = textwrap.dedent("""
 """)
 
 
-def test_no_warp_lines_and_no_mujoco_log_file_in_the_working_folder(tmp_path):
+# the same through the native plant's MJCF reader (the first MuJoCo use of the process)
+SCRIPT_FROM_MJCF = SCRIPT.replace(
+    "system = jd.MujocoSystem.from_xml(", "model = mujoco.MjModel.from_xml_string(").replace(
+    "print(\"built\")", "jd.RigidBodySystem.from_mjcf(model); print(\"built\")").replace("system.mj_model", "model")
+
+
+@pytest.mark.parametrize("script", [SCRIPT, SCRIPT_FROM_MJCF], ids=["MujocoSystem", "from_mjcf"])
+def test_no_warp_lines_and_no_mujoco_log_file_in_the_working_folder(tmp_path, script):
     env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=os.pathsep.join(sys.path))
-    done = subprocess.run([sys.executable, "-c", SCRIPT], cwd=tmp_path, env=env, capture_output=True, text=True,
+    done = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True,
                           timeout=120)
     assert done.returncode == 0, done.stderr[-3000:]
     assert done.stdout.split() == ["built", "stepped", "0.0"]  # nothing else printed; the state was reset

@@ -35,7 +35,6 @@ import io
 import os
 import pathlib
 import sys
-import warnings
 from typing import Any
 
 import equinox as eqx
@@ -43,7 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._extras import MissingExtraError
+from .._extras import MissingExtraError, require_mujoco
 from ..systems import Frame, System
 from ..multibody import check_model_files
 
@@ -83,8 +82,8 @@ def import_mujoco():
     GPU backend, used only by `MujocoSystem(impl="warp")`), and with MuJoCo's warnings sent to Python's `warnings`
     (MuJoCo's own handler writes MUJOCO_LOG.TXT into the working folder) unless the user set
     a handler."""
+    mujoco = require_mujoco("MujocoSystem")
     try:
-        import mujoco
         printed = io.StringIO()
         with contextlib.redirect_stdout(printed):
             from mujoco import mjx
@@ -93,13 +92,7 @@ def import_mujoco():
     for line in printed.getvalue().splitlines():
         if not line.startswith(("Failed to import warp", "Failed to import mujoco_warp")):
             print(line)
-    if mujoco.get_mju_user_warning() is None:
-        mujoco.set_mju_user_warning(_mujoco_warning)
     return mujoco, mjx
-
-
-def _mujoco_warning(message: str):
-    warnings.warn(f"MuJoCo: {message}", RuntimeWarning, stacklevel=2)
 
 
 class MujocoSystem(System):

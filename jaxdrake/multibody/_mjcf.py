@@ -72,7 +72,7 @@ import pathlib
 
 import numpy as np
 
-from .._extras import require
+from .._extras import require_mujoco
 from ..geometry import Box, Capsule, Convex, Cylinder, GeometryError, HalfSpace, Sphere
 from ._actuators import JointActuators
 from ._contact import CollisionGeometry, ContactMaterial
@@ -124,7 +124,7 @@ def mjcf_render_model(plant):
 
 
 def _mujoco():
-    return require("mujoco", "from_mjcf")
+    return require_mujoco("from_mjcf")
 
 
 def _compile(mujoco, source):
