@@ -393,6 +393,13 @@ def test_mujocos_humanoid_with_armature_and_springs_accelerations_equal_mujoco()
     np.testing.assert_allclose(plant.tree.armature, model.dof_armature)
     assert np.count_nonzero(plant.tree.spring_stiffness) == np.count_nonzero(model.jnt_stiffness) == 19
     assert compare_accelerations(plant, model, seeds=range(3)) < 1e-10
+    # motors alone: the inputs are joint forces named by the joints, unless asked for MuJoCo's ctrl
+    as_ctrl = RigidBodySystem.from_mjcf(path, ctrl_inputs=True)
+    assert plant.input_frame.coordinates[0] == "abdomen_y" and as_ctrl.input_frame.coordinates[0] == "abdomen_y"
+    assert as_ctrl.actuators is not None and as_ctrl.input_limits[1][0] == 1.0   # ctrlrange, not gear x ctrlrange
+    assert compare_servo_accelerations(as_ctrl, model, seeds=range(1))[0] < 1e-10
+    with pytest.raises(ValueError, match=r"u has shape \(3,\), but needs \(21,\) \(MuJoCo's ctrl, one per actuator"):
+        as_ctrl.dynamics(0.0, as_ctrl.initial_state(), jnp.zeros(3))
 
 
 def test_armature_and_springs_keep_the_energy_they_add():
@@ -594,7 +601,8 @@ def test_unsupported_models_are_named_errors(body, message):
 def test_armature_can_be_ignored_and_actuators_chosen():
     xml = """<mujoco><worldbody><body><joint name="j" armature="0.1"/><geom size=".1" mass="1"/></body></worldbody>
       <actuator><general name="filtered" joint="j" dyntype="filter" dynprm="0.1"/></actuator></mujoco>"""
-    with pytest.raises(MJCFError, match=r"actuator 'filtered' has .*activation dynamics.*actuated=\[joint names\]"):
+    with pytest.raises(MJCFError, match=r"actuator 'filtered' has activation dynamics \(dyntype filter.*"
+                                        r"actuated=\[joint names\]"):
         RigidBodySystem.from_mjcf(compiled(xml), ignore_armature=True)
     plant = RigidBodySystem.from_mjcf(compiled(xml), ignore_armature=True, actuated=["j"])
     assert plant.input_frame.coordinates == ("j",) and plant.tree.armature is None
@@ -666,3 +674,4 @@ def test_a_plant_from_mjcf_is_drawn_by_mujocos_renderer_at_its_states(tmp_path):
     assert np.mean(np.any(ours[0] != ours[1], axis=-1)) > 0.01   # two different poses
     with pytest.raises(ValueError, match=r"loaded from an MJCF file.*MujocoVisualizer\(plant\)"):
         jd.viz.MeshcatVisualizer(plant)
+    assert jd.viz.visualizer_for(RigidBodySystem.from_mjcf(DATA / "mj_cartpole.xml"), camera="side").camera == "side"

@@ -28,7 +28,8 @@ class JointActuators(eqx.Module):
     where not limited), `joint_force_lower` / `joint_force_upper` (per velocity coordinate);
     static `names`, `positions` (each velocity coordinate's position coordinate, whose value
     makes the lengths) and `ctrl_range` ((lower, upper) per actuator or None: the inputs'
-    limits)."""
+    limits). Built from `force_range` (nu, 2) and `joint_force_range` (nv, 2) pairs; from an
+    MJCF file by `RigidBodySystem.from_mjcf`."""
 
     gain: jax.Array
     bias: jax.Array

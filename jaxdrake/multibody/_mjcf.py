@@ -95,19 +95,20 @@ def tree_from_mjcf(source, *, contact: bool = False, actuated=None, ignore_armat
     return plant_parts_from_mjcf(source, contact=contact, actuated=actuated, ignore_armature=ignore_armature)[:3]
 
 
-def plant_parts_from_mjcf(source, *, contact: bool = False, actuated=None, ignore_armature: bool = False):
+def plant_parts_from_mjcf(source, *, contact: bool = False, actuated=None, ignore_armature: bool = False,
+                          ctrl_inputs: bool = False):
     """`tree_from_mjcf`'s `(tree, actuated_joints, collision)`, the file's configuration
     (MuJoCo's `qpos0`: each free body where the file places it, each hinge and slide at its
     `ref`, where `mj_resetData` starts) in the tree's coordinates, and the `JointActuators`
-    where the file has servos (and `actuated` is None), else None, and its joint equalities'
-    coupler constraints as (joint, leader, gear ratio, offset)."""
+    where the file has servos or `ctrl_inputs` (and `actuated` is None), else None, and its
+    joint equalities' coupler constraints as (joint, leader, gear ratio, offset)."""
     mujoco = _mujoco()
     model, where = _compile(mujoco, source)
     reader = _Reader(mujoco, model, where)
     reader.check_supported(ignore_armature)
     joints = reader.actuated_joints() if actuated is None else list(actuated)
     tree = reader.tree(ignore_armature)
-    actuators = reader.joint_actuators(tree) if actuated is None and reader.has_servos() else None
+    actuators = reader.joint_actuators(tree) if actuated is None and (ctrl_inputs or reader.has_servos()) else None
     return (tree, joints, (reader.collisions() if contact else None), reader.default_positions(tree), actuators,
             reader.couplers())
 
@@ -452,9 +453,9 @@ class _Reader:
             if not (on_joint or on_tendon):
                 actuators.append((name, j, None, "does not act on a hinge, a slide or a fixed tendon"))
                 continue
-            if not self._affine(a):
-                actuators.append((name, j, None, "has a gain that is not a constant, activation dynamics, "
-                                  "damping or a delay (a muscle, an integrated velocity, a filtered servo, ...)"))
+            unmodelled = self._not_affine(a)
+            if unmodelled:
+                actuators.append((name, j, None, f"has {unmodelled}"))
                 continue
             if m.actuator_biastype[a] != mj.mjtBias.mjBIAS_NONE or on_tendon:
                 actuators.append((name, j, None, "servo"))   # MuJoCo's force law: `joint_actuators`
@@ -467,14 +468,20 @@ class _Reader:
             actuators.append((name, j, bound, None))
         return actuators
 
-    def _affine(self, a) -> bool:
-        """Whether actuator a's force is affine in (ctrl, length, velocity): a fixed gain, an
-        affine bias or none, no activation dynamics, damping or delay."""
+    def _not_affine(self, a) -> str | None:
+        """What makes actuator a's force other than affine in (ctrl, length, velocity) (a fixed
+        gain, an affine bias or none, no activation dynamics, damping or delay), or None."""
         m, mj = self.m, self.mj
-        return (m.actuator_gaintype[a] == mj.mjtGain.mjGAIN_FIXED
-                and int(m.actuator_biastype[a]) in (int(mj.mjtBias.mjBIAS_NONE), int(mj.mjtBias.mjBIAS_AFFINE))
-                and m.actuator_dyntype[a] == mj.mjtDyn.mjDYN_NONE and m.actuator_damping[a] == 0
-                and m.actuator_delay[a] == 0)
+        if int(m.actuator_dyntype[a]) != int(mj.mjtDyn.mjDYN_NONE):
+            return (f"activation dynamics (dyntype {mj.mjtDyn(int(m.actuator_dyntype[a])).name.removeprefix('mjDYN_').lower()}: "
+                    "a servo's timeconst, an integrated velocity, a muscle, ...)")
+        if int(m.actuator_gaintype[a]) != int(mj.mjtGain.mjGAIN_FIXED):
+            return f"a gain that is not a constant (gaintype {mj.mjtGain(int(m.actuator_gaintype[a])).name.removeprefix('mjGAIN_').lower()})"
+        if int(m.actuator_biastype[a]) not in (int(mj.mjtBias.mjBIAS_NONE), int(mj.mjtBias.mjBIAS_AFFINE)):
+            return f"a bias that is not affine (biastype {mj.mjtBias(int(m.actuator_biastype[a])).name.removeprefix('mjBIAS_').lower()})"
+        if m.actuator_damping[a] != 0 or m.actuator_delay[a] != 0:
+            return "damping or a delay"
+        return None
 
     def has_servos(self) -> bool:
         """Whether an actuator needs MuJoCo's force law (`JointActuators`): a servo, or any

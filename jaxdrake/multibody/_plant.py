@@ -271,13 +271,14 @@ class RigidBodySystem(System):
 
     @staticmethod
     def from_mjcf(path, *, contact: bool = False, actuated=None, ignore_armature: bool = False,
-                  effort_limits: bool = True, joint_limits: bool = True, limit_period: float = 0.02,
+                  ctrl_inputs: bool = False, effort_limits: bool = True, joint_limits: bool = True, limit_period: float = 0.02,
                   stiction_tolerance: float = DEFAULT_STICTION_TOLERANCE) -> "RigidBodySystem":
         """Load an MJCF file (or a compiled `mujoco.MjModel`), compiled by MuJoCo: bodies, hinge /
         slide joints and a free root (the floating base), inertias, damping, gravity, ranges as
-        compliant limits, `<motor>`s on joints as the inputs (joint forces), or, where the file
-        has position / velocity servos, every actuator's `ctrl` under MuJoCo's force law
-        (`plant.actuators`), or the joints named in `actuated`; joint equalities as coupler
+        compliant limits, `<motor>`s on joints as the inputs (joint forces, named by their
+        joints), or, where the file has position / velocity servos or with `ctrl_inputs=True`
+        (MuJoCo's and `MujocoSystem`'s inputs), every actuator's `ctrl` under MuJoCo's force law
+        (`plant.actuators`, named by the actuators), or the joints named in `actuated`; joint equalities as coupler
         constraints; `contact=True` makes the geoms touch by Drake's point contact ("What an
         MJCF file becomes" on the API page: what is translated, what is refused by name;
         friction combines by Drake's rule, not MuJoCo's maximum; `solref` / `solimp` are not
@@ -289,7 +290,7 @@ class RigidBodySystem(System):
 
         with jax.ensure_compile_time_eval():  # parsing is host work, also inside jit / vmap
             tree, inputs, collision, qpos0, actuators, couplers = plant_parts_from_mjcf(
-                path, contact=contact, actuated=actuated, ignore_armature=ignore_armature)
+                path, contact=contact, actuated=actuated, ignore_armature=ignore_armature, ctrl_inputs=ctrl_inputs)
             source = pathlib.Path(path).resolve() if isinstance(path, (str, pathlib.PurePath)) else None
             return RigidBodySystem(tree, inputs, effort_limits=effort_limits, joint_limits=joint_limits,
                                    limit_period=limit_period, source=source, source_format="mjcf", collision=collision,
@@ -441,6 +442,7 @@ class RigidBodySystem(System):
     def forward_dynamics(self, q, v, u):
         """qdd (the time derivative of v) under input u, damping, joint limits, contact and
         constraint forces."""
+        self._check_sizes(q=q, v=v, u=u)
         if self.linearization == "stiff":
             return _stiffly_linearized_forward_dynamics(self, q, v, u)
         return self._forward_dynamics(q, v, u)
@@ -487,9 +489,23 @@ class RigidBodySystem(System):
 
     @compiled_query
     def dynamics(self, t, x, u):
+        self._check_sizes(x=x, u=u)
         q, v = x[: self.tree.nq], x[self.tree.nq:]
         return jnp.concatenate([alg.configuration_derivative(self.tree, q, v),
                                 self.forward_dynamics(q, v, u)])
+
+    def _check_sizes(self, **arrays):
+        """A named error for a state x, positions q, velocities v or input u of the wrong size
+        (shapes are static: nothing is evaluated)."""
+        frames = {"x": (self.num_states, self.state_frame), "u": (self.num_inputs, self.input_frame),
+                  "q": (self.tree.nq, None), "v": (self.tree.nv, None)}
+        for name, array in arrays.items():
+            size, frame = frames[name]
+            if jnp.shape(array) != (size,):
+                meaning = (" (MuJoCo's ctrl, one per actuator: the file has servos)" if name == "u" and
+                           self.actuators is not None else "")
+                names = f": {frame.coordinates}" if frame is not None else ""
+                raise ValueError(f"{self.name}: {name} has shape {jnp.shape(array)}, but needs ({size},){meaning}{names}")
 
     def initial_state(self):
         """At rest in the file's configuration (an MJCF's `qpos0`: its free bodies where the file

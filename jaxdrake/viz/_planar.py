@@ -284,13 +284,14 @@ _PLANAR_BY_CLASS = {Pendulum: PendulumVisualizer, BouncingBall: BouncingBallVisu
                     Acrobot: PlanarRigidBodyVisualizer, DoublePendulum: PlanarRigidBodyVisualizer}
 
 
-def visualizer_for(system: System, *, plane: str | None = None, draw_period=DRAW_PERIOD) -> Visualizer:
+def visualizer_for(system: System, *, plane: str | None = None, draw_period=DRAW_PERIOD, camera=-1) -> Visualizer:
     """The visualizer for a plant, chosen by its class: the planar one drawn from its own
     parameters for one of the notes' plants (the pendulum, bouncing ball, rimless wheel,
     compass gait, planar quadrotor, cart-pole, acrobot, double pendulum); for any other
     `RigidBodySystem` a 3-D `MeshcatVisualizer` of its URDF's visuals (MuJoCo's renderer of its
     file for one loaded by `from_mjcf`), or its projection onto `plane` ("xz", "yz", "xy") on
-    request (also for one not loaded from a file); MuJoCo's renderer for a `MujocoSystem`."""
+    request (also for one not loaded from a file); MuJoCo's renderer for a `MujocoSystem`
+    (`camera`: MuJoCo's, a name or index of the model's cameras; -1 its free camera)."""
     if isinstance(system, RigidBodySystem) and plane is not None:
         return PlanarRigidBodyVisualizer(system, plane, draw_period)
     for kind, make in _PLANAR_BY_CLASS.items():
@@ -300,9 +301,9 @@ def visualizer_for(system: System, *, plane: str | None = None, draw_period=DRAW
         if system.source is None:
             return PlanarRigidBodyVisualizer(system, draw_period=draw_period)
         if system.source_format == "mjcf":
-            return MujocoVisualizer(system, draw_period=draw_period)
+            return MujocoVisualizer(system, draw_period=draw_period, camera=camera)
         return MeshcatVisualizer(system, draw_period=draw_period)
     if isinstance(system, MujocoSystem):
-        return MujocoVisualizer(system, draw_period=draw_period)
+        return MujocoVisualizer(system, draw_period=draw_period, camera=camera)
     raise TypeError(f"no visualizer for {type(system).__name__} ({system.name}); subclass "
                     "jaxdrake.viz.Visualizer (shapes, STYLES, view) to draw it")
