@@ -69,6 +69,7 @@ other shapes that can collide (ellipsoid, height field, SDF).
 from __future__ import annotations
 
 import pathlib
+from typing import NamedTuple
 
 import numpy as np
 
@@ -80,6 +81,18 @@ from ._files import parse_xml, read_xml, resolve_model_file
 from ._joints import JointType
 from ._tree import KinematicTree, _combine, assemble_tree
 from ._urdf_collision import URDFCollisions
+
+
+class _Actuator(NamedTuple):
+    """One actuator as the reader sees it (`_Reader._actuators`): its `target` (a joint id, or a
+    tendon id for "law" on a tendon), its `kind` ("motor", "law" or "refused"), a motor's joint
+    force `bound`, a refused one's `reason`."""
+
+    name: str
+    target: int
+    kind: str
+    bound: float | None = None
+    reason: str | None = None
 
 
 class MJCFError(ValueError):
@@ -108,7 +121,7 @@ def plant_parts_from_mjcf(source, *, contact: bool = False, actuated=None, ignor
     reader.check_supported(ignore_armature)
     joints = reader.actuated_joints() if actuated is None else list(actuated)
     tree = reader.tree(ignore_armature)
-    actuators = reader.joint_actuators(tree) if actuated is None and (ctrl_inputs or reader.has_servos()) else None
+    actuators = reader.joint_actuators(tree) if actuated is None and (ctrl_inputs or reader.needs_force_law()) else None
     return (tree, joints, (reader.collisions() if contact else None), reader.default_positions(tree), actuators,
             reader.couplers())
 
@@ -438,10 +451,10 @@ class _Reader:
 
     # ----- actuators ----------------------------------------------------------------------------
 
-    def _actuators(self):
-        """(actuator name, joint id, force bound on the joint or None, what is wrong or None) of
-        every actuator; a motor on a hinge / slide joint is right, a servo or an actuator on a fixed
-        tendon is "servo" (`joint_actuators`), anything else is wrong (the reason)."""
+    def _actuators(self) -> list:
+        """Every actuator as an `_Actuator`: a `<motor>` on a hinge or slide ("motor": its joint
+        force's bound), one that needs MuJoCo's force law ("law": a servo, or any actuator on a
+        fixed tendon), or one the plant cannot model ("refused", with the reason)."""
         m, mj = self.m, self.mj
         actuators = []
         for a in range(m.nu):
@@ -450,54 +463,52 @@ class _Reader:
             on_tendon = int(m.actuator_trntype[a]) == int(mj.mjtTrn.mjTRN_TENDON)   # fixed: `_check_tendon`
             on_joint = (int(m.actuator_trntype[a]) in (int(mj.mjtTrn.mjTRN_JOINT), int(mj.mjtTrn.mjTRN_JOINTINPARENT))
                         and int(m.jnt_type[j]) in (int(mj.mjtJoint.mjJNT_HINGE), int(mj.mjtJoint.mjJNT_SLIDE)))
-            if not (on_joint or on_tendon):
-                actuators.append((name, j, None, "does not act on a hinge, a slide or a fixed tendon"))
-                continue
-            unmodelled = self._not_affine(a)
+            unmodelled = None if (on_joint or on_tendon) else "does not act on a hinge, a slide or a fixed tendon"
+            unmodelled = unmodelled or (f"has {self._not_affine(a)}" if self._not_affine(a) else None)
             if unmodelled:
-                actuators.append((name, j, None, f"has {unmodelled}"))
-                continue
-            if m.actuator_biastype[a] != mj.mjtBias.mjBIAS_NONE or on_tendon:
-                actuators.append((name, j, None, "servo"))   # MuJoCo's force law: `joint_actuators`
-                continue
-            gear = abs(m.actuator_gear[a, 0])
-            bound = gear * abs(m.actuator_gainprm[a, 0]) * np.abs(m.actuator_ctrlrange[a]).max() \
-                if m.actuator_ctrllimited[a] else np.inf
-            if m.actuator_forcelimited[a]:
-                bound = min(bound, gear * np.abs(m.actuator_forcerange[a]).max())
-            actuators.append((name, j, bound, None))
+                actuators.append(_Actuator(name, j, "refused", reason=unmodelled))
+            elif m.actuator_biastype[a] != mj.mjtBias.mjBIAS_NONE or on_tendon:
+                actuators.append(_Actuator(name, j, "law"))
+            else:
+                gear = abs(m.actuator_gear[a, 0])
+                bound = gear * abs(m.actuator_gainprm[a, 0]) * np.abs(m.actuator_ctrlrange[a]).max() \
+                    if m.actuator_ctrllimited[a] else np.inf
+                if m.actuator_forcelimited[a]:
+                    bound = min(bound, gear * np.abs(m.actuator_forcerange[a]).max())
+                actuators.append(_Actuator(name, j, "motor", bound=bound))
         return actuators
 
     def _not_affine(self, a) -> str | None:
         """What makes actuator a's force other than affine in (ctrl, length, velocity) (a fixed
         gain, an affine bias or none, no activation dynamics, damping or delay), or None."""
         m, mj = self.m, self.mj
+        name = lambda enum, value, prefix: enum(int(value)).name.removeprefix(prefix).lower()  # noqa: E731
         if int(m.actuator_dyntype[a]) != int(mj.mjtDyn.mjDYN_NONE):
-            return (f"activation dynamics (dyntype {mj.mjtDyn(int(m.actuator_dyntype[a])).name.removeprefix('mjDYN_').lower()}: "
-                    "a servo's timeconst, an integrated velocity, a muscle, ...)")
+            return (f"activation dynamics (dyntype {name(mj.mjtDyn, m.actuator_dyntype[a], 'mjDYN_')}: a servo's "
+                    "timeconst, an integrated velocity, a muscle, ...)")
         if int(m.actuator_gaintype[a]) != int(mj.mjtGain.mjGAIN_FIXED):
-            return f"a gain that is not a constant (gaintype {mj.mjtGain(int(m.actuator_gaintype[a])).name.removeprefix('mjGAIN_').lower()})"
+            return f"a gain that is not a constant (gaintype {name(mj.mjtGain, m.actuator_gaintype[a], 'mjGAIN_')})"
         if int(m.actuator_biastype[a]) not in (int(mj.mjtBias.mjBIAS_NONE), int(mj.mjtBias.mjBIAS_AFFINE)):
-            return f"a bias that is not affine (biastype {mj.mjtBias(int(m.actuator_biastype[a])).name.removeprefix('mjBIAS_').lower()})"
+            return f"a bias that is not affine (biastype {name(mj.mjtBias, m.actuator_biastype[a], 'mjBIAS_')})"
         if m.actuator_damping[a] != 0 or m.actuator_delay[a] != 0:
             return "damping or a delay"
         return None
 
-    def has_servos(self) -> bool:
+    def needs_force_law(self) -> bool:
         """Whether an actuator needs MuJoCo's force law (`JointActuators`): a servo, or any
         actuator on a fixed tendon."""
-        return any(wrong == "servo" for *_, wrong in self._actuators())
+        return any(actuator.kind == "law" for actuator in self._actuators())
 
     def actuated_joints(self) -> list:
         """The joints of the motors, in the order of their actuators (a named error for any other
         actuator)."""
-        for name, _, _, wrong in self._actuators():
-            if wrong and wrong != "servo":
-                raise MJCFError(f"{self.where}: actuator {name!r} {wrong}, which the plant does not model. "
-                                "Pass actuated=[joint names] to make joints torque inputs (and close the actuator's "
-                                "loop around the plant yourself), or make it a <motor>, <position> or <velocity> "
-                                "on a joint")
-        return list(dict.fromkeys(self.joint_name[j] for _, j, _, wrong in self._actuators() if wrong is None))
+        for actuator in self._actuators():
+            if actuator.kind == "refused":
+                raise MJCFError(f"{self.where}: actuator {actuator.name!r} {actuator.reason}, which the plant does not "
+                                "model. Pass actuated=[joint names] to make joints torque inputs (and close the "
+                                "actuator's loop around the plant yourself), or make it a <motor>, <position> or "
+                                "<velocity> on a joint")
+        return list(dict.fromkeys(self.joint_name[a.target] for a in self._actuators() if a.kind == "motor"))
 
     def joint_actuators(self, tree) -> JointActuators:
         """Every actuator (motors and servos on hinges, slides and fixed tendons) as `JointActuators`:
@@ -514,7 +525,7 @@ class _Reader:
         limited = np.asarray(m.actuator_ctrllimited, bool)
         ctrl = np.where(limited[:, None], m.actuator_ctrlrange, inf)
         return JointActuators(
-            names=[name for name, *_ in self._actuators()], positions=tree.position_of_velocity,
+            names=[actuator.name for actuator in self._actuators()], positions=tree.position_of_velocity,
             gain=m.actuator_gainprm[:, 0], bias=m.actuator_biasprm[:, :3],
             moment=np.stack([self._moment(a, tree) for a in range(m.nu)]).reshape(m.nu, tree.nv),
             force_range=force_range, joint_force_range=joint_range,
@@ -524,9 +535,9 @@ class _Reader:
         """Joint id -> the largest generalized force its motors together apply, at most the
         joint's `actuatorfrcrange` (joints with motors)."""
         bound = {}
-        for _, j, b, wrong in self._actuators():
-            if not wrong:
-                bound[j] = bound.get(j, 0.0) + b
+        for actuator in self._actuators():
+            if actuator.kind == "motor":
+                bound[actuator.target] = bound.get(actuator.target, 0.0) + actuator.bound
         for j in bound:
             if self.m.jnt_actfrclimited[j]:
                 bound[j] = min(bound[j], np.abs(self.m.jnt_actfrcrange[j]).max())
