@@ -71,7 +71,8 @@ class KinematicTree(eqx.Module):
     Optional leaves (None: none, and nothing computed for them), per velocity coordinate:
     `armature`, a rotor's inertia reflected through its transmission onto the joint (MuJoCo's
     `armature`, Drake's reflected inertia $\\rho = I_{rotor} n^2$, Pinocchio's
-    `model.armature`), added to the mass matrix's diagonal, $H + \\mathrm{diag}(\\rho)$;
+    `model.armature`), added to the mass matrix's diagonal, $H + \\mathrm{diag}(\\rho)$ (0 on a
+    free body's coordinates: the readers refuse it there, and `aba` leaves it out);
     `spring_stiffness` k and `spring_reference` $q_s$ of joint springs on one-dof joints
     (MuJoCo's `stiffness` and `springref`), the torque $-k (q - q_s)$ (0 on a free body's
     coordinates).
@@ -557,9 +558,10 @@ def assemble_tree(robot_name, bodies, frames, gravity, path, error=URDFError) ->
     floats = lambda values: device_array(values, float)  # converted on the host: nothing to compile
     arr = lambda key: floats([b[key] for b in bodies])
     per_q = lambda key: floats(np.concatenate([[b[key]] * JointType(b["type"]).num_positions for b in bodies]))
-    per_dof = lambda key: floats(np.concatenate([[b.get(key, 0.0)] * JointType(b["type"]).num_velocities
-                                                 for b in bodies]))
-    given = lambda key: per_dof(key) if any(b.get(key, 0.0) != 0 for b in bodies) else None  # noqa: E731
+    per_dof = lambda key, get=dict.__getitem__: floats(np.concatenate(  # noqa: E731
+        [[get(b, key)] * JointType(b["type"]).num_velocities for b in bodies]))
+    optional = lambda b, key: b.get(key, 0.0)  # noqa: E731
+    given = lambda key: per_dof(key, optional) if any(optional(b, key) != 0 for b in bodies) else None  # noqa: E731
     springs = given("stiffness")
     return KinematicTree(
         robot_name=robot_name, body_names=tuple(b["link"] for b in bodies), joint_names=tuple(b["joint"] for b in bodies),
@@ -574,7 +576,7 @@ def assemble_tree(robot_name, bodies, frames, gravity, path, error=URDFError) ->
         damping=per_dof("damping"), friction=per_dof("friction"),
         position_lower=per_q("lower"), position_upper=per_q("upper"), effort_limit=per_dof("effort"),
         gravity=floats(gravity), armature=given("armature"), spring_stiffness=springs,
-        spring_reference=None if springs is None else per_dof("spring_reference"))
+        spring_reference=None if springs is None else per_dof("spring_reference", optional))
 
 
 def _check_bodies(bodies, path, error):
