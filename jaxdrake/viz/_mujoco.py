@@ -1,5 +1,6 @@
-"""MuJoCo models (a `MujocoSystem`, or a rigid-body plant loaded from MJCF) drawn by MuJoCo's own renderer: the planar visualizers' interface (`draw`,
-`animate`, `playback`, `save` to .gif / .mp4 / .html) with each frame an image of the model's
+"""MuJoCo models (a `MujocoSystem`, or a rigid-body plant loaded from MJCF) drawn by MuJoCo's
+own renderer: the planar visualizers' interface (`draw`, `animate`, `playback`, `save` to
+.gif / .mp4 / .html) with each frame an image of the model's
 scene at that state (`mj_forward`, then the offscreen renderer). On a machine without a
 display MuJoCo renders through EGL (Mesa's software EGL works on CPU-only machines); importing
 jaxdrake sets `MUJOCO_GL=egl` there unless you chose a backend, and where mujoco was imported
