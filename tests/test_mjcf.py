@@ -310,8 +310,8 @@ def test_a_servo_on_a_fixed_tendon_accelerations_equal_mujoco():
     np.testing.assert_allclose(plant.B, [[0.0, 3.0], [2.0 * 3.0, 0.0], [2.0 * 0.5 * 3.0, 0.0]])
     worst, saturated = compare_servo_accelerations(plant, model)
     assert worst < 1e-12 and saturated > 0
-    with pytest.raises(MJCFError, match=r"tendon 'curl' has a spring.*remove it from the tendon"):
-        RigidBodySystem.from_mjcf(compiled(TENDON.replace('<fixed name="curl">', '<fixed name="curl" stiffness="5">')))
+    with pytest.raises(MJCFError, match=r"tendon 'curl' has limits.*remove it from the tendon"):
+        RigidBodySystem.from_mjcf(compiled(TENDON.replace('<fixed name="curl">', '<fixed name="curl" range="-1 1">')))
     spatial = TENDON.replace('<fixed name="idle"><joint joint="a" coef="0.1"/></fixed>',
                              '<spatial name="rope"><site site="s1"/><site site="s2"/></spatial>').replace(
         '<geom type="sphere" size=".05" mass=".2"/>', '<geom type="sphere" size=".05" mass=".2"/><site name="s2"/>').replace(
@@ -353,6 +353,26 @@ def test_a_joint_equality_is_a_coupler_constraint_whose_accelerations_equal_mujo
         with pytest.raises(MJCFError, match=message):
             RigidBodySystem.from_mjcf(compiled(COUPLED.replace(COUPLED[COUPLED.index("<equality>") + 10:
                                                                        COUPLED.index("</equality>")], equality)))
+
+
+def test_fixed_tendons_springs_and_dampers_accelerations_and_energy_equal_mujoco():
+    """Fixed tendons with springs and dampers: one with a rest length, one with a dead band
+    (springlength="l- l+"), both with damping; accelerations equal `mj_forward`'s and the
+    springs' energy is MuJoCo's potential energy without gravity."""
+    xml = TENDON.replace('<fixed name="curl">', '<fixed name="curl" stiffness="5" damping="0.3" springlength="0.2">')
+    xml = xml.replace('<fixed name="idle">', '<fixed name="idle" stiffness="40" damping="0.1" springlength="-0.02 0.01">')
+    model = compiled(xml)
+    plant = RigidBodySystem.from_mjcf(model)
+    assert plant.tendons.names == ("curl", "idle")
+    worst, _ = compare_servo_accelerations(plant, model)
+    assert worst < 1e-12
+    no_gravity = compiled(xml.replace("<mujoco>", '<mujoco><option gravity="0 0 0"><flag energy="enable"/></option>'))
+    springs_only = mujoco.MjData(no_gravity)
+    springs_only.qpos[:] = [0.3, -0.4, 0.8]
+    mujoco.mj_forward(no_gravity, springs_only)
+    q = jnp.asarray(springs_only.qpos)
+    np.testing.assert_allclose(plant.tendons.energy(q), springs_only.energy[0], rtol=1e-12)
+    assert float(plant.tendons.energy(q)) > 0.1   # both springs stretched past their rest
 
 
 @pytest.mark.parametrize("relative, first_input", [("barkour_v0/assets/barkour_v0_mjx.xml", "abduction_front_left"),

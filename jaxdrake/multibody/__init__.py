@@ -1,6 +1,6 @@
 """Rigid-body systems: URDF -> kinematic tree, Featherstone's algorithms in JAX."""
 
-from ._actuators import JointActuators
+from ._actuators import FixedTendons, JointActuators
 from ._algorithms import (aba, bias_forces, fused_kernels, BodyMotion, body_motion, body_poses, external_forces, configuration_derivative, frame_jacobian,
                           frame_pose, gravity_forces, kinetic_energy, mass_matrix,
                           potential_energy, rnea)
@@ -12,6 +12,6 @@ from ._plant import CouplerConstraint, LoopConstraint, RigidBodySystem
 from ._spatial import rpy
 from ._tree import KinematicTree, URDFError, tree_from_pinocchio, tree_from_urdf, urdf_mimic_joints
 
-__all__ = ["CollisionGeometry", "ContactMaterial", "ContactModel", "ContactResults", "CouplerConstraint", "JointActuators", "JointType", "KinematicTree", "LoopConstraint", "MJCFError", "RigidBodySystem", "URDFError", "aba", "bias_forces", "BodyMotion", "body_motion", "body_poses", "check_model_files", "external_forces", "fused_kernels",
+__all__ = ["CollisionGeometry", "ContactMaterial", "ContactModel", "ContactResults", "CouplerConstraint", "FixedTendons", "JointActuators", "JointType", "KinematicTree", "LoopConstraint", "MJCFError", "RigidBodySystem", "URDFError", "aba", "bias_forces", "BodyMotion", "body_motion", "body_poses", "check_model_files", "external_forces", "fused_kernels",
            "configuration_derivative", "frame_jacobian", "frame_pose", "gravity_forces",
            "kinetic_energy", "mass_matrix", "mjcf_render_model", "parse_xml", "potential_energy", "resolve_model_file", "rnea", "rpy", "tree_from_mjcf", "tree_from_pinocchio", "tree_from_urdf", "urdf_mimic_joints"]

@@ -64,4 +64,43 @@ class JointActuators(eqx.Module):
         return jnp.clip(force @ self.moment, self.joint_force_lower, self.joint_force_upper)
 
 
-__all__ = ["JointActuators"]
+class FixedTendons(eqx.Module):
+    r"""MuJoCo's fixed tendons' springs and dampers: tendon t, of length $l_t = c_t \cdot q$
+    (its coefficients $c_t$ over the velocity coordinates, applied to the hinges' and slides'
+    positions), pulls with $f_t = k_t (\mathrm{clip}(l_t, l^-_t, l^+_t) - l_t) - b_t\, c_t
+    \cdot v$ (a spring with a dead band $[l^-, l^+]$, MuJoCo's `springlength`, and a damper);
+    the generalized force is $\sum_t c_t f_t$, and the springs store $\tfrac12 k_t
+    (l_t - \mathrm{clip}(l_t, l^-_t, l^+_t))^2$. Leaves `coefficients` (nt, nv), `stiffness`,
+    `damping`, `spring_lower`, `spring_upper`; static `names` and `positions` (as
+    `JointActuators`')."""
+
+    coefficients: jax.Array
+    stiffness: jax.Array
+    damping: jax.Array
+    spring_lower: jax.Array
+    spring_upper: jax.Array
+    names: tuple = eqx.field(static=True)
+    positions: tuple = eqx.field(static=True)
+
+    def __init__(self, names, positions, coefficients, stiffness, damping, spring_range):
+        self.names, self.positions = tuple(names), tuple(int(j) for j in positions)
+        self.coefficients = device_array(coefficients, float)
+        self.stiffness, self.damping = device_array(stiffness, float), device_array(damping, float)
+        spring_range = np.asarray(spring_range, float).reshape(len(self.names), 2)
+        self.spring_lower, self.spring_upper = device_array(spring_range[:, 0]), device_array(spring_range[:, 1])
+
+    def _stretch(self, q):
+        length = self.coefficients @ q[np.asarray(self.positions, int)]
+        return length - jnp.clip(length, self.spring_lower, self.spring_upper)
+
+    def forces(self, q, v):
+        """The generalized force (nv,) of the tendons' springs and dampers."""
+        tension = -self.stiffness * self._stretch(q) - self.damping * (self.coefficients @ v)
+        return tension @ self.coefficients
+
+    def energy(self, q):
+        """What the tendons' springs store."""
+        return 0.5 * jnp.sum(self.stiffness * self._stretch(q) ** 2)
+
+
+__all__ = ["FixedTendons", "JointActuators"]

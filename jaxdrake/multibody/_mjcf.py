@@ -20,7 +20,9 @@ angles in degrees, meshes); the compiled arrays are read here:
   **Armature**: `dof_armature` of hinges and slides, added to the mass matrix's diagonal
   (`KinematicTree.armature`; dropped with `ignore_armature=True`). **Springs**: a hinge's or
   slide's `jnt_stiffness` about `qpos_spring` (`springref`), the torque $-k (q - q_s)$
-  (`KinematicTree.spring_stiffness`; none when springs are disabled).
+  (`KinematicTree.spring_stiffness`; none when springs are disabled); a fixed tendon's
+  linear spring (`stiffness` about its `springlength`, a dead band where that is a range) and
+  damper (`FixedTendons`).
   **Limits**: `jnt_range` of `jnt_limited` joints (the plant's compliant limits, not MuJoCo's
   soft constraints). `dof_frictionloss` is recorded on `tree.friction`, not applied (as a
   URDF's friction).
@@ -62,7 +64,7 @@ refuses a free joint below the worldbody), armature or a spring on a free joint,
 armature (unless `ignore_armature=True`), nonlinear springs (`stiffnesspoly`), polynomial
 damping, gravity compensation, fluid forces (`density`, `viscosity`), equality constraints
 other than those joint equalities (connect, weld, tendon, distance, a polynomial), spatial
-tendons and fixed tendons with springs, damping, limits or friction, flexes, and geoms of
+tendons and fixed tendons with nonlinear springs or dampers, limits or friction, flexes, and geoms of
 other shapes that can collide (ellipsoid, height field, SDF).
 """
 
@@ -75,7 +77,7 @@ import numpy as np
 
 from .._extras import require_mujoco
 from ..geometry import Box, Capsule, Convex, Cylinder, GeometryError, HalfSpace, Sphere
-from ._actuators import JointActuators
+from ._actuators import FixedTendons, JointActuators
 from ._contact import CollisionGeometry, ContactMaterial
 from ._files import parse_xml, read_xml, resolve_model_file
 from ._joints import JointType
@@ -113,8 +115,9 @@ def plant_parts_from_mjcf(source, *, contact: bool = False, actuated=None, ignor
     """`tree_from_mjcf`'s `(tree, actuated_joints, collision)`, the file's configuration
     (MuJoCo's `qpos0`: each free body where the file places it, each hinge and slide at its
     `ref`, where `mj_resetData` starts) in the tree's coordinates, and the `JointActuators`
-    where the file has servos or `ctrl_inputs` (and `actuated` is None), else None, and its
-    joint equalities' coupler constraints as (joint, leader, gear ratio, offset)."""
+    where the file has servos or `ctrl_inputs` (and `actuated` is None), else None, its
+    joint equalities' coupler constraints as (joint, leader, gear ratio, offset), and its fixed
+    tendons' springs and dampers (`FixedTendons`, or None)."""
     mujoco = _mujoco()
     model, where = _compile(mujoco, source)
     reader = _Reader(mujoco, model, where)
@@ -123,7 +126,7 @@ def plant_parts_from_mjcf(source, *, contact: bool = False, actuated=None, ignor
     tree = reader.tree(ignore_armature)
     actuators = reader.joint_actuators(tree) if actuated is None and (ctrl_inputs or reader.needs_force_law()) else None
     return (tree, joints, (reader.collisions() if contact else None), reader.default_positions(tree), actuators,
-            reader.couplers())
+            reader.couplers(), reader.fixed_tendons(tree))
 
 
 def mjcf_render_model(plant):
@@ -337,8 +340,9 @@ class _Reader:
 
     def _check_tendon(self, t):
         """A fixed tendon (a linear combination of joint positions) is read as an actuator's
-        transmission; a spatial tendon, or one with a spring, damping, limits, friction,
-        armature or an actuator force range, is refused by name."""
+        transmission, with its linear spring and damper; a spatial tendon, or one with a
+        nonlinear spring or damper, limits, friction, armature or an actuator force range, is
+        refused by name."""
         m, mj = self.m, self.mj
         where = f"{self.where}: tendon {self._name(mj.mjtObj.mjOBJ_TENDON, t, f'tendon{t}')!r}"
         wraps = range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t])
@@ -346,28 +350,45 @@ class _Reader:
             raise MJCFError(f"{where} is a spatial tendon (through sites or around geoms), which the plant does not "
                             "model; the plant reads fixed tendons (<fixed>, joints and coefficients) as actuator "
                             "transmissions: remove it, or actuate the joints instead")
-        passive = {"a spring": m.tendon_stiffness[t] != 0 or np.any(m.tendon_stiffnesspoly[t] != 0),
-                   "damping": m.tendon_damping[t] != 0 or np.any(m.tendon_dampingpoly[t] != 0),
+        passive = {"a nonlinear spring (stiffnesspoly)": np.any(m.tendon_stiffnesspoly[t] != 0),
+                   "nonlinear damping (dampingpoly)": np.any(m.tendon_dampingpoly[t] != 0),
                    "limits": bool(m.tendon_limited[t]), "friction": m.tendon_frictionloss[t] != 0,
                    "armature": m.tendon_armature[t] != 0, "an actuator force range": bool(m.tendon_actfrclimited[t])}
         for what, present in passive.items():
             if present:
-                raise MJCFError(f"{where} has {what}, which the plant does not model on a tendon (fixed tendons are "
-                                "read as actuator transmissions alone): remove it from the tendon")
+                raise MJCFError(f"{where} has {what}, which the plant does not model on a tendon (it reads a fixed "
+                                "tendon's linear spring and damper, and actuators on it): remove it from the tendon")
+
+    def _coefficients(self, t, tree) -> np.ndarray:
+        """Fixed tendon t's coefficients over the tree's velocity coordinates."""
+        m, coefficients = self.m, np.zeros(tree.nv)
+        for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t]):
+            coefficients[tree.v_starts[tree.joint_names.index(self.joint_name[int(m.wrap_objid[w])])]] += m.wrap_prm[w]
+        return coefficients
+
+    def fixed_tendons(self, tree) -> FixedTendons | None:
+        """The fixed tendons with a spring or a damper (springs and dampers disabled by the
+        file's flags are left out), or None."""
+        m = self.m
+        stiffness = m.tendon_stiffness if self.springs_on() else np.zeros(m.ntendon)
+        damping = m.tendon_damping if not self.disabled("mjDSBL_DAMPER") else np.zeros(m.ntendon)
+        kept = [t for t in range(m.ntendon) if stiffness[t] != 0 or damping[t] != 0]
+        if not kept:
+            return None
+        return FixedTendons(
+            names=[self._name(self.mj.mjtObj.mjOBJ_TENDON, t, f"tendon{t}") for t in kept],
+            positions=tree.position_of_velocity, coefficients=np.stack([self._coefficients(t, tree) for t in kept]),
+            stiffness=stiffness[kept], damping=damping[kept], spring_range=m.tendon_lengthspring[kept])
 
     def _moment(self, a, tree) -> np.ndarray:
         """Actuator a's moment arms over the tree's velocity coordinates: its gear at its
         joint's, or its gear times its fixed tendon's coefficients."""
         m, mj = self.m, self.mj
-        moment, gear = np.zeros(tree.nv), m.actuator_gear[a, 0]
         target = int(m.actuator_trnid[a, 0])
         if int(m.actuator_trntype[a]) == int(mj.mjtTrn.mjTRN_TENDON):
-            wraps = range(m.tendon_adr[target], m.tendon_adr[target] + m.tendon_num[target])
-            joints_coefs = [(int(m.wrap_objid[w]), m.wrap_prm[w]) for w in wraps]
-        else:
-            joints_coefs = [(target, 1.0)]
-        for j, coef in joints_coefs:
-            moment[tree.v_starts[tree.joint_names.index(self.joint_name[j])]] += gear * coef
+            return m.actuator_gear[a, 0] * self._coefficients(target, tree)
+        moment = np.zeros(tree.nv)
+        moment[tree.v_starts[tree.joint_names.index(self.joint_name[target])]] = m.actuator_gear[a, 0]
         return moment
 
     # ----- bodies and joints ------------------------------------------------------------------

@@ -27,7 +27,7 @@ from .._numbers import device_array
 from ..geometry import HalfSpace
 from ..systems import Frame, System
 from . import _algorithms as alg
-from ._actuators import JointActuators
+from ._actuators import FixedTendons, JointActuators
 from ._contact import DEFAULT_STICTION_TOLERANCE, CollisionGeometry, ContactMaterial, ContactModel, build_contact_model
 from ._joints import JointType
 from ._tree import KinematicTree, URDFError, tree_from_pinocchio, tree_from_urdf, urdf_mimic_joints
@@ -110,7 +110,9 @@ class RigidBodySystem(System):
       `<drake:rotor_inertia>` times `<drake:gear_ratio>` squared in a `<transmission>`'s
       actuator, MuJoCo's `armature`, Pinocchio's `model.armature`) adds to H's diagonal.
       Joint springs (`tree.spring_stiffness`, `tree.spring_reference`: MuJoCo's `stiffness`,
-      `springref`) push by $-k(q - q_s)$; `energy` counts both.
+      `springref`) push by $-k(q - q_s)$, and an MJCF file's fixed tendons with springs or
+      dampers by theirs (`tendons`: `FixedTendons`); `passive_force(q, v)` sums them with the
+      joints' damping; `energy` counts the rotors and the springs.
     - Contact (`from_urdf(..., contact=True)`, `with_collision_geometry`, `with_ground`): the
       `<collision>` shapes touch each other and the world by Drake's compliant point contact
       (Hunt-Crossley normal force, regularised Stribeck friction; "The contact model" on the API page),
@@ -141,6 +143,7 @@ class RigidBodySystem(System):
     source_format: str | None = eqx.field(static=True, default=None)  # its format: "urdf" or "mjcf"
     package_map: tuple = eqx.field(static=True, default=())  # (package, folder) pairs for its package:// files
     contact: ContactModel | None = None
+    tendons: FixedTendons | None = None
     collision: URDFCollisions | None = eqx.field(static=True, default=None)  # what `contact` was built from
     stiction_tolerance: float = eqx.field(static=True, default=DEFAULT_STICTION_TOLERANCE)  # seeds contact models built later
     linearization: str = eqx.field(static=True, default="exact")  # "stiff": see stiff_linearization
@@ -151,14 +154,14 @@ class RigidBodySystem(System):
                  joint_limits: bool = True, limit_period: float = 0.02, source=None, collision=None,
                  stiction_tolerance: float = DEFAULT_STICTION_TOLERANCE, package_map=None,
                  default_positions=None, source_format: str | None = None,
-                 actuators: JointActuators | None = None):
+                 actuators: JointActuators | None = None, tendons: FixedTendons | None = None):
         names = tree.joint_names
         if actuators is not None:   # MuJoCo's actuators: the inputs are their ctrl
             inputs, B = actuators.names, actuators.input_matrix()
             limits = actuators.ctrl_range if effort_limits else None
         else:
             inputs, B, limits = self._joint_force_inputs(tree, actuated_joints, effort_limits)
-        self.tree, self.B, self.actuators = tree, device_array(B), actuators
+        self.tree, self.B, self.actuators, self.tendons = tree, device_array(B), actuators, tendons
         self.loops = tuple(loops)
         for loop in self.loops:
             for frame in (loop.frame_a, loop.frame_b):
@@ -289,13 +292,14 @@ class RigidBodySystem(System):
         from ._mjcf import plant_parts_from_mjcf
 
         with jax.ensure_compile_time_eval():  # parsing is host work, also inside jit / vmap
-            tree, inputs, collision, qpos0, actuators, couplers = plant_parts_from_mjcf(
+            tree, inputs, collision, qpos0, actuators, couplers, tendons = plant_parts_from_mjcf(
                 path, contact=contact, actuated=actuated, ignore_armature=ignore_armature, ctrl_inputs=ctrl_inputs)
             source = pathlib.Path(path).resolve() if isinstance(path, (str, pathlib.PurePath)) else None
             return RigidBodySystem(tree, inputs, effort_limits=effort_limits, joint_limits=joint_limits,
                                    limit_period=limit_period, source=source, source_format="mjcf", collision=collision,
                                    stiction_tolerance=stiction_tolerance, default_positions=qpos0,
-                                   actuators=actuators, couplers=[CouplerConstraint(*c) for c in couplers])
+                                   actuators=actuators, couplers=[CouplerConstraint(*c) for c in couplers],
+                                   tendons=tendons)
 
     @property
     def name(self) -> str:
@@ -323,8 +327,8 @@ class RigidBodySystem(System):
         """The generalized force H qdd + C v + G + b o v - tau_lim - tau_contact - tau_spring
         that produces qdd (damping, joint-limit, contact and joint-spring forces included;
         constraint forces not)."""
-        return (alg.rnea(self.tree, q, v, qdd) + self.tree.damping * v - self.joint_limit_torque(q, v)
-                - self.contact_force(q, v) - self._spring_torque(q))
+        return (alg.rnea(self.tree, q, v, qdd) - self.passive_force(q, v) - self.joint_limit_torque(q, v)
+                - self.contact_force(q, v))
 
     # ----- contact ---------------------------------------------------------------------------
 
@@ -465,14 +469,18 @@ class RigidBodySystem(System):
         """The generalized force of the inputs: B u, or the `JointActuators`' (MuJoCo's servos)."""
         return self.B @ u if self.actuators is None else self.actuators.joint_forces(q, v, u)
 
-    def _spring_torque(self, q):
-        """The joint springs' torque (`KinematicTree.spring_torque`), 0.0 without springs."""
+    def passive_force(self, q, v):
+        r"""The joints' damping $-b \circ v$, their springs' torque (`KinematicTree.spring_torque`)
+        and the fixed tendons' springs and dampers (`FixedTendons`)."""
+        tau = -self.tree.damping * v
         spring = self.tree.spring_torque(q)
-        return 0.0 if spring is None else spring
+        if spring is not None:
+            tau = tau + spring
+        return tau if self.tendons is None else tau + self.tendons.forces(q, v)
 
     def _forward_dynamics(self, q, v, u):
-        tau = (self.actuation(q, v, u) - self.tree.damping * v + self.joint_limit_torque(q, v)
-               + self.contact_force(q, v) + self._spring_torque(q))
+        tau = (self.actuation(q, v, u) + self.passive_force(q, v) + self.joint_limit_torque(q, v)
+               + self.contact_force(q, v))
         if not (self.loops or self.couplers):
             return alg.aba(self.tree, q, v, tau)
         H = alg.mass_matrix(self.tree, q)
@@ -611,7 +619,8 @@ class RigidBodySystem(System):
         energy is not in it: during an impact it rises by what they store, and it falls as
         their dissipation acts."""
         q, v = x[: self.tree.nq], x[self.tree.nq:]
-        return alg.kinetic_energy(self.tree, q, v) + alg.potential_energy(self.tree, q) + self.tree.spring_energy(q)
+        energy = alg.kinetic_energy(self.tree, q, v) + alg.potential_energy(self.tree, q) + self.tree.spring_energy(q)
+        return energy if self.tendons is None else energy + self.tendons.energy(q)
 
     @compiled_query
     def frame_pose(self, q, frame: str):
@@ -742,10 +751,8 @@ def _stiff_derivative(static, primals, tangents):
     dq, dv, du = zero(dq, q), zero(dv, v), zero(du, u)
     plant = _exact(static, arrays)
     tree = plant.tree
-    dtau = (jax.jvp(plant.actuation, (q, v, u), (dq, dv, du))[1] - tree.damping * dv
+    dtau = (jax.jvp(plant.actuation, (q, v, u), (dq, dv, du))[1] + jax.jvp(plant.passive_force, (q, v), (dq, dv))[1]
             + jax.jvp(plant.joint_limit_torque, (q, v), (dq, dv))[1])
-    if tree.spring_stiffness is not None:
-        dtau = dtau - tree.spring_stiffness * dq[np.asarray(tree.position_of_velocity)]
     if plant.contact is not None:
         K, D = plant.contact.force_derivatives(tree, q, v)
         dtau = dtau + K @ alg.velocity_of_configuration_change(tree, q, dq) + D @ dv
