@@ -69,7 +69,7 @@ def main(out: pathlib.Path) -> pathlib.Path:
           f"{len(plant.contact.names)} collision geoms; |qdd - mj_forward| at the start: "
           f"{check_against_mujoco(plant, u):.1e}")
     start = time.perf_counter()
-    traj = jd.simulate(plant, (0.0, T_FINAL), x0, inputs=lambda t: u, rtol=1e-4, atol=1e-6, max_steps=20000)
+    traj = jd.simulate(plant, (0.0, T_FINAL), x0, inputs=u, rtol=1e-4, atol=1e-6, max_steps=20000)
     traj.final_state.block_until_ready()
     print(f"simulated {T_FINAL} s in {time.perf_counter() - start:.1f} s (first call: compiling included), "
           f"{int(traj.num_accepted_steps)} steps + {int(traj.num_rejected_steps)} rejected")

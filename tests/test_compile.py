@@ -93,6 +93,25 @@ def test_a_new_parameter_value_retraces_nothing():
     assert counter.traces == first
 
 
+def test_a_constant_input_is_an_argument_a_new_value_retraces_nothing():
+    """`inputs=u` (an array, as Drake's FixValue): the forced oscillator x'' = -x + u from
+    rest ends at u (1 - cos t), equal to the same input given as a function, and its
+    derivative in u is 1 - cos t; a new u (a list, a NumPy or a JAX array, a number) reuses
+    the program, where a new function would not."""
+    counter = Counter()
+    system = counted_oscillator(counter)
+    final = lambda u: jd.simulate(system, (0.0, 2.0), jnp.zeros(2), inputs=u, rtol=1e-10, atol=1e-12).final_state  # noqa: E731
+    np.testing.assert_allclose(final(jnp.array([0.7]))[0], 0.7 * (1 - np.cos(2.0)), rtol=1e-8)
+    first = counter.traces
+    for u in ([0.3], np.array([-1.2]), 2.5):
+        np.testing.assert_allclose(final(u)[0], float(np.ravel(u)[0]) * (1 - np.cos(2.0)), rtol=1e-8)
+    assert counter.traces == first
+    np.testing.assert_array_equal(final(np.array([0.4])), final(lambda t: jnp.array([0.4])))
+    np.testing.assert_allclose(jax.grad(lambda u: final(u)[0])(jnp.array([0.7])), [1 - np.cos(2.0)], rtol=1e-7)
+    with pytest.raises(ValueError, match=r"inputs has shape \(3,\), but .*needs shape \(1,\)"):
+        final(np.zeros(3))
+
+
 def test_discrete_step_is_the_rule_and_the_update():
     a, h = -0.7, 0.3
     linear = jd.LinearSystem([[a]], [[1.0]], [[1.0]], [[0.0]])

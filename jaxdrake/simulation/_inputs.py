@@ -1,5 +1,5 @@
-"""Input sources of the simulation loop: u(t) from nothing, a function, an input tape, plus the
-noise samples of a stochastic system."""
+"""Input sources of the simulation loop: u(t) from nothing, a constant, a function, an input
+tape, plus the noise samples of a stochastic system."""
 
 from __future__ import annotations
 
@@ -52,6 +52,15 @@ class _FunctionInput(InputSource):
 
     def __call__(self, t):
         return jnp.reshape(jnp.asarray(self.fn(t), dtype=t.dtype), (self.num_inputs,))
+
+
+class _ConstantInput(InputSource):
+    """A constant u, an argument of the compiled program: a new value does not recompile."""
+
+    value: jax.Array
+
+    def __call__(self, t):
+        return jnp.asarray(self.value, t.dtype)
 
 
 class _TrajectoryInput(InputSource):
@@ -146,8 +155,15 @@ def make_source(system, inputs, t0, dtype):
         source = _TrajectoryInput(leaves_to_arrays(inputs, dtype), nu)
     elif callable(inputs):
         source = _FunctionInput(inputs, nu)
+    elif isinstance(inputs, (jax.Array, np.ndarray, list, tuple, float, int)):
+        value = np.asarray(inputs, dtype) if not isinstance(inputs, jax.Array) else leaf_to_array(inputs, dtype)
+        if jnp.shape(value) not in ((nu,), ()) or (jnp.shape(value) == () and nu != 1):
+            raise ValueError(f"inputs has shape {jnp.shape(value)}, but {system.name}'s input frame "
+                             f"{system.input_frame} needs shape ({nu},)")
+        return _ConstantInput(jnp.reshape(value, (nu,)) if isinstance(value, jax.Array) else np.reshape(value, (nu,)))
     else:
-        raise TypeError(f"inputs must be a Trajectory or a function of time, got {type(inputs).__name__}")
+        raise TypeError(f"inputs must be a Trajectory, a function of time or a constant u (an array of the "
+                        f"input frame's size), got {type(inputs).__name__}")
     raw = inputs.eval if tape else inputs
     try:
         shape = jax.eval_shape(raw, t0).shape

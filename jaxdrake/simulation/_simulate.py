@@ -60,8 +60,10 @@ def simulate(system: System, tspan, x0=None, *, inputs=None, key=None, solver="a
       for one state, a hybrid system's initial-mode state, a diagram's mapping from subsystems
       to their states); None takes `system.initial_state()`. With state constraints it is
       first projected onto phi(x) = 0.
-    - `inputs`: a `Trajectory` (input tape) or a function of time returning u(t); None means
-      u = 0, as in the notes. Input limits of the system saturate it.
+    - `inputs`: a `Trajectory` (input tape), a function of time returning u(t), or a constant
+      u (an array: Drake's `FixValue`; a new value, like a tape's, does not recompile, where a
+      new function does); None means u = 0, as in the notes. Input limits of the system
+      saturate it.
     - `key`: a JAX PRNG key, for a stochastic system (required then, refused otherwise): the
       noise path is a function of the key alone; `jax.vmap` over keys gives a Monte-Carlo batch.
     - `solver`: `"auto"` (default): `Rosenbrock23(jacobian="stiff")` for a system with
