@@ -18,8 +18,10 @@ def test_wrong_input_shape():
         jd.simulate(Pendulum(), (0.0, 1.0), jnp.zeros(2), inputs=lambda t: jnp.zeros(2))
     with pytest.raises(ValueError, match="has no inputs"):
         jd.simulate(jd.models.VanDerPol(), (0.0, 1.0), inputs=lambda t: jnp.zeros(1))
-    with pytest.raises(TypeError, match="Trajectory or a function of time"):
-        jd.simulate(Pendulum(), (0.0, 1.0), inputs=[1.0])
+    with pytest.raises(TypeError, match="a Trajectory, a function of time or a constant u"):
+        jd.simulate(Pendulum(), (0.0, 1.0), inputs="1.0")
+    with pytest.raises(ValueError, match=r"inputs has shape \(2,\), but .*PendulumInput\(tau\)"):   # a constant u
+        jd.simulate(Pendulum(), (0.0, 1.0), inputs=[1.0, 2.0])
 
 
 def test_reversed_or_bad_tspan():
