@@ -95,7 +95,7 @@ def main(out: pathlib.Path) -> pathlib.Path:
     ax.set(xlabel="t (s)", ylabel="joint angle (rad)", title="the fingers' flexion joints under their servos")
     ax.legend(fontsize=8, ncol=5)
     ax = fig.add_subplot(grid[1, 2:])
-    forces = np.stack([np.asarray(plant.actuators.joint_forces(x[:plant.tree.nq], x[plant.tree.nq:], u))
+    forces = np.stack([np.asarray(plant.actuation(x[:plant.tree.nq], x[plant.tree.nq:], u))
                        for x in q[::10]])
     ax.plot(ts[::10], forces, lw=0.8)
     ax.set(xlabel="t (s)", ylabel="joint force (N m)", title="the servos' joint forces (gear x force, clipped at forcerange)")

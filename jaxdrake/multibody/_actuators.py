@@ -26,10 +26,10 @@ class JointActuators(eqx.Module):
     """The actuators (module docstring): leaves `gain` (a), `bias` (nu, 3: b0, b1, b2),
     `moment` (nu, nv: the moment arms), `force_lower` / `force_upper` (per actuator, +-inf
     where not limited), `joint_force_lower` / `joint_force_upper` (per velocity coordinate);
-    static `names`, `positions` (each velocity coordinate's position coordinate, whose value
-    makes the lengths) and `ctrl_range` ((lower, upper) per actuator or None: the inputs'
+    static `names` and `ctrl_range` ((lower, upper) per actuator or None: the inputs'
     limits). Built from `force_range` (nu, 2) and `joint_force_range` (nv, 2) pairs; from an
-    MJCF file by `RigidBodySystem.from_mjcf`."""
+    MJCF file by `RigidBodySystem.from_mjcf`. The lengths are taken over `qj`, the joints'
+    positions per velocity coordinate (`KinematicTree.joint_positions`)."""
 
     gain: jax.Array
     bias: jax.Array
@@ -39,26 +39,22 @@ class JointActuators(eqx.Module):
     joint_force_lower: jax.Array
     joint_force_upper: jax.Array
     names: tuple = eqx.field(static=True)
-    positions: tuple = eqx.field(static=True)
     ctrl_range: tuple | None = eqx.field(static=True)
 
-    def __init__(self, names, positions, gain, bias, moment, force_range, joint_force_range, ctrl_range=None):
-        self.names, self.positions = tuple(names), tuple(int(j) for j in positions)
+    def __init__(self, names, gain, bias, moment, force_range, joint_force_range, ctrl_range=None):
+        self.names = tuple(names)
         self.gain, self.bias, self.moment = device_array(gain, float), device_array(bias, float), device_array(moment, float)
-        force_range = np.asarray(force_range, float).reshape(len(self.names), 2)
-        self.force_lower, self.force_upper = device_array(force_range[:, 0]), device_array(force_range[:, 1])
-        joint_force_range = np.asarray(joint_force_range, float)
-        self.joint_force_lower, self.joint_force_upper = (device_array(joint_force_range[:, 0]),
-                                                          device_array(joint_force_range[:, 1]))
+        self.force_lower, self.force_upper = _bounds(force_range, len(self.names))
+        self.joint_force_lower, self.joint_force_upper = _bounds(joint_force_range, self.moment.shape[1])
         self.ctrl_range = None if ctrl_range is None else tuple(tuple(float(c) for c in side) for side in ctrl_range)
 
     def input_matrix(self) -> np.ndarray:
         """$\\partial \\tau / \\partial u$ where no force limit binds: $m_k^T a_k$ (nv, nu)."""
         return np.asarray(self.moment).T * np.asarray(self.gain)
 
-    def joint_forces(self, q, v, u):
+    def joint_forces(self, qj, v, u):
         """The generalized force (nv,) of the actuators at input u."""
-        length = self.moment @ q[np.asarray(self.positions, int)]
+        length = self.moment @ qj
         force = self.gain * u + self.bias[:, 0] + self.bias[:, 1] * length + self.bias[:, 2] * (self.moment @ v)
         force = jnp.clip(force, self.force_lower, self.force_upper)
         return jnp.clip(force @ self.moment, self.joint_force_lower, self.joint_force_upper)
@@ -71,8 +67,8 @@ class FixedTendons(eqx.Module):
     \cdot v$ (a spring with a dead band $[l^-, l^+]$, MuJoCo's `springlength`, and a damper);
     the generalized force is $\sum_t c_t f_t$, and the springs store $\tfrac12 k_t
     (l_t - \mathrm{clip}(l_t, l^-_t, l^+_t))^2$. Leaves `coefficients` (nt, nv), `stiffness`,
-    `damping`, `spring_lower`, `spring_upper`; static `names` and `positions` (as
-    `JointActuators`')."""
+    `damping`, `spring_lower`, `spring_upper`; static `names`. Lengths over `qj`, as
+    `JointActuators`'."""
 
     coefficients: jax.Array
     stiffness: jax.Array
@@ -80,27 +76,31 @@ class FixedTendons(eqx.Module):
     spring_lower: jax.Array
     spring_upper: jax.Array
     names: tuple = eqx.field(static=True)
-    positions: tuple = eqx.field(static=True)
 
-    def __init__(self, names, positions, coefficients, stiffness, damping, spring_range):
-        self.names, self.positions = tuple(names), tuple(int(j) for j in positions)
+    def __init__(self, names, coefficients, stiffness, damping, spring_range):
+        self.names = tuple(names)
         self.coefficients = device_array(coefficients, float)
         self.stiffness, self.damping = device_array(stiffness, float), device_array(damping, float)
-        spring_range = np.asarray(spring_range, float).reshape(len(self.names), 2)
-        self.spring_lower, self.spring_upper = device_array(spring_range[:, 0]), device_array(spring_range[:, 1])
+        self.spring_lower, self.spring_upper = _bounds(spring_range, len(self.names))
 
-    def _stretch(self, q):
-        length = self.coefficients @ q[np.asarray(self.positions, int)]
+    def _stretch(self, qj):
+        length = self.coefficients @ qj
         return length - jnp.clip(length, self.spring_lower, self.spring_upper)
 
-    def forces(self, q, v):
+    def forces(self, qj, v):
         """The generalized force (nv,) of the tendons' springs and dampers."""
-        tension = -self.stiffness * self._stretch(q) - self.damping * (self.coefficients @ v)
+        tension = -self.stiffness * self._stretch(qj) - self.damping * (self.coefficients @ v)
         return tension @ self.coefficients
 
-    def energy(self, q):
+    def energy(self, qj):
         """What the tendons' springs store."""
-        return 0.5 * jnp.sum(self.stiffness * self._stretch(q) ** 2)
+        return 0.5 * jnp.sum(self.stiffness * self._stretch(qj) ** 2)
+
+
+def _bounds(pairs, count):
+    """(lower, upper) device arrays of `count` (lower, upper) pairs."""
+    pairs = np.asarray(pairs, float).reshape(count, 2)
+    return device_array(pairs[:, 0]), device_array(pairs[:, 1])
 
 
 __all__ = ["FixedTendons", "JointActuators"]

@@ -70,6 +70,7 @@ other shapes that can collide (ellipsoid, height field, SDF).
 
 from __future__ import annotations
 
+import functools
 import pathlib
 from typing import NamedTuple
 
@@ -86,7 +87,7 @@ from ._urdf_collision import URDFCollisions
 
 
 class _Actuator(NamedTuple):
-    """One actuator as the reader sees it (`_Reader._actuators`): its `target` (a joint id, or a
+    """One actuator as the reader sees it (`_Reader.actuators`): its `target` (a joint id, or a
     tendon id for "law" on a tendon), its `kind` ("motor", "law" or "refused"), a motor's joint
     force `bound`, a refused one's `reason`."""
 
@@ -377,7 +378,7 @@ class _Reader:
             return None
         return FixedTendons(
             names=[self._name(self.mj.mjtObj.mjOBJ_TENDON, t, f"tendon{t}") for t in kept],
-            positions=tree.position_of_velocity, coefficients=np.stack([self._coefficients(t, tree) for t in kept]),
+            coefficients=np.stack([self._coefficients(t, tree) for t in kept]),
             stiffness=stiffness[kept], damping=damping[kept], spring_range=m.tendon_lengthspring[kept])
 
     def _moment(self, a, tree) -> np.ndarray:
@@ -472,7 +473,8 @@ class _Reader:
 
     # ----- actuators ----------------------------------------------------------------------------
 
-    def _actuators(self) -> list:
+    @functools.cached_property
+    def actuators(self) -> list:
         """Every actuator as an `_Actuator`: a `<motor>` on a hinge or slide ("motor": its joint
         force's bound), one that needs MuJoCo's force law ("law": a servo, or any actuator on a
         fixed tendon), or one the plant cannot model ("refused", with the reason)."""
@@ -518,18 +520,18 @@ class _Reader:
     def needs_force_law(self) -> bool:
         """Whether an actuator needs MuJoCo's force law (`JointActuators`): a servo, or any
         actuator on a fixed tendon."""
-        return any(actuator.kind == "law" for actuator in self._actuators())
+        return any(actuator.kind == "law" for actuator in self.actuators)
 
     def actuated_joints(self) -> list:
         """The joints of the motors, in the order of their actuators (a named error for any other
         actuator)."""
-        for actuator in self._actuators():
+        for actuator in self.actuators:
             if actuator.kind == "refused":
                 raise MJCFError(f"{self.where}: actuator {actuator.name!r} {actuator.reason}, which the plant does not "
                                 "model. Pass actuated=[joint names] to make joints torque inputs (and close the "
                                 "actuator's loop around the plant yourself), or make it a <motor>, <position> or "
                                 "<velocity> on a joint")
-        return list(dict.fromkeys(self.joint_name[a.target] for a in self._actuators() if a.kind == "motor"))
+        return list(dict.fromkeys(self.joint_name[a.target] for a in self.actuators if a.kind == "motor"))
 
     def joint_actuators(self, tree) -> JointActuators:
         """Every actuator (motors and servos on hinges, slides and fixed tendons) as `JointActuators`:
@@ -546,7 +548,7 @@ class _Reader:
         limited = np.asarray(m.actuator_ctrllimited, bool)
         ctrl = np.where(limited[:, None], m.actuator_ctrlrange, inf)
         return JointActuators(
-            names=[actuator.name for actuator in self._actuators()], positions=tree.position_of_velocity,
+            names=[actuator.name for actuator in self.actuators],
             gain=m.actuator_gainprm[:, 0], bias=m.actuator_biasprm[:, :3],
             moment=np.stack([self._moment(a, tree) for a in range(m.nu)]).reshape(m.nu, tree.nv),
             force_range=force_range, joint_force_range=joint_range,
@@ -556,7 +558,7 @@ class _Reader:
         """Joint id -> the largest generalized force its motors together apply, at most the
         joint's `actuatorfrcrange` (joints with motors)."""
         bound = {}
-        for actuator in self._actuators():
+        for actuator in self.actuators:
             if actuator.kind == "motor":
                 bound[actuator.target] = bound.get(actuator.target, 0.0) + actuator.bound
         for j in bound:

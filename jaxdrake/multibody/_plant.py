@@ -467,7 +467,7 @@ class RigidBodySystem(System):
 
     def actuation(self, q, v, u):
         """The generalized force of the inputs: B u, or the `JointActuators`' (MuJoCo's servos)."""
-        return self.B @ u if self.actuators is None else self.actuators.joint_forces(q, v, u)
+        return self.B @ u if self.actuators is None else self.actuators.joint_forces(self.tree.joint_positions(q), v, u)
 
     def passive_force(self, q, v):
         r"""The joints' damping $-b \circ v$, their springs' torque (`KinematicTree.spring_torque`)
@@ -476,7 +476,7 @@ class RigidBodySystem(System):
         spring = self.tree.spring_torque(q)
         if spring is not None:
             tau = tau + spring
-        return tau if self.tendons is None else tau + self.tendons.forces(q, v)
+        return tau if self.tendons is None else tau + self.tendons.forces(self.tree.joint_positions(q), v)
 
     def _forward_dynamics(self, q, v, u):
         tau = (self.actuation(q, v, u) + self.passive_force(q, v) + self.joint_limit_torque(q, v)
@@ -497,7 +497,7 @@ class RigidBodySystem(System):
 
     @compiled_query
     def dynamics(self, t, x, u):
-        self._check_sizes(x=x, u=u)
+        self._check_sizes(x=x)   # u: in forward_dynamics
         q, v = x[: self.tree.nq], x[self.tree.nq:]
         return jnp.concatenate([alg.configuration_derivative(self.tree, q, v),
                                 self.forward_dynamics(q, v, u)])
@@ -620,7 +620,7 @@ class RigidBodySystem(System):
         their dissipation acts."""
         q, v = x[: self.tree.nq], x[self.tree.nq:]
         energy = alg.kinetic_energy(self.tree, q, v) + alg.potential_energy(self.tree, q) + self.tree.spring_energy(q)
-        return energy if self.tendons is None else energy + self.tendons.energy(q)
+        return energy if self.tendons is None else energy + self.tendons.energy(self.tree.joint_positions(q))
 
     @compiled_query
     def frame_pose(self, q, frame: str):

@@ -151,7 +151,13 @@ class KinematicTree(eqx.Module):
         return 0.5 * jnp.sum(self.spring_stiffness * self._spring_stretch(q) ** 2)
 
     def _spring_stretch(self, q):
-        return q[np.asarray(self.position_of_velocity)] - self.spring_reference
+        return self.joint_positions(q) - self.spring_reference
+
+    def joint_positions(self, q):
+        """q per velocity coordinate: a one-dof joint's position at its coordinate (a free
+        body's coordinates hold its first positions: the springs, actuators and tendons act on
+        hinges and slides alone)."""
+        return q[np.asarray(self.position_of_velocity)]
 
     @property
     def position_of_velocity(self) -> tuple:
